@@ -1,0 +1,458 @@
+"""Compiled kernels: the plant's right-hand side and an adaptive Dormand–Prince 5(4) integrator with dense
+output and exact location of the contact instant, batched over parameter vectors.
+
+Small, pure functions on float64 arrays and scalars; failures are returned as status codes, never raised.
+The readable model and the independent reference for these kernels are in :mod:`toggle_id.plant`.
+
+State y = (q, q̇, i_q). The parameter vector ``th`` is the extended vector of :mod:`toggle_id.effects`: the 15
+physical parameters of MODEL.md §6 followed by the parameters of the candidate effects (zero = off).
+"""
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+# ---- layout of the extended parameter vector (names in toggle_id.params / toggle_id.effects) -------------
+B_M, D_, J_M, K_I, K_L, K_T, L_Q, R_S, M2, M3, M5, MB, MC, MU, LAMBDA_D = range(15)
+TAU_C, F_S, V_S, C_B, TAU_D, B_L, A_COG, N_COG, PHI_COG, F_LOAD, K3, S_SAT, X_OFF = range(15, 28)
+N_THETA = 28
+
+# ---- layout of the geometry array (toggle_id.plant.Geometry.as_array) --------------------------------------
+G_R1, G_R2, G_R3, G_R4, G_R5, G_H, G_PHI, G_P, G_Z, G_G, G_XBL, G_EPS = range(12)
+
+# ---- status codes ----------------------------------------------------------------------------------------
+OK, MODEL_FAILURE, SOLVER_FAILURE, INVALID_PARAMS = 0, 1, 2, 3
+
+# ---- integrator settings array -----------------------------------------------------------------------------
+S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS = range(7)
+
+
+@nb.njit(cache=True, inline="always")
+def _input(t, th, v, t0_rec, dt_rec, sweep, use_sweep):
+    """Command v_in at time t (V): continuous swept sine or linear interpolation of the samples; dead time
+    shifts it; before the record starts (t < 0 after the shift) the command is 0."""
+    t = t - th[TAU_D]
+    if t < t0_rec - 1e-12:
+        return 0.0
+    if use_sweep:
+        A, B, w0, w1, T = sweep[0], sweep[1], sweep[2], sweep[3], sweep[4]
+        tau = t - T * math.floor(t / T)
+        frac = t / T - math.floor(t / T)
+        return A + B * math.sin((w0 + (w1 - w0) * frac) * tau)
+    x = (t - t0_rec) / dt_rec
+    n = v.shape[0]
+    k = int(math.floor(x))
+    if k >= n - 1:
+        return v[n - 1]
+    if k < 0:
+        return v[0]
+    f = x - k
+    return v[k] + f * (v[k + 1] - v[k])
+
+
+@nb.njit(cache=True)
+def _geometry(q, geo):
+    """Kinematics at q: x_B, x_B', x_B'', x_C', x_C'', θ5, M-basis terms. Returns ok=False outside assembly."""
+    r1, r3, r4, r5, h, phi = geo[G_R1], geo[G_R3], geo[G_R4], geo[G_R5], geo[G_H], geo[G_PHI]
+    s1 = math.sin(q)
+    c1 = math.cos(q)
+    sp = math.sin(q + phi)
+    cp = math.cos(q + phi)
+    sin2 = -r1 * s1 / r3
+    sin5 = (h - r4 * sp) / r5
+    if abs(sin5) >= 1.0 or abs(sin2) >= 1.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    cos2 = math.sqrt(1.0 - sin2 * sin2)
+    cos5 = math.sqrt(1.0 - sin5 * sin5)
+    d2 = -r1 * c1 / (r3 * cos2)
+    d5 = -r4 * cp / (r5 * cos5)
+    dd2 = (r1 / r3 * s1 + sin2 * d2 * d2) / cos2
+    dd5 = (r4 * sp / r5 + sin5 * d5 * d5) / cos5
+    x_B = r1 * c1 + r3 * cos2
+    dxB = -r1 * s1 - r3 * sin2 * d2
+    ddxB = -r1 * c1 - r3 * cos2 * d2 * d2 - r3 * sin2 * dd2
+    dxC = -r4 * sp - r5 * sin5 * d5
+    ddxC = -r4 * cp - r5 * cos5 * d5 * d5 - r5 * sin5 * dd5
+    # centres of the slender links 3 and 5: G' and G'' (MODEL.md §3)
+    g3x, g3y = 0.5 * (-r1 * s1 + dxB), 0.5 * (r1 * c1)
+    g3xx, g3yy = 0.5 * (-r1 * c1 + ddxB), 0.5 * (-r1 * s1)
+    g5x, g5y = 0.5 * (-r4 * sp + dxC), 0.5 * (r4 * cp)
+    g5xx, g5yy = 0.5 * (-r4 * cp + ddxC), 0.5 * (-r4 * sp)
+    b3 = g3x * g3x + g3y * g3y + r3 * r3 / 12.0 * d2 * d2
+    db3 = 2.0 * (g3x * g3xx + g3y * g3yy) + r3 * r3 / 6.0 * d2 * dd2
+    b5 = g5x * g5x + g5y * g5y + r5 * r5 / 12.0 * d5 * d5
+    db5 = 2.0 * (g5x * g5xx + g5y * g5yy) + r5 * r5 / 6.0 * d5 * dd5
+    return True, x_B, dxB, ddxB, dxC, ddxC, b3, db3, b5, db5, x_B, x_B - geo[G_XBL]
+
+
+# ---- geometry table: cubic Hermite interpolation of the q-only functions, shared by all individuals ---------
+# columns (value block, then derivative block): x_B, x_B', x_C', b3, b5, b3', b5', (x_B'²)', (x_C'²)', x_C
+T_XB, T_DXB, T_DXC, T_B3, T_B5, T_DB3, T_DB5, T_DGB, T_DGC, T_XC = range(10)
+N_TAB = 10
+# header of the table array: q_lo, 1/dq, number of nodes
+H_QLO, H_INVDQ, H_N = 0, 1, 2
+
+
+@nb.njit(cache=True)
+def _geometry_exact(q, geo):
+    """The tabulated quantities computed from the closed form (outside the table, and to build it)."""
+    ok, x_B, dxB, ddxB, dxC, ddxC, b3, db3, b5, db5, _, _ = _geometry(q, geo)
+    if not ok:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    return (True, x_B, dxB, dxC, b3, b5, db3, db5, 2.0 * dxB * ddxB, 2.0 * dxC * ddxC, _xc_rel(q, geo))
+
+
+@nb.njit(cache=True, inline="always")
+def _lookup(q, geo, tab, head):
+    """Geometry at q from the Hermite table (exact closed form outside it)."""
+    x = (q - head[H_QLO]) * head[H_INVDQ]
+    j = int(math.floor(x)) if x >= 0.0 else -1
+    if j < 0 or j >= int(head[H_N]) - 1:
+        return _geometry_exact(q, geo)
+    s = x - j
+    d = 1.0 / head[H_INVDQ]
+    s2 = s * s
+    s3 = s2 * s
+    h00 = 2.0 * s3 - 3.0 * s2 + 1.0
+    h10 = (s3 - 2.0 * s2 + s) * d
+    h01 = -2.0 * s3 + 3.0 * s2
+    h11 = (s3 - s2) * d
+    a = tab[j]
+    b = tab[j + 1]
+    return (True,
+            h00 * a[0] + h10 * a[10] + h01 * b[0] + h11 * b[10],
+            h00 * a[1] + h10 * a[11] + h01 * b[1] + h11 * b[11],
+            h00 * a[2] + h10 * a[12] + h01 * b[2] + h11 * b[12],
+            h00 * a[3] + h10 * a[13] + h01 * b[3] + h11 * b[13],
+            h00 * a[4] + h10 * a[14] + h01 * b[4] + h11 * b[14],
+            h00 * a[5] + h10 * a[15] + h01 * b[5] + h11 * b[15],
+            h00 * a[6] + h10 * a[16] + h01 * b[6] + h11 * b[16],
+            h00 * a[7] + h10 * a[17] + h01 * b[7] + h11 * b[17],
+            h00 * a[8] + h10 * a[18] + h01 * b[8] + h11 * b[18],
+            h00 * a[9] + h10 * a[19] + h01 * b[9] + h11 * b[19])
+
+
+@nb.njit(cache=True)
+def _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep):
+    """dy/dt of the plant with all effect terms; ``contact`` is the mode decided by event location."""
+    ok, x_B, dxB, dxC, b3, b5, db3, db5, dgB, dgC, x_C = _lookup(q, geo, tab, head)
+    if not ok or x_B <= 0.0:
+        return False, 0.0, 0.0, 0.0
+    z = x_B - geo[G_XBL]
+    Z = geo[G_Z]
+    eps = geo[G_EPS]
+    r2 = geo[G_R2]
+    mCeff = th[MC] + th[J_M] * Z * Z
+    M = th[M2] * r2 * r2 + th[M3] * b3 + th[M5] * b5 + th[MB] * dxB * dxB + mCeff * dxC * dxC
+    dM = th[M3] * db3 + th[M5] * db5 + th[MB] * dgB + mCeff * dgC
+    if not M > 0.0:
+        return False, 0.0, 0.0, 0.0
+    vB = dxB * w
+    vC = dxC * w
+    omega_m = Z * vC  # rotor speed, rad/s
+    # motor-side torque on the screw: electromagnetic − viscous − Coulomb − cogging (N·m)
+    tau = th[K_T] * iq - th[B_M] * omega_m
+    if th[TAU_C] != 0.0:
+        tau -= th[TAU_C] * math.tanh(omega_m / (Z * eps))
+    if th[A_COG] != 0.0:
+        tau += th[A_COG] * math.sin(th[N_COG] * Z * x_C + th[PHI_COG])
+    F_C = Z * tau
+    # forces on slider B: friction (Coulomb, Stribeck, viscous) and a constant load (N)
+    sg = math.tanh(vB / eps)
+    F_f = -th[MU] * th[MB] * geo[G_G] * sg - th[C_B] * vB - th[F_LOAD]
+    if th[F_S] != 0.0:
+        r = vB / th[V_S]
+        F_f -= th[F_S] * math.exp(-r * r) * sg
+    F_i = 0.0
+    if contact:
+        F_i = th[K_L] * z + th[D_] * vB + th[K3] * z * z * z
+    Q = F_C * dxC + (F_f - F_i) * dxB
+    wdot = (Q - 0.5 * dM * w * w) / M
+    u = th[K_I] * _input(t, th, v, t0_rec, dt_rec, sweep, use_sweep)
+    if th[S_SAT] > 0.0:
+        lim = 1.0 / th[S_SAT]
+        u = min(max(u, -lim), lim)
+    idot = (u - th[R_S] * iq - geo[G_P] * th[LAMBDA_D] * omega_m) / th[L_Q]
+    return True, w, wdot, idot
+
+
+@nb.njit(cache=True)
+def _xc_rel(q, geo):
+    """x_C(q) (m), for the rotor angle Z·x_C of the cogging term."""
+    r4, r5, h, phi = geo[G_R4], geo[G_R5], geo[G_H], geo[G_PHI]
+    sp = math.sin(q + phi)
+    sin5 = (h - r4 * sp) / r5
+    return r4 * math.cos(q + phi) + r5 * math.sqrt(max(0.0, 1.0 - sin5 * sin5))
+
+
+# Dormand–Prince 5(4) tableau, error weights and dense-output coefficients (Hairer, Nørsett & Wanner, DOPRI5)
+_A21 = 1 / 5
+_A31, _A32 = 3 / 40, 9 / 40
+_A41, _A42, _A43 = 44 / 45, -56 / 15, 32 / 9
+_A51, _A52, _A53, _A54 = 19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729
+_A61, _A62, _A63, _A64, _A65 = 9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656
+_A71, _A73, _A74, _A75, _A76 = 35 / 384, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84
+_C2, _C3, _C4, _C5 = 1 / 5, 3 / 10, 4 / 5, 8 / 9
+_E1, _E3, _E4, _E5, _E6, _E7 = 71 / 57600, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40
+_D1, _D3, _D4 = -12715105075 / 11282082432, 87487479700 / 32700410799, -10690763975 / 1880347072
+_D5, _D6, _D7 = 701980252875 / 199316789632, -1453857185 / 822651844, 69997945 / 29380423
+
+
+@nb.njit(cache=True)
+def _dense(th_, r1, r2, r3, r4, r5):
+    """DOPRI5 continuous extension at fraction θ of the step."""
+    s = 1.0 - th_
+    return r1 + th_ * (r2 + s * (r3 + th_ * (r4 + s * r5)))
+
+
+@nb.njit(cache=True)
+def _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep):
+    """One Dormand–Prince step of size h from (t, y) with k1 = f(t, y). Returns ok, y(t+h) and the stages
+    k3…k7 (k7 = f(t+h, y(t+h)), first-same-as-last) needed for the error estimate and dense output."""
+    a = (th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    ok2, k2q, k2w, k2i = _rhs(t + _C2 * h, q + h * _A21 * k1q, w + h * _A21 * k1w, iq + h * _A21 * k1i, contact,
+                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+    ok3, k3q, k3w, k3i = _rhs(t + _C3 * h, q + h * (_A31 * k1q + _A32 * k2q), w + h * (_A31 * k1w + _A32 * k2w),
+                              iq + h * (_A31 * k1i + _A32 * k2i), contact, a[0], a[1], a[2], a[3], a[4], a[5], a[6],
+                              a[7], a[8])
+    ok4, k4q, k4w, k4i = _rhs(t + _C4 * h, q + h * (_A41 * k1q + _A42 * k2q + _A43 * k3q),
+                              w + h * (_A41 * k1w + _A42 * k2w + _A43 * k3w),
+                              iq + h * (_A41 * k1i + _A42 * k2i + _A43 * k3i), contact,
+                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+    ok5, k5q, k5w, k5i = _rhs(t + _C5 * h, q + h * (_A51 * k1q + _A52 * k2q + _A53 * k3q + _A54 * k4q),
+                              w + h * (_A51 * k1w + _A52 * k2w + _A53 * k3w + _A54 * k4w),
+                              iq + h * (_A51 * k1i + _A52 * k2i + _A53 * k3i + _A54 * k4i), contact,
+                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+    ok6, k6q, k6w, k6i = _rhs(t + h, q + h * (_A61 * k1q + _A62 * k2q + _A63 * k3q + _A64 * k4q + _A65 * k5q),
+                              w + h * (_A61 * k1w + _A62 * k2w + _A63 * k3w + _A64 * k4w + _A65 * k5w),
+                              iq + h * (_A61 * k1i + _A62 * k2i + _A63 * k3i + _A64 * k4i + _A65 * k5i), contact,
+                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+    qn = q + h * (_A71 * k1q + _A73 * k3q + _A74 * k4q + _A75 * k5q + _A76 * k6q)
+    wn = w + h * (_A71 * k1w + _A73 * k3w + _A74 * k4w + _A75 * k5w + _A76 * k6w)
+    inn = iq + h * (_A71 * k1i + _A73 * k3i + _A74 * k4i + _A75 * k5i + _A76 * k6i)
+    ok7, k7q, k7w, k7i = _rhs(t + h, qn, wn, inn, contact, a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+    ok = ok2 and ok3 and ok4 and ok5 and ok6 and ok7
+    return (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w, k7i)
+
+
+@nb.njit(cache=True)
+def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
+                  out_x, out_i):
+    """Integrate one parameter vector from ``t_start`` (state y0, contact mode contact0) and write x_B and i_q
+    at the samples t_out[k] ≥ t_start for k < n_out. Samples before t_start are left untouched.
+
+    The contact switch (q crossing q_L, i.e. x_B crossing x_B^L, either way) is located on the dense output
+    and the step is retaken to end exactly there, so every step integrates a smooth right-hand side.
+    Returns (status, n_steps, t_contact, q_c, w_c, i_c): the first closing contact after t_start and the
+    state there (t_contact = inf if none), from which stage 2 restarts.
+    """
+    rtol = settings[S_RTOL]
+    atq, atw, ati = settings[S_ATOL_Q], settings[S_ATOL_W], settings[S_ATOL_I]
+    hmax = settings[S_HMAX]
+    max_steps = int(settings[S_MAXSTEPS])
+    t0_rec = t_out[0]
+    dt_rec = t_out[1] - t_out[0]
+    r1, r3 = geo[G_R1], geo[G_R3]
+    q_L = math.acos(geo[G_XBL] / (r1 + r3))  # contact iff q ≤ q_L (x_B ≥ x_B^L)
+    xoff = th[X_OFF]
+    t_c, qc, wc, ic = np.inf, 0.0, 0.0, 0.0
+
+    t = t_start
+    q, w, iq = y0[0], y0[1], y0[2]
+    contact = contact0
+    k = 0  # next output sample
+    while k < n_out and t_out[k] < t_start - 1e-12:
+        k += 1
+    if k < n_out and abs(t_out[k] - t) <= 1e-12:
+        ok, xb, _, _, _, _, _, _, _, _, _, _ = _geometry(q, geo)
+        if not ok:
+            return MODEL_FAILURE, 0, t_c, qc, wc, ic
+        out_x[k] = xb + xoff
+        out_i[k] = iq
+        k += 1
+    if k >= n_out:
+        return OK, 0, t_c, qc, wc, ic
+    t_end = t_out[n_out - 1]
+
+    ok, k1q, k1w, k1i = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    if not ok:
+        return MODEL_FAILURE, 0, t_c, qc, wc, ic
+    h = min(settings[S_H0], hmax)
+    facold = 1e-4
+    n_steps = 0
+    last_reject = False
+    geom_fail = False
+    while t < t_end - 1e-13:
+        if n_steps >= max_steps:
+            return SOLVER_FAILURE, n_steps, t_c, qc, wc, ic
+        if h < 1e-14 * max(1.0, abs(t)) + 1e-15:
+            return (MODEL_FAILURE if geom_fail else SOLVER_FAILURE), n_steps, t_c, qc, wc, ic
+        if t + h > t_end:
+            h = t_end - t
+        n_steps += 1
+        (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
+         k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                      use_sweep)
+        if not ok:  # a stage left the assembly range: shrink; if it persists the model has failed
+            geom_fail = True
+            h *= 0.25
+            last_reject = True
+            continue
+        eq = h * (_E1 * k1q + _E3 * k3q + _E4 * k4q + _E5 * k5q + _E6 * k6q + _E7 * k7q)
+        ew = h * (_E1 * k1w + _E3 * k3w + _E4 * k4w + _E5 * k5w + _E6 * k6w + _E7 * k7w)
+        ei = h * (_E1 * k1i + _E3 * k3i + _E4 * k4i + _E5 * k5i + _E6 * k6i + _E7 * k7i)
+        sq = eq / (atq + rtol * max(abs(q), abs(qn)))
+        sw = ew / (atw + rtol * max(abs(w), abs(wn)))
+        si = ei / (ati + rtol * max(abs(iq), abs(inn)))
+        err = math.sqrt((sq * sq + sw * sw + si * si) / 3.0)
+        if not err <= 1e300:  # NaN or overflow
+            geom_fail = False
+            h *= 0.25
+            last_reject = True
+            continue
+        # step-size control (PI controller of DOPRI5: beta = 0.04, safety 0.9, factors in [0.2, 10])
+        fac11 = err ** 0.17
+        if err > 1.0:
+            h = h / min(fac11 / 0.9, 5.0)
+            last_reject = True
+            continue
+        geom_fail = False
+        fac = max(0.1, min(5.0, fac11 / facold ** 0.04 / 0.9))
+        facold = max(err, 1e-4)
+        h_new = min(h / fac, hmax)
+        if last_reject:
+            h_new = min(h_new, h)
+        last_reject = False
+        # --- contact event: does q cross q_L inside this step? ---
+        g0 = q_L - q
+        g1 = q_L - qn
+        if contact == 0:
+            crossed = (g0 < 0.0) and (g1 >= 0.0)
+        else:
+            crossed = (g0 >= 0.0) and (g1 < 0.0)
+        if crossed:
+            dq = qn - q
+            r3q = h * k1q - dq
+            r4q = dq - h * k7q - r3q
+            r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
+            a, b, ga, gb = 0.0, 1.0, g0, g1
+            side = 0
+            for _ in range(100):  # Illinois on the dense output of q
+                th_ = (a * gb - b * ga) / (gb - ga)
+                gm = q_L - _dense(th_, q, dq, r3q, r4q, r5q)
+                if (gm < 0.0) == (ga < 0.0):
+                    a, ga = th_, gm
+                    if side == -1:
+                        gb *= 0.5
+                    side = -1
+                else:
+                    b, gb = th_, gm
+                    if side == 1:
+                        ga *= 0.5
+                    side = 1
+                if (b - a) * h < 1e-13 or gm == 0.0:
+                    break
+            h = max(b * h, 1e-15)  # retake the step to the far side of the event, in the old mode
+            (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
+             k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                          use_sweep)
+            if not ok:
+                return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
+        # --- dense output at the samples inside (t, t + h] ---
+        t_new = t + h
+        if k < n_out and t_out[k] <= t_new + 1e-12:
+            dq = qn - q
+            di = inn - iq
+            r3q = h * k1q - dq
+            r4q = dq - h * k7q - r3q
+            r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
+            r3i = h * k1i - di
+            r4i = di - h * k7i - r3i
+            r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
+            while k < n_out and t_out[k] <= t_new + 1e-12:
+                s = min((t_out[k] - t) / h, 1.0)
+                qs = _dense(s, q, dq, r3q, r4q, r5q)
+                sin2 = r1 * math.sin(qs) / r3
+                out_x[k] = r1 * math.cos(qs) + r3 * math.sqrt(max(0.0, 1.0 - sin2 * sin2)) + xoff
+                out_i[k] = _dense(s, iq, di, r3i, r4i, r5i)
+                k += 1
+        t = t_new
+        q, w, iq = qn, wn, inn
+        if not (math.isfinite(q) and math.isfinite(w) and math.isfinite(iq)):
+            return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
+        if crossed:
+            if contact == 0 and t_c == np.inf:
+                t_c, qc, wc, ic = t, q, w, iq
+            contact = 1 - contact
+            ok, k7q, k7w, k7i = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                                     use_sweep)
+            if not ok:
+                return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
+            h_new = min(h_new, max(h, 1e-6))
+        k1q, k1w, k1i = k7q, k7w, k7i
+        h = h_new
+    ok, xb, _, _, _, _, _, _, _, _, _, _ = _geometry(q, geo)
+    if not ok or xb <= 0.0:
+        return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
+    return OK, n_steps, t_c, qc, wc, ic
+
+
+@nb.njit(cache=True)
+def _geometry_into(q, geo, out):
+    """Write the tabulated quantities at q into out[0:N_TAB]; False outside the assembly range."""
+    r = _geometry_exact(q, geo)
+    out[0], out[1], out[2], out[3], out[4] = r[1], r[2], r[3], r[4], r[5]
+    out[5], out[6], out[7], out[8], out[9] = r[6], r[7], r[8], r[9], r[10]
+    return r[0]
+
+
+@nb.njit(cache=True)
+def _build_table(geo, q_lo, dq, n):
+    """Values and q-derivatives (4th-order central differences, step dq/1000) of the tabulated geometry at
+    the nodes q_lo + j·dq; rows outside the assembly range are NaN."""
+    tab = np.full((n, 2 * N_TAB), np.nan)
+    e = dq * 1e-3
+    f0 = np.empty(N_TAB)
+    fp1 = np.empty(N_TAB)
+    fm1 = np.empty(N_TAB)
+    fp2 = np.empty(N_TAB)
+    fm2 = np.empty(N_TAB)
+    for j in range(n):
+        q = q_lo + j * dq
+        ok = _geometry_into(q, geo, f0)
+        ok &= _geometry_into(q + e, geo, fp1)
+        ok &= _geometry_into(q - e, geo, fm1)
+        ok &= _geometry_into(q + 2 * e, geo, fp2)
+        ok &= _geometry_into(q - 2 * e, geo, fm2)
+        if not ok:
+            continue
+        for c in range(N_TAB):
+            tab[j, c] = f0[c]
+            tab[j, N_TAB + c] = (-fp2[c] + 8.0 * fp1[c] - 8.0 * fm1[c] + fm2[c]) / (12.0 * e)
+    return tab
+
+
+@nb.njit(cache=True)
+def _simulate_batch_serial(thetas, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
+                           out_x, out_i, status, n_steps, events):
+    """Serial loop over rows of ``thetas`` (one Ray actor = one core)."""
+    for p in range(thetas.shape[0]):
+        st, ns, tc, qc, wc, ic = _simulate_one(thetas[p], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0,
+                                               contact0, settings, out_x[p], out_i[p])
+        status[p] = st
+        n_steps[p] = ns
+        events[p, 0], events[p, 1], events[p, 2], events[p, 3] = tc, qc, wc, ic
+
+
+@nb.njit(cache=True, parallel=True)
+def _simulate_batch_parallel(thetas, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
+                             out_x, out_i, status, n_steps, events):
+    """Threaded loop over rows of ``thetas`` (standalone use: jobs.simulate, benchmarks)."""
+    for p in nb.prange(thetas.shape[0]):
+        st, ns, tc, qc, wc, ic = _simulate_one(thetas[p], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0,
+                                               contact0, settings, out_x[p], out_i[p])
+        status[p] = st
+        n_steps[p] = ns
+        events[p, 0], events[p, 1], events[p, 2], events[p, 3] = tc, qc, wc, ic

@@ -1,0 +1,165 @@
+"""Batched simulation of the motor-toggle plant: a population of parameter vectors, one record, sampled
+x_B and i_q for all of them, and a per-individual status.
+
+>>> from toggle_id.simulate import simulate, FAST
+>>> from toggle_id.record import Record
+>>> from toggle_id.params import ASSIGNED
+>>> res = simulate(ASSIGNED[None, :], Record.from_sweep("simulation"))
+>>> res.status.tolist(), res.x_B.shape
+([0], (1, 5001))
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from . import _kernels as K
+from .params import N_PARAMS
+from .plant import GEOMETRY, Geometry
+from .record import Record
+
+#: Status codes of a simulation (per individual).
+STATUS_OK, STATUS_MODEL_FAILURE, STATUS_SOLVER_FAILURE, STATUS_INVALID = K.OK, K.MODEL_FAILURE, K.SOLVER_FAILURE, K.INVALID_PARAMS
+STATUS_NAMES = {STATUS_OK: "ok", STATUS_MODEL_FAILURE: "model failure", STATUS_SOLVER_FAILURE: "solver failure",
+                STATUS_INVALID: "invalid parameters"}
+N_THETA = K.N_THETA
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Adaptive Dormand–Prince 5(4) settings: relative tolerance, absolute tolerances on (q rad, q̇ rad/s,
+    i_q A), first step and largest step (s), and the step budget per simulation (beyond it: solver failure)."""
+
+    rtol: float = 1e-7
+    atol_q: float = 1e-9
+    atol_w: float = 1e-6
+    atol_i: float = 1e-3
+    h0: float = 1e-4
+    hmax: float = 5e-3
+    max_steps: int = 50_000
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.rtol, self.atol_q, self.atol_w, self.atol_i, self.h0, self.hmax,
+                         float(self.max_steps)], dtype=float)
+
+
+#: Fast tier (the GA): x_B within 1 µm of the references. Precise tier (polish, sensitivities, residuals).
+FAST = SolverSettings()
+PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=500_000)
+TIERS = {"fast": FAST, "precise": PRECISE}
+
+
+@dataclass
+class SimResult:
+    """x_B (P, N) in m and i_q (P, N) in A at the record's samples; ``status`` (P,) codes (0 = ok); rows that
+    failed hold NaN. ``n_steps`` accepted+rejected integrator steps; ``contact`` (P, 4): first contact instant
+    (s, inf if none) and the state (q, q̇, i_q) there."""
+
+    x_B: np.ndarray
+    i_q: np.ndarray
+    status: np.ndarray
+    n_steps: np.ndarray
+    contact: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == STATUS_OK
+
+    def status_counts(self) -> dict[str, int]:
+        return {STATUS_NAMES[c]: int(np.sum(self.status == c)) for c in STATUS_NAMES}
+
+
+def extend(theta: np.ndarray, extra: np.ndarray | None = None) -> np.ndarray:
+    """(P, 15) physical parameters → (P, N_THETA) kernel vectors with the effect parameters at their 'off'
+    defaults (see :mod:`toggle_id.effects`), or taken from ``extra`` (P or 1, N_THETA − 15)."""
+    from .effects import EXTRA_DEFAULTS  # late import: effects imports this module's constants
+
+    theta = np.atleast_2d(np.asarray(theta, dtype=float))
+    if theta.shape[1] == N_THETA:
+        return np.ascontiguousarray(theta)
+    if theta.shape[1] != N_PARAMS:
+        raise ValueError(f"parameter vectors must have {N_PARAMS} (or {N_THETA}) columns, got {theta.shape[1]}")
+    out = np.empty((theta.shape[0], N_THETA))
+    out[:, :N_PARAMS] = theta
+    out[:, N_PARAMS:] = EXTRA_DEFAULTS if extra is None else extra
+    return out
+
+
+_TABLES: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def geometry_table(geometry: Geometry = GEOMETRY, dq: float = 5e-4) -> tuple[np.ndarray, np.ndarray]:
+    """Cubic-Hermite table of the q-only kinematics, built once per geometry and shared by all individuals.
+
+    It spans the crank angles where link 5 is well away from its singular (|sin θ5| → 1) end; outside it the
+    kernel falls back to the closed form. Returns (table (n, 20), header [q_lo, 1/dq, n]).
+    """
+    key = (tuple(geometry.as_array()), dq)
+    if key not in _TABLES:
+        # |sin θ5| ≤ 0.9  ⇔  sin(q + φ) ≥ (h − 0.9 r5) / r4
+        q_lo = float(np.arcsin((geometry.h - 0.9 * geometry.r5) / geometry.r4) - geometry.phi)
+        q_hi = float(np.arccos(0.0)) - 1e-6
+        n = int((q_hi - q_lo) / dq) + 1
+        tab = K._build_table(geometry.as_array(), q_lo, dq, n)
+        _TABLES[key] = (tab, np.array([q_lo, 1.0 / dq, float(n)]))
+    return _TABLES[key]
+
+
+def _invalid_rows(thetas: np.ndarray, geo: Geometry) -> np.ndarray:
+    """Rows that cannot define a plant: non-finite, negative, L_q ≤ 0, or no inertia at all."""
+    phys = thetas[:, :N_PARAMS]
+    bad = ~np.all(np.isfinite(thetas), axis=1)
+    bad |= np.any(phys < 0.0, axis=1)
+    bad |= ~(thetas[:, K.L_Q] > 0.0)
+    inertia = thetas[:, [K.M2, K.M3, K.M5, K.MB, K.MC, K.J_M]].sum(axis=1)
+    bad |= ~(inertia > 0.0)
+    return bad
+
+
+def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST, *, n_samples: int | None = None,
+             start: tuple[float, Sequence[float], int] | None = None, parallel: bool = False,
+             geometry: Geometry = GEOMETRY) -> SimResult:
+    """Simulate every row of ``theta`` ((P, 15) physical or (P, N_THETA) extended) on ``record``.
+
+    ``n_samples`` limits the output (and the integration) to the first samples (stage 1 needs only the
+    pre-clamp part). ``start = (t0, (q, q̇, i_q), contact)`` restarts from a known state (stage 2 reuses the
+    shared pre-contact trajectory); samples before t0 are NaN. Never raises for bad parameter values: each
+    row gets a status.
+    """
+    thetas = extend(theta)
+    P = thetas.shape[0]
+    N = record.n if n_samples is None else int(n_samples)
+    if not 1 <= N <= record.n:
+        raise ValueError(f"n_samples must be in [1, {record.n}], got {n_samples}")
+    geo = geometry.as_array()
+    if start is None:
+        q0 = geometry.q_of_xB(record.x_B0)
+        start = (float(record.t[0]), (q0, 0.0, 0.0), int(record.x_B0 >= geometry.x_B_L))
+    t0, y0, contact0 = start
+    y0 = np.asarray(y0, dtype=float)
+    x = np.full((P, record.n), np.nan)
+    i = np.full((P, record.n), np.nan)
+    status = np.zeros(P, dtype=np.int8)
+    n_steps = np.zeros(P, dtype=np.int64)
+    events = np.full((P, 4), np.nan)
+    bad = _invalid_rows(thetas, geometry)
+    good = np.flatnonzero(~bad)
+    status[bad] = STATUS_INVALID
+    if good.size:
+        sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
+        kern = K._simulate_batch_parallel if parallel else K._simulate_batch_serial
+        xs, is_ = np.full((good.size, record.n), np.nan), np.full((good.size, record.n), np.nan)
+        st, ns, ev = np.zeros(good.size, np.int8), np.zeros(good.size, np.int64), np.zeros((good.size, 4))
+        tab, head = geometry_table(geometry)
+        kern(np.ascontiguousarray(thetas[good]), geo, tab, head, record.t, N, record.v_in, sweep, record.sweep is not None,
+             float(t0), y0, int(contact0), settings.as_array(), xs, is_, st, ns, ev)
+        x[good], i[good], status[good], n_steps[good], events[good] = xs, is_, st, ns, ev
+    failed = status != STATUS_OK
+    x[failed] = np.nan
+    i[failed] = np.nan
+    if N < record.n:
+        x[:, N:] = np.nan
+        i[:, N:] = np.nan
+    return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events)
