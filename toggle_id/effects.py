@@ -1,11 +1,117 @@
-"""Candidate effects the nominal model lacks (issue: close the loop). Placeholder layout; see _kernels."""
+"""The library of candidate effects the nominal model (MODEL.md) lacks.
+
+Each effect is a physically meaningful term of the compiled right-hand side with its own parameters, bounds
+and an *off* value at which the term vanishes (the nominal model). An effect's parameters live in the
+extended parameter vector after the 15 physical ones (slots fixed in :mod:`toggle_id._kernels`), so switching
+an effect on is choosing which extended parameters are free; the discovery pipeline never names an effect.
+Adding an effect = adding its term to the kernel's right-hand side and one :class:`Effect` entry here.
+
+Parameters that only shape an effect (a Stribeck velocity, a cogging order) are *nuisance* parameters: they
+have no influence while the effect is off, so the score test probes them on a small grid (``probe``).
+"""
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import _kernels as K
+from .params import N_PARAMS, PARAM_NAMES
 
-EXTRA_NAMES = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a_cog", "n_cog", "phi_cog", "F_load", "k3", "s_sat", "x_off")
-EXTRA_DEFAULTS = np.zeros(K.N_THETA - 15)
-EXTRA_DEFAULTS[K.V_S - 15] = 0.01
-EXTRA_DEFAULTS[K.N_COG - 15] = 1.0
+
+@dataclass(frozen=True)
+class EffectParam:
+    """One parameter of an effect: kernel slot, unit, feasible domain and the value that switches it off."""
+
+    name: str
+    slot: int
+    unit: str
+    lower: float
+    upper: float
+    off: float = 0.0
+    nuisance: bool = False
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A candidate effect: its parameters and the probe values used to score it from the nominal fit.
+
+    ``probe`` lists parameter settings (name → value) at which the effect is 'small but on'; the score test
+    linearises the output around the nominal fit in the direction of each probe and keeps the best.
+    """
+
+    name: str
+    description: str
+    params: tuple[EffectParam, ...]
+    probe: tuple[dict, ...] = field(default_factory=tuple)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+    @property
+    def magnitude(self) -> EffectParam:
+        """The parameter that measures the effect's size (the first non-nuisance one)."""
+        return next(p for p in self.params if not p.nuisance)
+
+
+EFFECTS: tuple[Effect, ...] = (
+    Effect("coulomb_friction_motor", "Coulomb torque on the motor/screw side, −τ_c·sgn(ω_r)",
+           (EffectParam("tau_c", K.TAU_C, "N·m", 0.0, 20.0),), ({"tau_c": 0.1},)),
+    Effect("stribeck_friction", "Stribeck excess friction on slider B, −F_s·exp(−(ẋ_B/v_s)²)·sgn(ẋ_B)",
+           (EffectParam("F_s", K.F_S, "N", 0.0, 500.0), EffectParam("v_s", K.V_S, "m/s", 1e-4, 0.5, 0.01, True)),
+           ({"F_s": 1.0, "v_s": 0.003}, {"F_s": 1.0, "v_s": 0.01}, {"F_s": 1.0, "v_s": 0.03},
+            {"F_s": 1.0, "v_s": 0.1})),
+    Effect("viscous_friction_slider", "viscous friction on slider B, −c_B·ẋ_B",
+           (EffectParam("c_B", K.C_B, "N·s/m", 0.0, 1e4),), ({"c_B": 10.0},)),
+    Effect("dead_time", "transport delay of the drive input, v_in(t − τ_d)",
+           (EffectParam("tau_d", K.TAU_D, "s", 0.0, 0.05),), ({"tau_d": 1e-4},)),
+    Effect("backlash", "dead band b_l of the screw–nut: the nut follows the rotor only after the lash is taken up",
+           (EffectParam("b_l", K.B_L, "m", 0.0, 2e-3),), ({"b_l": 1e-5},)),
+    Effect("cogging_torque", "torque ripple a·sin(n·θ_r + φ) periodic in the rotor angle θ_r = Z·x_C",
+           (EffectParam("a_cog", K.A_COG, "N·m", 0.0, 20.0),
+            EffectParam("n_cog", K.N_COG, "1/rev", 1.0, 48.0, 6.0, True),
+            EffectParam("phi_cog", K.PHI_COG, "rad", -np.pi, np.pi, 0.0, True)),
+           tuple({"a_cog": 0.1, "n_cog": float(n), "phi_cog": ph} for n in (1, 2, 3, 4, 6, 8, 12, 16, 24)
+                 for ph in (0.0, np.pi / 2))),
+    Effect("constant_load_force", "constant external force on slider B, −F_load (positive opposes closing)",
+           (EffectParam("F_load", K.F_LOAD, "N", -2000.0, 2000.0),), ({"F_load": 1.0},)),
+    Effect("contact_nonlinear_stiffness", "hardening contact, F_i += k3·z³ while clamped",
+           (EffectParam("k3", K.K3, "N/m³", -1e15, 1e15),), ({"k3": 1e10},)),
+    Effect("voltage_saturation", "drive output limit |K_i·v_in| ≤ 1/s_sat (s_sat = 0: no limit)",
+           (EffectParam("s_sat", K.S_SAT, "1/V", 0.0, 1.0),),
+           tuple({"s_sat": s} for s in (0.12, 0.15, 0.17, 0.2, 0.25, 0.35, 0.5))),
+    Effect("sensor_offset", "constant offset of the measured x_B",
+           (EffectParam("x_off", K.X_OFF, "m", -5e-3, 5e-3),), ({"x_off": 1e-6},)),
+)
+
+EFFECTS_BY_NAME: dict[str, Effect] = {e.name: e for e in EFFECTS}
+
+#: Names of the extended parameter vector (kernel order): the 15 physical ones, then the effect parameters.
+EXTRA_NAMES: tuple[str, ...] = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a_cog", "n_cog", "phi_cog",
+                                "F_load", "k3", "s_sat", "x_off")
+ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES
+ALL_INDEX: dict[str, int] = {n: i for i, n in enumerate(ALL_NAMES)}
+assert len(ALL_NAMES) == K.N_THETA
+for _e in EFFECTS:
+    for _p in _e.params:
+        assert ALL_INDEX[_p.name] == _p.slot, _p
+
+#: Values of the effect parameters in the nominal model (all effects off; nuisance ones at their defaults).
+EXTRA_DEFAULTS = np.zeros(K.N_THETA - N_PARAMS)
+for _e in EFFECTS:
+    for _p in _e.params:
+        EXTRA_DEFAULTS[_p.slot - N_PARAMS] = _p.off
+
+
+def effect(name: str) -> Effect:
+    """The effect called ``name``; ValueError listing the known ones otherwise."""
+    if name not in EFFECTS_BY_NAME:
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECTS_BY_NAME)}")
+    return EFFECTS_BY_NAME[name]
+
+
+def effect_bounds(names) -> tuple[np.ndarray, np.ndarray]:
+    """Feasible domain of extended (effect) parameter names."""
+    lookup = {p.name: p for e in EFFECTS for p in e.params}
+    return (np.array([lookup[n].lower for n in names], float), np.array([lookup[n].upper for n in names], float))

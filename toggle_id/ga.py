@@ -431,7 +431,8 @@ class RGA:
             ga._generation = int(state["generation"])
             ga._n_evaluations = int(state["n_evaluations"])
             ga._best_u = None if state["best_u"] is None else np.array(state["best_u"], dtype=float)
-            ga._best_fitness = float(state["best_fitness"])
+            best = state["best_fitness"]  # -inf before the first tell; JSON writers may have turned it into None
+            ga._best_fitness = -math.inf if best is None else float(best)
             ga._history = [float(v) for v in state["history"]]
             ga._stall = int(state["stall"])
             ga._stopped = False  # stop() is the driver's decision, not part of the state
@@ -447,6 +448,18 @@ class RGA:
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise CheckpointError(f"unusable GA state: {type(err).__name__}: {err}") from err
         return ga
+
+
+def split_state(state: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Split :meth:`RGA.state_dict` output into (numeric arrays for an npz, JSON-able rest)."""
+    arrays = {k: v for k, v in state.items() if isinstance(v, np.ndarray)}
+    meta = {k: v for k, v in state.items() if not isinstance(v, np.ndarray)}
+    return arrays, meta
+
+
+def join_state(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> dict[str, Any]:
+    """Inverse of :func:`split_state`: one state mapping for :meth:`RGA.from_state`."""
+    return {**dict(meta), **dict(arrays)}
 
 
 def _copy_plain(value: Any) -> Any:

@@ -10,11 +10,12 @@ from .data import DEFAULT_CSV, DEFAULT_MAT, GTAU, KP, KV, EmpsRecord, load_emps_
 from .fit import OEFitResult, fit_output_error, make_jacobian, make_residual, run_emps_loop
 from .idim import idim_ls
 from .model import (EFFECTS, NOMINAL_NAMES, PARAM_NAMES, PUBLISHED, PUBLISHED_THETA, Effect, EmpsSimResult,
-                    position_rel_error_pct, simulate_emps, simulate_kernel, theta_from_dict, theta_to_dict)
+                    controller_law, position_rel_error_pct, simulate_emps, simulate_kernel, theta_from_dict,
+                    theta_to_dict)
 
 __all__ = [
     "DEFAULT_CSV", "DEFAULT_MAT", "GTAU", "KP", "KV", "EmpsRecord", "load_emps_csv", "load_emps_mat",
     "OEFitResult", "fit_output_error", "make_jacobian", "make_residual", "run_emps_loop", "idim_ls",
     "EFFECTS", "NOMINAL_NAMES", "PARAM_NAMES", "PUBLISHED", "PUBLISHED_THETA", "Effect", "EmpsSimResult",
-    "position_rel_error_pct", "simulate_emps", "simulate_kernel", "theta_from_dict", "theta_to_dict",
+    "controller_law", "position_rel_error_pct", "simulate_emps", "simulate_kernel", "theta_from_dict", "theta_to_dict",
 ]

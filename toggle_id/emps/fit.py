@@ -1,13 +1,16 @@
 """Output-error identification of the EMPS and the greedy effect-discovery loop.
 
 The output-error residual is r(x) = qm − q_sim(θ(x)) (m) over a chosen subset ``free`` of the parameters, with
-the closed loop simulated by :func:`toggle_id.emps.model.simulate_emps`. The fit is bounded least squares on the
-raw parameters (no log transform: the offset is negative and effect parameters start at zero) with a batched
-forward-difference Jacobian (one kernel call for all columns, same RK4 substep count in every row).
+the closed loop simulated by :func:`toggle_id.emps.model.simulate_emps`. The fit is bounded least squares with a
+batched forward-difference Jacobian (one kernel call for all columns, same RK4 substep count in every row), by
+scipy's ``least_squares`` on the raw parameters or by :func:`toggle_id.polish.polish` (``solver='polish'``; log
+space for M only: the offset is negative and effect parameters start at zero).
 
 :func:`run_emps_loop` fits the nominal model (M, Fv), then adds effects from :data:`~toggle_id.emps.model.EFFECTS`
-greedily: every round it refits the current model plus each remaining candidate, and accepts the best candidate
-(lowest BIC) among those that pass an F-test on the SSE (p < alpha) *and* lower the BIC.
+greedily: every round it refits the current model plus each eligible remaining candidate, and accepts the best
+(lowest BIC) among those that pass an F-test on the SSE (p < alpha), lower the BIC and stay identifiable
+(|correlation| ≤ max_corr). The residuals are strongly autocorrelated (closed loop, 1 kHz), so with N ≈ 25 000
+the F-test and BIC are lenient: they rank candidates well but accept small improvements.
 """
 from __future__ import annotations
 
@@ -20,9 +23,8 @@ import numpy as np
 from ..errors import ConfigError, DataError
 from .data import EmpsRecord
 from .idim import idim_ls
-from .model import (EFFECTS, INDEX, LOWER, N_PARAMS, NOMINAL_NAMES, OFF, PARAM_NAMES, PUBLISHED, PUBLISHED_ASYM_PM,
-                    PUBLISHED_THETA,
-                    UPPER, as_theta_batch, position_rel_error_pct, simulate_emps, theta_to_dict)
+from .model import (EFFECTS, INDEX, LOWER, NOMINAL_NAMES, OFF, PARAM_NAMES, PUBLISHED, PUBLISHED_ASYM_PM,
+                    PUBLISHED_THETA, UPPER, as_theta_batch, position_rel_error_pct, simulate_emps, theta_to_dict)
 
 #: Typical magnitude of each parameter (sets finite-difference steps and x_scale), SI units.
 _TYPICAL = {"M": 100.0, "Fv": 100.0, "Fc": 10.0, "offset": 1.0, "Fs": 1.0, "vs": 1e-3,
@@ -126,6 +128,7 @@ class OEFitResult:
     n: int
     rel_error_pct: float
     std: dict = field(default_factory=dict)
+    corr: np.ndarray | None = None
     nfev: int = 0
     success: bool = False
     message: str = ""
@@ -191,6 +194,31 @@ def _least_squares(residual: Callable, jac: Callable, x0: np.ndarray, lower: np.
     return res.x, int(res.nfev), bool(res.success), str(res.message)
 
 
+def _covariance(J: np.ndarray, sse: float, n: int, free: Sequence[str]) -> tuple[dict, np.ndarray]:
+    """Approximate σ (dict) and correlation matrix of the free parameters from the Jacobian J (N, p), assuming
+    white residuals (they are not: the σ are optimistic; the correlations are what the loop uses)."""
+    p = len(free)
+    try:
+        cov = sse / max(n - p, 1) * np.linalg.inv(J.T @ J)
+        d = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = cov / np.outer(d, d)
+        return {nm: float(d[i]) for i, nm in enumerate(free)}, corr
+    except np.linalg.LinAlgError:
+        return {nm: float("nan") for nm in free}, np.full((p, p), np.nan)
+
+
+def max_abs_corr(corr: np.ndarray | None, new: Sequence[int]) -> float:
+    """Largest |correlation| between any parameter index in ``new`` and any other free parameter (NaN → 1)."""
+    if corr is None or corr.shape[0] < 2:
+        return 0.0
+    worst = 0.0
+    for i in new:
+        row = np.abs(np.delete(corr[i], i))
+        worst = max(worst, 1.0 if not np.all(np.isfinite(row)) else float(row.max()))
+    return worst
+
+
 def fit_output_error(record: EmpsRecord, free: Sequence[str], theta0: np.ndarray | Mapping[str, float],
                      lower: np.ndarray | None = None, upper: np.ndarray | None = None, *, max_nfev: int = 50,
                      rel_step: float = 1e-5, solver: str = "scipy",
@@ -218,15 +246,10 @@ def fit_output_error(record: EmpsRecord, free: Sequence[str], theta0: np.ndarray
     theta[idx] = x
     sse = float(r @ r)
     n = record.n
-    std = {}
-    J = jac(x)
-    try:
-        cov = sse / max(n - idx.size, 1) * np.linalg.inv(J.T @ J)
-        std = {nm: float(np.sqrt(max(cov[i, i], 0.0))) for i, nm in enumerate(free)}
-    except np.linalg.LinAlgError:
-        std = {nm: float("nan") for nm in free}
+    std, corr = _covariance(jac(x), sse, n, free)
     return OEFitResult(theta=theta, free=tuple(free), sse=sse, n=n,
-                       rel_error_pct=float(100 * np.sqrt(sse) / np.linalg.norm(record.qm)), std=std, nfev=nfev,
+                       rel_error_pct=float(100 * np.sqrt(sse) / np.linalg.norm(record.qm)), std=std, corr=corr,
+                       nfev=nfev,
                        success=success, message=message, seconds=time.perf_counter() - t_start)
 
 
@@ -250,17 +273,20 @@ def _compare_published(theta: np.ndarray, free: Sequence[str]) -> dict:
 
 def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
-                  max_effects: int | None = None, solver: str = "scipy", reference_fit: bool = True,
+                  max_effects: int | None = None, max_corr: float = 0.99, solver: str = "scipy",
+                  reference_fit: bool = True,
                   sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
 
     Each round refits all parameters of the current model plus one candidate (from its registry default) for every
     remaining candidate whose ``requires`` are in the model, and accepts the lowest-BIC candidate among those with
-    F-test p < ``alpha`` and ΔBIC < 0; it stops when none passes. Keys of the report:
+    F-test p < ``alpha``, ΔBIC < 0 and every new parameter identifiable (|correlation| with each other free
+    parameter ≤ ``max_corr``; e.g. the offset and the Coulomb asymmetry differ only at standstill); it stops when
+    none passes. Keys of the report:
 
     - ``position_rel_error_pct_before`` (nominal M, Fv fit), ``position_rel_error_pct_after`` (final model), %;
     - ``effects_added`` [{name, params}], ``candidates`` [{round, name, score = ΔBIC (negative = better),
-      p_value, sse_ratio, rel_error_pct, params, accepted, seconds}], ``free`` (final free parameters);
+      p_value, max_corr, sse_ratio, rel_error_pct, params, accepted, seconds}], ``free`` (final free parameters);
     - ``identified`` (all 8 parameters), ``std`` (approximate σ of the free ones, white-residual assumption);
     - ``published``, ``pct_diff_vs_published`` (M, Fv, Fc, offset; None where not in the final model) and, if the
       asymmetry was added, ``pct_diff_vs_published_asym`` and ``asymmetric_values`` (Fv±, Fc±);
@@ -277,6 +303,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         raise ConfigError(f"unknown EMPS effect(s) {unknown}; known: {list(EFFECTS)}")
     if not (0 < alpha < 1):
         raise ConfigError(f"alpha must lie in (0, 1), got {alpha}")
+    if not (0 < max_corr <= 1):
+        raise ConfigError(f"max_corr must lie in (0, 1], got {max_corr}")
     _check_solver(solver)
     n = record.n
     fit_kw = dict(max_nfev=max_nfev, solver=solver, sim_options=sim_options)
@@ -312,12 +340,13 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
             k0, k1 = len(free), len(free) + len(eff.params)
             p_value = f_test_pvalue(current.sse, k0, fit.sse, k1, n)
             d_bic = fit.bic() - current.bic()
-            entry = {"round": rnd, "name": name, "score": float(d_bic), "p_value": p_value,
+            corr_new = max_abs_corr(fit.corr, range(k0, k1))
+            entry = {"round": rnd, "name": name, "score": float(d_bic), "p_value": p_value, "max_corr": corr_new,
                      "sse_ratio": float(fit.sse / current.sse), "rel_error_pct": fit.rel_error_pct,
                      "params": {p: float(fit.theta[INDEX[p]]) for p in eff.params}, "accepted": False,
                      "seconds": fit.seconds}
             tried.append(entry)
-            if p_value < alpha and d_bic < 0 and (best is None or d_bic < best[0]["score"]):
+            if p_value < alpha and d_bic < 0 and corr_new <= max_corr and (best is None or d_bic < best[0]["score"]):
                 best = (entry, fit, eff)
         if best is None:
             break
@@ -345,6 +374,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "pct_diff_vs_published": cmp["symmetric"],
         "published_model_rel_error_pct": float(position_rel_error_pct(record.qm, pub_sim.q[0])),
         "alpha": float(alpha),
+        "max_corr": float(max_corr),
         "solver": solver,
     }
     if "asymmetric" in cmp:

@@ -1,0 +1,59 @@
+"""Shared plumbing of the Hydra entry points: one-line errors and a non-zero exit for bad input.
+
+Hydra reports a configuration it cannot compose (an unknown key, a bad override) in several lines; before
+handing over to Hydra the command line is composed once here, so such mistakes end in one line naming the
+problem and exit status 2. Errors the library raises for bad input (:class:`toggle_id.errors.ToggleIdError`)
+are printed the same way.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Callable
+
+CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+
+
+def fail(message: str, code: int = 2) -> None:
+    """Print ``error: message`` on one line to stderr and exit with ``code``."""
+    print(f"error: {' '.join(str(message).split())}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+def _one_line(exc: BaseException) -> str:
+    parts = [str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__]
+    cause = exc.__cause__
+    if cause is not None and str(cause).strip():
+        parts.append(str(cause).strip().splitlines()[0])
+    return " — ".join(parts)
+
+
+def precheck(config_name: str, argv: list[str]) -> None:
+    """Compose the configuration from the command line once; a failure is a one-line error, exit 2.
+
+    Skipped for Hydra's own flags (``--help``, ``-m``/``--multirun`` sweeps, ``--cfg`` ...), which Hydra handles.
+    """
+    if any(a.startswith("-") for a in argv):
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            compose(config_name=config_name, overrides=argv, return_hydra_config=True)
+    except (HydraException, OmegaConfBaseException, ValueError) as exc:
+        fail(f"bad configuration: {_one_line(exc)}")
+
+
+def guarded(fn: Callable[[], object]) -> object:
+    """Run ``fn``; library input errors become one line on stderr and exit status 2."""
+    from toggle_id.errors import ToggleIdError
+
+    try:
+        return fn()
+    except ToggleIdError as exc:
+        fail(str(exc))
+    except FileNotFoundError as exc:
+        fail(f"file not found: {exc.filename or exc}")
+    return None

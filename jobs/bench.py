@@ -1,0 +1,173 @@
+"""Throughput benchmark of the batched simulator (:func:`toggle_id.simulate.simulate`).
+
+``python -m jobs.bench [--n 1000] [--repeat 5] [--json PATH]`` prints full 5-s simulations per second (median of
+``repeat`` timed runs, after a warm-up whose time, numba compilation or cache load included, is reported apart)
+for
+
+- 1000 individuals uniform in the feasible domain (many fail: the status counts are printed),
+- 1000 individuals near the assigned values (uniform ±10 %),
+
+at the FAST tier, serial (one core) and parallel (numba threads); the same for PRECISE near the assigned values;
+stage-1 only (the samples before the clamp) and stage-2 restarts (from the contact state, D and K_l varied);
+and the cost of ``scipy.integrate.solve_ivp`` (Radau and LSODA on :func:`toggle_id.plant.rhs` with a contact
+event) per simulation on a few near-assigned individuals, at about the same accuracy.
+
+Timings on a shared machine are noisy: read medians, and compare figures taken in the same run.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Callable
+
+import numpy as np
+
+from toggle_id.params import ASSIGNED, LOWER, UPPER
+from toggle_id.plant import GEOMETRY, rhs
+from toggle_id.record import Record
+from toggle_id.simulate import FAST, PRECISE, SimResult, SolverSettings, simulate
+
+
+def near_assigned(n: int, rel: float = 0.1, seed: int = 1) -> np.ndarray:
+    """(n, 15) parameter vectors uniform within ±rel of the assigned values."""
+    rng = np.random.default_rng(seed)
+    return ASSIGNED * (1.0 + rel * rng.uniform(-1.0, 1.0, (n, ASSIGNED.size)))
+
+
+def uniform_domain(n: int, seed: int = 2) -> np.ndarray:
+    """(n, 15) parameter vectors uniform in the feasible domain of MODEL.md §6."""
+    rng = np.random.default_rng(seed)
+    return LOWER + (UPPER - LOWER) * rng.uniform(0.0, 1.0, (n, ASSIGNED.size))
+
+
+def timed(fn: Callable[[], SimResult], repeat: int) -> tuple[float, list[float], SimResult]:
+    """Median wall time (s) of ``repeat`` calls, all times, and the last result."""
+    times, res = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        res = fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), times, res
+
+
+def scipy_reference(theta: np.ndarray, record: Record, method: str, rtol: float, atol: float) -> np.ndarray:
+    """x_B at the record's samples by ``solve_ivp`` on :func:`toggle_id.plant.rhs`, restarting at every contact
+    switch (terminal event on x_B − x_B^L)."""
+    from scipy.integrate import solve_ivp
+
+    geo = GEOMETRY
+    q_L = geo.q_of_xB(geo.x_B_L)
+    sweep = record.sweep
+    t, y = float(record.t[0]), np.array([geo.q_of_xB(record.x_B0), 0.0, 0.0])
+    out = np.full(record.n, np.nan)
+    t_end = float(record.t[-1])
+    while t < t_end - 1e-12:
+        ev = lambda s, yy, *a: q_L - yy[0]  # noqa: E731  > 0 in contact
+        ev.terminal = True
+        sel = record.t[(record.t > t + 1e-12) | ((record.t >= t - 1e-12) & (t == record.t[0]))]
+        sol = solve_ivp(rhs, (t, t_end), y, method=method, rtol=rtol, atol=atol, t_eval=sel, events=ev,
+                        args=(theta, sweep))
+        idx = np.searchsorted(record.t, sol.t - 1e-12)
+        out[idx] = 2.0 * geo.r1 * np.cos(sol.y[0])
+        if sol.status != 1:
+            break
+        t, y = float(sol.t_events[0][0]), sol.y_events[0][0].copy()
+        # nudge across the switching surface so that the restarted segment starts in the new mode
+        y[0] = q_L - 1e-13 if (sol.y[0, -1] > q_L) else q_L + 1e-13
+    return out
+
+
+def row(name: str, n: int, med: float, times: list[float], res: SimResult | None, extra: dict | None = None) -> dict:
+    d = {"case": name, "n": n, "median_s": med, "sims_per_s": n / med, "times_s": times}
+    if res is not None:
+        d["status"] = res.status_counts()
+        d["mean_steps_ok"] = float(np.mean(res.n_steps[res.ok])) if res.ok.any() else float("nan")
+    if extra:
+        d.update(extra)
+    return d
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=1000, help="individuals per population")
+    ap.add_argument("--repeat", type=int, default=5, help="timed repeats (median)")
+    ap.add_argument("--n-scipy", type=int, default=3, help="individuals for the solve_ivp comparison (0: skip)")
+    ap.add_argument("--json", type=str, default=None, help="also write the table as JSON")
+    ap.add_argument("--quick", action="store_true", help="only the FAST near-assigned cases")
+    args = ap.parse_args(argv)
+
+    rec = Record.from_sweep("simulation")
+    near = near_assigned(args.n)
+    dom = uniform_domain(args.n)
+    rows: list[dict] = []
+
+    t0 = time.perf_counter()
+    for par in (False, True):
+        for s in (FAST, PRECISE):
+            simulate(near[:4], rec, s, parallel=par)
+            simulate(near[:4], rec, s, parallel=par, n_samples=100)
+    warm = time.perf_counter() - t0
+    rows.append({"case": "warm-up (compile or cache load)", "n": 0, "median_s": warm, "sims_per_s": float("nan"),
+                 "times_s": [warm]})
+
+    cases: list[tuple[str, np.ndarray, SolverSettings, bool, dict]] = [
+        ("near-assigned FAST serial", near, FAST, False, {}),
+        ("near-assigned FAST parallel", near, FAST, True, {}),
+    ]
+    if not args.quick:
+        cases += [("domain FAST serial", dom, FAST, False, {}),
+                  ("domain FAST parallel", dom, FAST, True, {}),
+                  ("near-assigned PRECISE parallel", near[: max(1, args.n // 4)], PRECISE, True, {})]
+    for name, th, s, par, kw in cases:
+        med, times, res = timed(lambda: simulate(th, rec, s, parallel=par, **kw), args.repeat)
+        rows.append(row(name, th.shape[0], med, times, res))
+
+    if not args.quick:
+        ref = simulate(ASSIGNED[None], rec, PRECISE)
+        n_clamp = int(np.argmax(ref.x_B[0] >= GEOMETRY.x_B_L))
+        med, times, res = timed(lambda: simulate(near, rec, FAST, n_samples=n_clamp, parallel=True), args.repeat)
+        rows.append(row(f"stage 1 (n_samples={n_clamp}) FAST parallel", args.n, med, times, res))
+        tc, qc, wc, ic = ref.contact[0]
+        st2 = np.repeat(ASSIGNED[None], args.n, axis=0)
+        rng = np.random.default_rng(3)
+        for j in (1, 4):  # D, K_l
+            st2[:, j] *= 1.0 + 0.1 * rng.uniform(-1.0, 1.0, args.n)
+        start = (float(tc), (float(qc), float(wc), float(ic)), 1)
+        med, times, res = timed(lambda: simulate(st2, rec, FAST, start=start, parallel=True), args.repeat)
+        rows.append(row(f"stage 2 restart at t={tc:.4f} s FAST parallel", args.n, med, times, res))
+
+        if args.n_scipy > 0:
+            few = near[: args.n_scipy]
+            ours = simulate(few, rec, PRECISE).x_B
+            for method, rtol, atol in (("Radau", 1e-6, 1e-9), ("LSODA", 1e-7, 1e-10)):
+                errs, tt = [], []
+                for k in range(few.shape[0]):
+                    t1 = time.perf_counter()
+                    xb = scipy_reference(few[k], rec, method, rtol, atol)
+                    tt.append(time.perf_counter() - t1)
+                    errs.append(float(np.nanmax(np.abs(xb - ours[k]))))
+                med = float(np.median(tt))
+                fast_row = next(r for r in rows if r["case"] == "near-assigned FAST serial")
+                rows.append({"case": f"scipy solve_ivp {method} rtol={rtol:g} (per sim, serial)", "n": len(tt),
+                             "median_s": med, "sims_per_s": 1.0 / med, "times_s": tt,
+                             "max_err_um_vs_precise": max(errs) * 1e6,
+                             "speedup_ours_serial": fast_row["sims_per_s"] * med})
+
+    print(f"{'case':58s} {'n':>5s} {'median s':>10s} {'sims/s':>10s}  notes")
+    for r in rows:
+        notes = []
+        if "status" in r:
+            notes.append(",".join(f"{k}:{v}" for k, v in r["status"].items() if v))
+            notes.append(f"steps {r['mean_steps_ok']:.0f}")
+        if "max_err_um_vs_precise" in r:
+            notes.append(f"err {r['max_err_um_vs_precise']:.3f} um, ours x{r['speedup_ours_serial']:.0f} faster")
+        print(f"{r['case']:58s} {r['n']:5d} {r['median_s']:10.4f} {r['sims_per_s']:10.1f}  {'; '.join(notes)}")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(rows, fh, indent=1)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,53 @@
+"""`python -m jobs.run [+experiment=NAME] [key=value ...]`: the identification workflow (Hydra entry point).
+
+Experiments: one_stage, two_stage (default method), table1, discover, emps. Multirun sweeps work:
+`python -m jobs.run -m +experiment=two_stage ga.population=200,1000 seed=0,1,2`.
+The last line of output is `report: <absolute path of the job's report>`.
+"""
+from __future__ import annotations
+
+import sys
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import get_original_cwd
+from omegaconf import DictConfig, OmegaConf
+
+from jobs._cli import guarded, precheck
+
+
+def run(cfg: dict, run_dir: str, project_root: str) -> str:
+    """Dispatch a composed, resolved configuration to its job; return the report path."""
+    from toggle_id import workflow
+
+    job = cfg.get("job", "identify")
+    if job == "identify":
+        return str(workflow.run_identify(cfg, run_dir, project_root))
+    if job == "table1":
+        from toggle_id.table1 import run_table1
+
+        return str(run_table1(cfg, run_dir, project_root))
+    if job == "discover":
+        from toggle_id.discover import run_discover
+
+        return str(run_discover(cfg, run_dir, project_root))
+    if job == "emps":
+        from toggle_id.emps_job import run_emps
+
+        return str(run_emps(cfg, run_dir, project_root))
+    from toggle_id.errors import ConfigError
+
+    raise ConfigError(f"unknown job {job!r}; known: identify, table1, discover, emps")
+
+
+@hydra.main(config_path="../conf", config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    run_dir = HydraConfig.get().runtime.output_dir
+    report = guarded(lambda: run(plain, run_dir, get_original_cwd()))
+    print(f"report: {report}", flush=True)
+
+
+if __name__ == "__main__":
+    precheck("config", sys.argv[1:])
+    main()

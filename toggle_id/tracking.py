@@ -1,0 +1,615 @@
+"""Experiment tracking: a resilient wrapper around MLflow (3.x) that never stops a job.
+
+Design
+------
+* One embedded store per project, addressed by an ABSOLUTE URI (:func:`default_tracking_uri`): a SQLite
+  database ``<root>/mlflow.db`` with artifacts under ``<root>/mlruns``. MLflow 3.17 refuses the plain file
+  store (``file:///.../mlruns`` raises "filesystem tracking backend is in maintenance mode" unless
+  ``MLFLOW_ALLOW_FILE_STORE=true``) and its own default is ``sqlite:///mlflow.db`` with artifacts in
+  ``./mlruns`` — both relative to the working directory, which Hydra changes per job. This module pins
+  both to absolute paths.
+* Only :class:`mlflow.MlflowClient` is used, never the fluent ``mlflow.start_run`` API: no process-global
+  active-run state, and no probing of Databricks/IPython environments (that probe alone costs ~0.6 s on
+  the first fluent ``start_run``). Parent/child nesting is the ``mlflow.parentRunId`` tag, as MLflow's UI
+  expects.
+* Resilience: every MLflow call goes through one guard. A failure of the STORE (unwritable path,
+  database error, server that refuses or does not answer) disables the tracker: one
+  :class:`TrackingWarning` is emitted naming the call that failed, every later call is a cheap no-op
+  recorded in :attr:`Tracker.dropped`, and a one-line summary of what was not logged is written to the
+  log when the outermost run ends. A call the store REJECTS (a parameter changed on resume, an
+  artifact file that does not exist, a value that cannot be serialised) drops only that call.
+  :attr:`Tracker.ok` tells whether tracking is live. Nothing here raises for a tracking problem.
+* HTTP stores get short timeouts (``MLFLOW_HTTP_REQUEST_TIMEOUT``, ``MLFLOW_HTTP_REQUEST_MAX_RETRIES``,
+  ``MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR``, read by MLflow at request time) for the duration of each call,
+  unless the user has set those variables: with MLflow's defaults (7 retries, 120 s timeout) an
+  unreachable server stalls a job for ~4 minutes per call.
+* ``mlflow`` is imported lazily (≈2 s, plus ≈1.5 s for the SQL store), so importing this module or
+  using a disabled tracker costs nothing.
+"""
+from __future__ import annotations
+
+import contextlib
+import getpass
+import json
+import logging
+import os
+import posixpath
+import re
+import sys
+import time
+import warnings
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator, Mapping, Sequence
+from urllib.parse import urlparse
+
+import numpy as np
+
+from .errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+#: MLflow's limits (mlflow.utils.validation), copied so that this module imports without mlflow.
+MAX_PARAM_VAL_LENGTH = 6000
+MAX_TAG_VAL_LENGTH = 8000
+MAX_KEY_LENGTH = 250
+MAX_PARAMS_TAGS_PER_BATCH = 100
+MAX_METRICS_PER_BATCH = 1000
+
+#: Tag MLflow's UI uses to nest a child run under its parent.
+PARENT_TAG = "mlflow.parentRunId"
+
+_BAD_KEY_CHARS = re.compile(r"[^/\w.\- :]")
+_MAX_DROPPED_KEPT = 1000
+_HTTP_ENV = ("MLFLOW_HTTP_REQUEST_TIMEOUT", "MLFLOW_HTTP_REQUEST_MAX_RETRIES", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR")
+#: MLflow error codes that mean "this one request was refused", not "the store is broken".
+_REJECTION_CODES = {"INVALID_PARAMETER_VALUE", "RESOURCE_DOES_NOT_EXIST", "RESOURCE_ALREADY_EXISTS"}
+
+
+class TrackingWarning(UserWarning):
+    """Tracking was disabled because the MLflow store failed; the job itself goes on."""
+
+
+# --------------------------------------------------------------------------------------------- URIs
+
+
+def default_tracking_uri(root: str | os.PathLike = ".") -> str:
+    """Absolute SQLite store URI ``sqlite:////abs/root/mlflow.db`` (the store MLflow 3.x prefers).
+
+    ``root`` is resolved against the current directory NOW, so call it with the project directory
+    (under Hydra: ``hydra.utils.get_original_cwd()``), not the per-job output directory.
+    """
+    path = os.path.abspath(os.path.join(os.path.expanduser(os.fspath(root)), "mlflow.db"))
+    return "sqlite:///" + path
+
+
+def absolute_uri(uri: str | None, root: str | os.PathLike = ".") -> str:
+    """Make a tracking URI independent of the working directory.
+
+    * ``None`` or ``""`` → :func:`default_tracking_uri(root) <default_tracking_uri>`;
+    * ``sqlite:///rel.db`` → ``sqlite:////<root>/rel.db``; ``file:rel`` → ``file:///<root>/rel``;
+    * a bare path ending in ``.db`` → that SQLite file; any other bare path → a store directory (``mlflow.db``
+      inside it);
+    * ``http(s)://``, ``databricks`` and other schemes are returned unchanged.
+    """
+    if not uri:
+        return default_tracking_uri(root)
+    base = os.path.abspath(os.path.expanduser(os.fspath(root)))
+
+    def _abs(path: str) -> str:
+        path = os.path.expanduser(path)
+        return path if os.path.isabs(path) else os.path.normpath(os.path.join(base, path))
+
+    if uri.startswith("sqlite:///"):
+        rest = uri[len("sqlite:///"):]
+        if rest.startswith("/") or rest == ":memory:" or rest == "":
+            return uri
+        return "sqlite:///" + _abs(rest)
+    if uri.startswith("file:"):
+        return "file://" + _abs(urlparse(uri).path)
+    if "://" in uri or uri.startswith("databricks"):
+        return uri
+    if uri.endswith(".db"):
+        return "sqlite:///" + _abs(uri)
+    return default_tracking_uri(_abs(uri))
+
+
+def default_artifact_location(uri: str) -> str | None:
+    """Absolute artifact root for a new experiment: ``<dir of the db>/mlruns`` for a SQLite store,
+    ``None`` (the server decides) for anything else."""
+    if uri.startswith("sqlite:////"):
+        db = uri[len("sqlite:///"):]
+        return "file://" + os.path.join(os.path.dirname(db), "mlruns")
+    return None
+
+
+# ------------------------------------------------------------------------------------- value helpers
+
+
+def flatten(obj: Mapping[str, Any], prefix: str = "", sep: str = ".") -> dict[str, Any]:
+    """Flatten nested mappings into dotted keys: ``{"ga": {"pop": 50}}`` → ``{"ga.pop": 50}``.
+
+    Sequences are kept as values (they become one parameter each, e.g. ``"[0.0, 1.0]"``).
+    """
+    out: dict[str, Any] = {}
+    for key, value in obj.items():
+        name = f"{prefix}{sep}{key}" if prefix else str(key)
+        if isinstance(value, Mapping) or (hasattr(value, "items") and hasattr(value, "keys")
+                                          and not isinstance(value, (str, bytes))):
+            out.update(flatten(value, name, sep))
+        else:
+            out[name] = value
+    return out
+
+
+def sanitize_key(key: str) -> str:
+    """A key MLflow accepts: characters outside ``[/\\w.\\- :]`` → ``_``, no ``..``/leading ``/``, ≤ 250 chars."""
+    key = _BAD_KEY_CHARS.sub("_", str(key)).strip()
+    key = posixpath.normpath(key).lstrip("/") if key else "_"
+    if key in ("", ".") or key.startswith(".."):
+        key = "_" + key.replace("..", "__")
+    return key[:MAX_KEY_LENGTH]
+
+
+def _to_text(value: Any, limit: int) -> str:
+    """String form of a parameter/tag value, truncated to ``limit`` characters (marked with ``…``)."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    elif isinstance(value, (tuple, set, frozenset)):
+        value = list(value)
+    elif hasattr(value, "__iter__") and not isinstance(value, (str, bytes, list, dict)):
+        try:  # e.g. omegaconf ListConfig
+            value = list(value)
+        except TypeError:
+            pass
+    text = value if isinstance(value, str) else str(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _jsonable(obj: Any) -> Any:
+    """Recursively turn numpy arrays/scalars and tuples into JSON-serialisable Python objects."""
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
+def _chunks(items: Sequence[Any], size: int) -> Iterator[Sequence[Any]]:
+    for i in range(0, len(items), size):
+        yield items[i:i + size]
+
+
+def _error_code(exc: BaseException) -> str | None:
+    return getattr(exc, "error_code", None)
+
+
+def _is_rejection(exc: BaseException) -> bool:
+    """True when one request was refused (bad value) rather than the store being unusable."""
+    if _error_code(exc) in _REJECTION_CODES:
+        return True
+    return isinstance(exc, (TypeError, ValueError)) and _error_code(exc) is None
+
+
+# ------------------------------------------------------------------------------------------ tracker
+
+
+@dataclass(frozen=True)
+class RunHandle:
+    """What ``with tracker.run(...) as run`` yields. ``run_id`` is ``None`` when tracking is off."""
+
+    run_id: str | None
+    name: str
+    parent_run_id: str | None = None
+    resumed: bool = False
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """One tracking call that was not logged: the operation, how many items it carried, and why."""
+
+    op: str
+    items: int
+    reason: str
+
+
+class Tracker:
+    """MLflow runs, parameters, metrics and artifacts for one experiment; never raises for tracking trouble.
+
+    Parameters
+    ----------
+    uri:
+        Tracking URI. ``None`` → ``$MLFLOW_TRACKING_URI`` if set, else :func:`default_tracking_uri` of the
+        current directory. Relative SQLite/file paths are made absolute (:func:`absolute_uri`).
+    experiment_name:
+        Experiment to log into; created (with an absolute artifact location) if missing, restored if deleted.
+    enabled:
+        ``False`` → every method is a no-op and ``mlflow`` is never imported.
+    artifact_location:
+        Artifact root for a NEW experiment; default ``<store dir>/mlruns`` for SQLite stores.
+    http_timeout_s, http_max_retries:
+        Request timeout (s) and retries for ``http(s)://`` stores, unless the ``MLFLOW_HTTP_REQUEST_*``
+        environment variables are set.
+
+    Usage::
+
+        tracker = Tracker(default_tracking_uri(project_dir), "toggle-id")
+        with tracker.run("two-stage") as parent:
+            tracker.log_params(cfg)
+            with tracker.run("stage-1", nested=True):
+                tracker.log_metric_history("best_fitness", history)
+    """
+
+    def __init__(self, uri: str | None, experiment_name: str = "toggle-id", enabled: bool = True, *,
+                 artifact_location: str | None = None, http_timeout_s: int = 5, http_max_retries: int = 1):
+        if not isinstance(experiment_name, str) or not experiment_name.strip():
+            raise ConfigError(f"experiment_name must be a non-empty string, got {experiment_name!r}")
+        if int(http_timeout_s) < 1 or int(http_max_retries) < 0:
+            raise ConfigError(f"http_timeout_s must be ≥ 1 and http_max_retries ≥ 0, "
+                              f"got {http_timeout_s}, {http_max_retries}")
+        self.enabled = bool(enabled)
+        self.experiment_name = experiment_name
+        self.uri = absolute_uri(uri or os.environ.get("MLFLOW_TRACKING_URI"))
+        self.artifact_location = artifact_location or default_artifact_location(self.uri)
+        self.experiment_id: str | None = None
+        self.error: str | None = None  # why tracking was disabled, if it was
+        self.dropped: list[Dropped] = []
+        self._dropped_counts: Counter[str] = Counter()
+        self._dropped_items: Counter[str] = Counter()
+        self._client: Any = None
+        self._stack: list[RunHandle] = []
+        self._http = self.uri.startswith(("http://", "https://"))
+        self._http_env = {"MLFLOW_HTTP_REQUEST_TIMEOUT": str(int(http_timeout_s)),
+                          "MLFLOW_HTTP_REQUEST_MAX_RETRIES": str(int(http_max_retries)),
+                          "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1"}
+        self._rejections_logged = 0
+        self._summarized = 0
+        if self.enabled:
+            self._connect()
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def ok(self) -> bool:
+        """True while tracking is enabled and the store has not failed."""
+        return self.enabled and self._client is not None and self.error is None
+
+    @property
+    def run_id(self) -> str | None:
+        """Id of the innermost active run (``None`` outside runs or when tracking is off)."""
+        return self._stack[-1].run_id if self._stack else None
+
+    @property
+    def client(self) -> Any:
+        """The underlying :class:`mlflow.MlflowClient` (``None`` when disabled or failed at start)."""
+        return self._client
+
+    def dropped_summary(self) -> str:
+        """One line naming what was not logged, e.g. ``"log_metrics ×12 (36 items), log_figure ×1"``;
+        empty when nothing was dropped."""
+        parts = []
+        for op, n in self._dropped_counts.items():
+            items = self._dropped_items[op]
+            parts.append(f"{op} ×{n}" + (f" ({items} items)" if items != n else ""))
+        return ", ".join(parts)
+
+    def clear_dropped(self) -> None:
+        """Forget what was dropped so far (e.g. after reporting it)."""
+        self.dropped.clear()
+        self._dropped_counts.clear()
+        self._dropped_items.clear()
+        self._summarized = 0
+
+    # ------------------------------------------------------------------ guard
+
+    @contextlib.contextmanager
+    def _call_env(self) -> Iterator[None]:
+        """Short HTTP timeouts (unless the user set them) and silenced SQLAlchemy deprecation noise."""
+        added = []
+        if self._http:
+            for name in _HTTP_ENV:
+                if name not in os.environ:
+                    os.environ[name] = self._http_env[name]
+                    added.append(name)
+        try:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=r".*``noload`` loader strategy")
+                yield
+        finally:
+            for name in added:
+                os.environ.pop(name, None)
+
+    def _drop(self, op: str, items: int, reason: str) -> None:
+        self._dropped_counts[op] += 1
+        self._dropped_items[op] += items
+        if len(self.dropped) < _MAX_DROPPED_KEPT:
+            self.dropped.append(Dropped(op, items, reason))
+
+    def _fail(self, op: str, items: int, exc: BaseException) -> None:
+        """Disable tracking after a store failure, with exactly one warning."""
+        message = " ".join(f"{type(exc).__name__}: {exc}".split())
+        if len(message) > 300:
+            message = message[:299] + "…"
+        self.error = f"{op}: {message}"
+        if op == "connect":
+            what = "nothing will be logged"
+        else:
+            self._drop(op, items, "store failure")
+            what = f"it ({items} item(s)) and every later tracking call are not logged (see Tracker.dropped)"
+        warnings.warn(f"MLflow tracking disabled ({self.uri}): {op} failed ({message}); {what}; the job goes on.",
+                      TrackingWarning, stacklevel=4)
+
+    def _reject(self, op: str, items: int, exc: BaseException) -> None:
+        """Drop one refused call; log the first few refusals."""
+        self._drop(op, items, f"rejected: {exc}")
+        self._rejections_logged += 1
+        if self._rejections_logged <= 5:
+            logger.warning("MLflow refused %s (%d item(s)) and it was not logged: %s", op, items,
+                           " ".join(str(exc).split())[:300])
+
+    def _call(self, op: str, items: int, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple[bool, Any]:
+        """Run one MLflow call; ``(True, result)`` on success, ``(False, None)`` when dropped."""
+        if not self.enabled:
+            return False, None
+        if not self.ok:
+            self._drop(op, items, "tracking disabled")
+            return False, None
+        try:
+            with self._call_env():
+                return True, fn(*args, **kwargs)
+        except Exception as exc:  # noqa: BLE001 — tracking must never stop the job
+            if _is_rejection(exc):
+                self._reject(op, items, exc)
+            else:
+                self._fail(op, items, exc)
+            return False, None
+
+    def _target(self, op: str, items: int) -> str | None:
+        """Run id to log into, or ``None`` (recorded as dropped) when there is none."""
+        if not self.enabled:
+            return None
+        if not self.ok:
+            self._drop(op, items, "tracking disabled")
+            return None
+        run_id = self.run_id
+        if run_id is None:
+            self._drop(op, items, "no active run")
+            if self._rejections_logged < 5:
+                self._rejections_logged += 1
+                logger.warning("%s called outside a tracked run; not logged", op)
+        return run_id
+
+    # ------------------------------------------------------------------ connection
+
+    def _connect(self) -> None:
+        def connect() -> Any:
+            from mlflow import MlflowClient
+
+            client = MlflowClient(tracking_uri=self.uri)
+            exp = client.get_experiment_by_name(self.experiment_name)
+            if exp is None:
+                try:
+                    exp_id = client.create_experiment(self.experiment_name,
+                                                      artifact_location=self.artifact_location)
+                except Exception as exc:  # another process created it meanwhile
+                    exp = client.get_experiment_by_name(self.experiment_name)
+                    if exp is None:
+                        raise exc
+                    exp_id = exp.experiment_id
+            else:
+                exp_id = exp.experiment_id
+                if exp.lifecycle_stage == "deleted":
+                    client.restore_experiment(exp_id)
+            return client, exp_id
+
+        try:
+            with self._call_env():
+                self._client, self.experiment_id = connect()
+        except Exception as exc:  # noqa: BLE001 — any failure to open the store disables tracking
+            self._client = None
+            self._fail("connect", 0, exc)
+
+    # ------------------------------------------------------------------ runs
+
+    @contextlib.contextmanager
+    def run(self, name: str, tags: Mapping[str, Any] | None = None, nested: bool = False,
+            run_id: str | None = None, description: str | None = None) -> Iterator[RunHandle]:
+        """Context-managed run. ``nested=True`` makes it a child of the innermost active run.
+
+        ``run_id`` resumes that existing run (status back to RUNNING, same id) instead of creating one; if
+        the store does not know it, a new run is created and tagged ``toggle_id.resume_requested``.
+        The run ends FINISHED, FAILED (exception) or KILLED (KeyboardInterrupt); exceptions propagate.
+        """
+        handle = self._start(name, tags, nested, run_id, description)
+        self._stack.append(handle)
+        status = "FINISHED"
+        try:
+            yield handle
+        except KeyboardInterrupt:
+            status = "KILLED"
+            raise
+        except BaseException:
+            status = "FAILED"
+            raise
+        finally:
+            self._stack.pop()
+            if handle.run_id is not None:
+                self._call("end_run", 0, self._client.set_terminated, handle.run_id, status)
+            total = sum(self._dropped_counts.values())
+            if not self._stack and total > self._summarized and self.enabled:
+                self._summarized = total
+                logger.warning("MLflow tracking: not logged: %s%s", self.dropped_summary(),
+                               f" (tracking disabled: {self.error})" if self.error else "")
+
+    def _start(self, name: str, tags: Mapping[str, Any] | None, nested: bool, run_id: str | None,
+               description: str | None) -> RunHandle:
+        parent = next((h.run_id for h in reversed(self._stack) if h.run_id), None) if nested else None
+        if not self.ok:
+            if self.enabled:
+                self._drop("start_run", 1, "tracking disabled")
+            return RunHandle(None, name, parent)
+        all_tags = {str(k): _to_text(v, MAX_TAG_VAL_LENGTH) for k, v in (tags or {}).items()}
+        if description:
+            all_tags["mlflow.note.content"] = _to_text(description, MAX_TAG_VAL_LENGTH)
+        if run_id:
+            run = None
+            try:
+                with self._call_env():
+                    run = self._client.get_run(run_id)
+            except Exception as exc:  # noqa: BLE001
+                if not _is_rejection(exc):  # store failure, not "no such run"
+                    self._fail("start_run", 1, exc)
+            if run is not None:
+                if run.info.status != "RUNNING":
+                    self._call("resume_run", 1, self._client.update_run, run_id, status="RUNNING")
+                all_tags["toggle_id.resumed_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+                self._log_tags(run_id, all_tags)
+                return RunHandle(run_id, name, run.data.tags.get(PARENT_TAG), resumed=True)
+            if not self.ok:
+                return RunHandle(None, name, parent)
+            logger.warning("MLflow run %s to resume was not found in %s; starting a new run", run_id, self.uri)
+            all_tags["toggle_id.resume_requested"] = run_id
+        all_tags.setdefault("mlflow.source.name", os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "-")
+        all_tags.setdefault("mlflow.source.type", "LOCAL")
+        with contextlib.suppress(Exception):
+            all_tags.setdefault("mlflow.user", getpass.getuser())
+        if parent:
+            all_tags[PARENT_TAG] = parent
+        done, run = self._call("start_run", 1, self._client.create_run, self.experiment_id,
+                               run_name=name, tags=all_tags)
+        return RunHandle(run.info.run_id if done else None, name, parent)
+
+    def close(self) -> None:
+        """Nothing to release for MLflow clients; kept so a Tracker can be used as a context manager."""
+
+    def __enter__(self) -> "Tracker":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ logging
+
+    def _log_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
+        from mlflow.entities import RunTag
+
+        items = [RunTag(sanitize_key(k) if not k.startswith("mlflow.") else k, v) for k, v in tags.items()]
+        for chunk in _chunks(items, MAX_PARAMS_TAGS_PER_BATCH):
+            if not self._call("set_tags", len(chunk), self._client.log_batch, run_id, tags=chunk,
+                              synchronous=True)[0]:
+                return
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None:
+        """Set string tags on the active run (values truncated to 8000 characters)."""
+        run_id = self._target("set_tags", len(tags))
+        if run_id is not None and tags:
+            self._log_tags(run_id, {str(k): _to_text(v, MAX_TAG_VAL_LENGTH) for k, v in tags.items()})
+
+    def log_params(self, params: Mapping[str, Any], prefix: str = "") -> None:
+        """Log parameters; nested mappings become dotted keys, values are strings truncated to 6000 chars.
+
+        Re-logging an identical value (e.g. after a resume) is accepted; a changed value is refused by
+        MLflow and dropped with a log line.
+        """
+        flat = flatten(params, prefix) if params else {}
+        run_id = self._target("log_params", len(flat))
+        if run_id is None or not flat:
+            return
+        from mlflow.entities import Param
+
+        items = [Param(sanitize_key(k), _to_text(v, MAX_PARAM_VAL_LENGTH)) for k, v in flat.items()]
+        for chunk in _chunks(items, MAX_PARAMS_TAGS_PER_BATCH):
+            if not self._call("log_params", len(chunk), self._client.log_batch, run_id, params=chunk,
+                              synchronous=True)[0] and not self.ok:
+                return
+
+    def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
+        """Log scalar metrics (nested mappings → dotted keys) at ``step`` (default 0). Values that are not
+        numbers are dropped; NaN/inf are logged as such."""
+        flat = flatten(metrics) if metrics else {}
+        run_id = self._target("log_metrics", len(flat))
+        if run_id is None or not flat:
+            return
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = []
+        for key, value in flat.items():
+            try:
+                items.append(Metric(sanitize_key(key), float(value), now, int(step or 0)))
+            except (TypeError, ValueError):
+                self._drop("log_metrics", 1, f"{key}: not a number ({value!r})")
+        self._log_metric_items("log_metrics", run_id, items)
+
+    def log_metric_history(self, key: str, values: Sequence[float], start_step: int = 0,
+                           timestamps_s: Sequence[float] | None = None) -> None:
+        """Log a whole series (e.g. best fitness per generation) as steps ``start_step, start_step+1, …``
+        in batched calls (≤ 1000 metrics per ``log_batch``). ``timestamps_s`` (Unix seconds, one per
+        value) default to now."""
+        vals = np.asarray(values, dtype=float).ravel() if values is not None else np.zeros(0)
+        run_id = self._target("log_metric_history", vals.size)
+        if run_id is None or vals.size == 0:
+            return
+        if timestamps_s is not None and len(timestamps_s) != vals.size:
+            self._drop("log_metric_history", vals.size,
+                       f"{key}: {len(timestamps_s)} timestamps for {vals.size} values")
+            logger.warning("log_metric_history(%s): %d timestamps for %d values; not logged",
+                           key, len(timestamps_s), vals.size)
+            return
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        stamps = [now] * vals.size if timestamps_s is None else [int(s * 1000) for s in timestamps_s]
+        name = sanitize_key(key)
+        items = [Metric(name, float(v), ts, int(start_step) + i) for i, (v, ts) in enumerate(zip(vals, stamps))]
+        self._log_metric_items("log_metric_history", run_id, items)
+
+    def _log_metric_items(self, op: str, run_id: str, items: Sequence[Any]) -> None:
+        for chunk in _chunks(list(items), MAX_METRICS_PER_BATCH):
+            if not self._call(op, len(chunk), self._client.log_batch, run_id, metrics=chunk,
+                              synchronous=True)[0] and not self.ok:
+                return
+
+    def log_dict(self, obj: Any, artifact_file: str) -> None:
+        """Save ``obj`` as a JSON (or ``.yaml``/``.yml``) artifact; numpy arrays/scalars are converted."""
+        run_id = self._target("log_dict", 1)
+        if run_id is not None:
+            try:
+                data = _jsonable(obj)
+                if not artifact_file.endswith((".yaml", ".yml")):
+                    json.dumps(data)  # fail here (rejection), not inside MLflow's artifact upload
+            except (TypeError, ValueError) as exc:
+                self._reject("log_dict", 1, exc)
+                return
+            self._call("log_dict", 1, self._client.log_dict, run_id, data, artifact_file)
+
+    def log_text(self, text: str, artifact_file: str) -> None:
+        """Save ``text`` as an artifact file."""
+        run_id = self._target("log_text", 1)
+        if run_id is not None:
+            self._call("log_text", 1, self._client.log_text, run_id, str(text), artifact_file)
+
+    def log_figure(self, fig: Any, artifact_file: str) -> None:
+        """Save a matplotlib figure as an image artifact (format from the extension, e.g. ``.png``).
+        The figure is not closed."""
+        run_id = self._target("log_figure", 1)
+        if run_id is not None:
+            self._call("log_figure", 1, self._client.log_figure, run_id, fig, artifact_file)
+
+    def log_artifact(self, path: str | os.PathLike, artifact_path: str | None = None) -> None:
+        """Copy a local file (or a directory's contents) into the run's artifacts (under ``artifact_path``)."""
+        run_id = self._target("log_artifact", 1)
+        if run_id is None:
+            return
+        path = os.fspath(path)
+        if not os.path.exists(path):
+            self._reject("log_artifact", 1, FileNotFoundError(f"no such file: {path}"))
+            return
+        fn = self._client.log_artifacts if os.path.isdir(path) else self._client.log_artifact
+        self._call("log_artifact", 1, fn, run_id, path, artifact_path)

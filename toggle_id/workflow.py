@@ -1,0 +1,337 @@
+"""Job orchestration: plain-dict configuration in, result files, MLflow runs and figures out.
+
+The jobs in ``jobs/`` compose Hydra configs and call these functions with ``OmegaConf.to_container`` output;
+this module never imports Hydra. Each job validates its whole configuration before any work starts, writes
+its report atomically into the run directory and returns its path (the job prints ``report: <path>``).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import numpy as np
+
+from . import console, figures
+from . import params as P
+from .checkpoint import atomic_write_json, atomic_write_text
+from .data import read_csv, validate_record
+from .effects import ALL_INDEX, ALL_NAMES
+from .errors import ConfigError
+from .ga import GAConfig
+from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify
+from .plant import GEOMETRY, impulse_force
+from .record import SWEEPS, Record
+from .simulate import PRECISE, TIERS, extend, simulate
+from .tracking import Tracker
+
+log = logging.getLogger("toggle_id")
+
+
+# ------------------------------------------------------------------------------------------ configuration
+def _get(cfg: Mapping, path: str, default: Any = None) -> Any:
+    node: Any = cfg
+    for key in path.split("."):
+        if not isinstance(node, Mapping) or key not in node:
+            return default
+        node = node[key]
+    return node
+
+
+def truth_vector(data: Mapping) -> np.ndarray:
+    """Extended parameter vector of a simulated record's truth (assigned values + overrides + effects)."""
+    theta = extend(P.ASSIGNED)[0]
+    for group in ("params", "effects"):
+        for name, value in (data.get(group) or {}).items():
+            if name not in ALL_INDEX:
+                raise ConfigError(f"data.{group}: unknown parameter {name!r}; known: {', '.join(ALL_NAMES)}")
+            theta[ALL_INDEX[name]] = float(value)
+    return theta
+
+
+def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
+    """The record a job works on and, for simulated records, the true extended parameter vector."""
+    source = data.get("source")
+    if source == "csv":
+        path = data.get("path")
+        if not path or path == "???":
+            raise ConfigError("data.path must name a CSV file (data=csv data.path=FILE.csv)")
+        return read_csv(path, x_B0=data.get("x_B0")), None
+    if source != "simulated":
+        raise ConfigError(f"unknown data.source {source!r}; known: simulated, csv")
+    sweep = data.get("sweep", "simulation")
+    if sweep not in SWEEPS:
+        raise ConfigError(f"unknown data.sweep {sweep!r}; known: {', '.join(SWEEPS)}")
+    noise = float(data.get("noise_m", 0.0))
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ConfigError(f"data.noise_m must be a non-negative number, got {noise}")
+    try:
+        rec = Record.from_sweep(sweep, float(data.get("duration", 5.0)), float(data.get("rate_hz", 1000.0)),
+                                x_B0=float(data.get("x_B0", 0.020)), name=f"simulated_{sweep}")
+    except ValueError as err:
+        raise ConfigError(f"data: {err}") from err
+    theta = truth_vector(data)
+    sim = simulate(theta[None, :], rec, PRECISE)
+    if sim.status[0] != 0:
+        raise ConfigError(f"the truth of data.params/effects cannot be simulated ({sim.status_counts()})")
+    rng = np.random.default_rng(int(data.get("noise_seed", 0)))
+    rec.x_B = sim.x_B[0] + noise * rng.standard_normal(rec.n)
+    rec.i_q = sim.i_q[0].copy()
+    rec.meta.update({"truth": {n: float(v) for n, v in zip(ALL_NAMES, theta)}, "noise_m": noise})
+    return rec, theta
+
+
+def ga_config(cfg: Mapping) -> GAConfig:
+    try:
+        return GAConfig.from_dict(dict(cfg.get("ga") or {}))
+    except TypeError as err:
+        raise ConfigError(f"ga: {err}") from err
+
+
+def solver_tier(cfg: Mapping):
+    tier = _get(cfg, "solver.ga_tier", "fast")
+    if tier not in TIERS:
+        raise ConfigError(f"unknown solver.ga_tier {tier!r}; known: {', '.join(TIERS)}")
+    return TIERS[tier]
+
+
+def polish_settings(cfg: Mapping) -> PolishSettings:
+    node = dict(cfg.get("polish") or {})
+    try:
+        ps = PolishSettings(**node)
+    except TypeError as err:
+        raise ConfigError(f"polish: {err}") from err
+    if ps.n_starts < 1 or ps.max_nfev < 1 or not ps.fd_rel_step > 0:
+        raise ConfigError("polish: n_starts and max_nfev must be >= 1 and fd_rel_step > 0")
+    return ps
+
+
+# ------------------------------------------------------------------------------------------ evaluators
+@contextmanager
+def ray_session(ev: Mapping) -> Iterator[None]:
+    """Start (or join) Ray once for the whole job when the evaluator is Ray; shut it down if we started it."""
+    if ev.get("kind", "serial") != "ray":
+        yield
+        return
+    from .evaluators import init_ray
+    import ray
+
+    started = init_ray(num_cpus=ev.get("n_workers"), address=ev.get("address"))
+    try:
+        yield
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def evaluator_factory(ev: Mapping) -> Callable[[Any], Any]:
+    """problem → evaluator, from the ``evaluator`` config node."""
+    from .evaluators import make_evaluator
+
+    kind = ev.get("kind", "serial")
+    if kind not in ("serial", "ray"):
+        raise ConfigError(f"unknown evaluator.kind {kind!r}; known: serial, ray")
+    n = ev.get("n_workers")
+    if n is not None and (not isinstance(n, int) or n < 1):
+        raise ConfigError(f"evaluator.n_workers must be a positive integer or null, got {n!r}")
+    if kind == "serial":
+        return lambda problem: make_evaluator("serial", problem)
+    return lambda problem: make_evaluator("ray", problem, n_workers=n, address=ev.get("address"))
+
+
+def make_tracker(cfg: Mapping, project_root: str | Path) -> Tracker:
+    tr = cfg.get("tracking") or {}
+    uri = tr.get("uri")
+    if not uri:
+        uri = os.environ.get("MLFLOW_TRACKING_URI") or None
+    from .tracking import absolute_uri
+
+    return Tracker(absolute_uri(uri, project_root), tr.get("experiment", "toggle-id"), bool(tr.get("enabled", True)))
+
+
+# ------------------------------------------------------------------------------------------ reporting
+def model_response(record: Record, theta: np.ndarray) -> dict[str, np.ndarray]:
+    """x_B, i_q and the impulse force F_i of ``theta`` on ``record`` (PRECISE)."""
+    sim = simulate(theta[None, :], record, PRECISE)
+    x = sim.x_B[0]
+    xdot = np.gradient(x, record.t)
+    return {"x_B": x, "i_q": sim.i_q[0], "F_i": impulse_force(x, xdot, theta[ALL_INDEX["D"]],
+                                                              theta[ALL_INDEX["K_l"]]), "status": sim.status[0]}
+
+
+def stage_child_run(tracker: Tracker, st: StageResult, truth: np.ndarray | None) -> None:
+    """One MLflow child run per stage: its settings, fitness history, parameters, errors and timing."""
+    with tracker.run(st.name, tags={"stage": st.name}, nested=True):
+        tracker.log_params({"free": ",".join(st.free), "window": f"{st.window[0]}:{st.window[1]}"})
+        tracker.log_metric_history("best_fitness", st.history, start_step=1)
+        metrics = {"fitness": st.fitness, "fitness_ga": st.fitness_ga, "sse_m2": st.sse, "rmse_m": st.rmse_m,
+                   "seconds_ga": st.seconds_ga, "seconds_polish": st.seconds_polish,
+                   "converged_generation": st.converged_generation}
+        metrics.update({f"param.{n}": float(v) for n, v in zip(st.free, st.x)})
+        if truth is not None:
+            metrics.update({f"pct_error.{n}": console.pct_error(truth[ALL_INDEX[n]], float(v))
+                            for n, v in zip(st.free, st.x)})
+        tracker.log_metrics(metrics)
+        if st.identifiability:
+            tracker.log_dict(st.identifiability, f"identifiability_{st.name}.json")
+
+
+def write_figures(run_dir: Path, record: Record, result: IdentificationResult, tracker: Tracker,
+                  label: str) -> list[str]:
+    """Fitness history and the paper's Fig. 7 panels (x_B, difference, impulse force, v_in) as PNGs."""
+    out = []
+    fig = figures.fitness_history({s.name: s.history for s in result.stages})
+    out.append(figures.save(fig, run_dir / "fitness_history.png"))
+    resp = model_response(record, result.theta)
+    t_c = record.t[result.clamp_index] if result.clamp_index < record.n else None
+    fig = figures.response_comparison(record.t, record.x_B, {label: resp["x_B"]}, stage_boundary=t_c,
+                                      forces={label: resp["F_i"]}, v_in=record.v_in)
+    out.append(figures.save(fig, run_dir / "response.png"))
+    for path in out:
+        tracker.log_artifact(path, "figures")
+    return out
+
+
+def console_report(result: IdentificationResult, truth: np.ndarray | None) -> str:
+    """The paper's Table 1 for this run (assigned, identified, % error) and the identifiability tables."""
+    assigned = None if truth is None else {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)}
+    text = [console.param_table(list(P.PARAM_NAMES), {result.method: result.params}, assigned)]
+    from .identifiability import IdentifiabilityReport  # noqa: F401 (format below works on dicts)
+    for st in result.stages:
+        rep = st.identifiability
+        if rep and "param_order" in rep:
+            text.append(f"\nidentifiability ({st.name}): rank {rep.get('rank')} of {len(rep['param_order'])}, "
+                        f"practical rank {rep.get('practical_rank')}")
+            for combo in rep.get("null_combinations") or []:
+                text.append(f"  not identifiable from this record: {combo}")
+    text.append(f"\nfitness {result.fitness:.6g}  SSE {result.sse:.4g} m²  RMS error {result.rmse_m * 1e6:.4g} µm  "
+                f"time {result.seconds:.1f} s")
+    return "\n".join(text)
+
+
+# ------------------------------------------------------------------------------------------ jobs
+def _identify_kwargs(cfg: Mapping, run_dir: Path, resume: bool) -> dict:
+    fixed = dict(cfg.get("fixed") or {})
+    for n in fixed:
+        if n not in ALL_INDEX:
+            raise ConfigError(f"fixed: unknown parameter {n!r}")
+    noise = _get(cfg, "identifiability.noise_std_m")
+    return dict(ga=ga_config(cfg), seed=int(cfg.get("seed", 0)), fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
+                extra_free=tuple(cfg.get("extra_free") or ()), settings=solver_tier(cfg),
+                i_q_weight=float(_get(cfg, "outputs.i_q_weight", 0.0) or 0.0), polish=polish_settings(cfg),
+                identifiability=bool(_get(cfg, "identifiability.enabled", True)),
+                noise_var=None if noise is None else float(noise) ** 2,
+                checkpoint_dir=run_dir, checkpoint_every=int(_get(cfg, "checkpoint.every", 5)), resume=resume)
+
+
+def validate_config(cfg: Mapping) -> None:
+    """Check everything a job needs before it starts (one-line ConfigError naming the problem)."""
+    if cfg.get("job", "identify") not in ("identify", "table1", "discover", "emps"):
+        raise ConfigError(f"unknown job {cfg.get('job')!r}; known: identify, table1, discover, emps")
+    if cfg.get("method", "two_stage") not in METHODS:
+        raise ConfigError(f"unknown method {cfg.get('method')!r}; known: {', '.join(METHODS)}")
+    ga_config(cfg)
+    polish_settings(cfg)
+    solver_tier(cfg)
+    evaluator_factory(cfg.get("evaluator") or {})
+    from .identify import stage_bounds
+
+    names = [n for n in (cfg.get("bounds") or {})]
+    if names:
+        stage_bounds(names, cfg.get("bounds"))
+
+
+def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
+    """The main job: identify the parameters of one record (one- or two-stage), log and report."""
+    validate_config(cfg)
+    run_dir, resume = _run_dir(cfg, run_dir)
+    record, truth = build_record(cfg.get("data") or {})
+    method = cfg.get("method", "two_stage")
+    kw = _identify_kwargs(cfg, run_dir, resume)
+    tracker = make_tracker(cfg, project_root)
+    ev = cfg.get("evaluator") or {}
+    show = bool(cfg.get("progress", True))
+    t0 = time.perf_counter()
+    with ray_session(ev), tracker.run(method, tags={"method": method, "job": "identify"},
+                                     run_id=_mlflow_run_id(run_dir) if resume else None) as run:
+        _remember_mlflow_run(run_dir, run.run_id)
+        tracker.log_params(_flat_config(cfg))
+        result = identify(record, method=method, make_evaluator=evaluator_factory(ev),
+                          progress=lambda total, desc: console.progress(total, desc, enabled=show),
+                          on_stage=lambda st: stage_child_run(tracker, st, truth), **kw)
+        wall = time.perf_counter() - t0
+        report = result.to_dict()
+        report.update(_truth_report(result.theta, truth))
+        report.update({"job": "identify", "record": record.name, "wall_seconds": wall,
+                       "config": _jsonable_cfg(cfg), "mlflow_run_id": run.run_id,
+                       "solver_status": int(model_response(record, result.theta)["status"])})
+        validation = _get(cfg, "validation.path")
+        if validation:
+            report["validation"] = validation_report(validation, result.theta)
+        tracker.log_metrics({"fitness": result.fitness, "sse_m2": result.sse, "rmse_m": result.rmse_m,
+                             "seconds_total": result.seconds, "wall_seconds": wall,
+                             **{f"param.{k}": v for k, v in result.params.items()},
+                             **{f"pct_error.{k}": v for k, v in (report.get("pct_error") or {}).items()}})
+        write_figures(run_dir, record, result, tracker, method)
+        text = console_report(result, truth)
+        print(text)
+        atomic_write_text(run_dir / "table.txt", text + "\n")
+        path = atomic_write_json(run_dir / "result.json", report)
+        tracker.log_artifact(path)
+        tracker.log_artifact(run_dir / "table.txt")
+    return Path(path).resolve()
+
+
+def validation_report(path: str, theta: np.ndarray) -> dict:
+    """Simulation error of the identified model on a second record."""
+    rec = read_csv(path)
+    sim = simulate(theta[None, :], rec, PRECISE)
+    e = rec.x_B - sim.x_B[0]
+    return {"path": str(Path(path).resolve()), "status": int(sim.status[0]), "sse_m2": float(np.sum(e * e)),
+            "rmse_m": float(np.sqrt(np.mean(e * e))),
+            "rel_error_pct": float(100 * np.linalg.norm(e) / np.linalg.norm(rec.x_B))}
+
+
+def _truth_report(theta: np.ndarray, truth: np.ndarray | None) -> dict:
+    if truth is None:
+        return {}
+    return {"truth": {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)},
+            "pct_error": {n: console.pct_error(float(truth[i]), float(theta[i])) for i, n in enumerate(P.PARAM_NAMES)}}
+
+
+def _run_dir(cfg: Mapping, run_dir: str | Path) -> tuple[Path, bool]:
+    resume = cfg.get("resume")
+    if resume:
+        path = Path(resume).expanduser().resolve()
+        if not (path / "checkpoint.json").exists():
+            raise ConfigError(f"resume: no checkpoint in {path}")
+        return path, True
+    path = Path(run_dir).resolve()
+    path.mkdir(parents=True, exist_ok=True)
+    return path, (path / "checkpoint.json").exists() and not (path / "result.json").exists()
+
+
+def _mlflow_run_id(run_dir: Path) -> str | None:
+    try:
+        return json.loads((run_dir / "mlflow_run.json").read_text())["run_id"]
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _remember_mlflow_run(run_dir: Path, run_id: str | None) -> None:
+    if run_id:
+        atomic_write_json(run_dir / "mlflow_run.json", {"run_id": run_id})
+
+
+def _jsonable_cfg(cfg: Mapping) -> dict:
+    return json.loads(json.dumps(cfg, default=str))
+
+
+def _flat_config(cfg: Mapping) -> dict:
+    from .tracking import flatten
+
+    return {k: v for k, v in flatten(_jsonable_cfg(cfg)).items() if not k.startswith("run_dir")}
