@@ -145,6 +145,8 @@ def test_bad_settings_raise_config_error(rec):
         theta_from_dict({"mass": 1.0})
     with pytest.raises(ConfigError):
         run_emps_loop(rec.slice(0, 500), candidates=["no_such_effect"])
+    with pytest.raises(ConfigError):
+        fit_output_error(rec.slice(0, 500), ["M"], PUBLISHED_THETA, solver="newton")
 
 
 def test_effect_registry_is_consistent():
@@ -185,10 +187,11 @@ def test_residual_and_jacobian(rec):
     assert np.linalg.norm(J[:, 2] - num) < 1e-3 * np.linalg.norm(num)
 
 
-def test_output_error_fit_recovers_published_structure(rec):
+@pytest.mark.parametrize("solver", ["polish", "scipy"])
+def test_output_error_fit_recovers_published_structure(rec, solver):
     r = rec.slice(0, 8000)
     start = theta_from_dict({"M": 80.0, "Fv": 250.0, "Fc": 10.0, "offset": 0.0})
-    fit = fit_output_error(r, ["M", "Fv", "Fc", "offset"], start)
+    fit = fit_output_error(r, ["M", "Fv", "Fc", "offset"], start, solver=solver)
     pub = simulate_emps(PUBLISHED_THETA, r).q[0]
     assert fit.rel_error_pct <= position_rel_error_pct(r.qm, pub)  # at least as good as the published values
     assert fit.params["M"] == pytest.approx(PUBLISHED["M"], rel=0.02)

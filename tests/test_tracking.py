@@ -83,7 +83,7 @@ def test_bad_config_raises():
 
 def test_params_metrics_and_history(tracker):
     hist = 1e6 * (1.0 - np.exp(-np.arange(150) / 30.0))
-    with tracker.run("basic", tags={"stage": 1}) as run:
+    with tracker.run("basic", tags={"stage": 1, "x [mm]": "y"}) as run:
         assert tracker.run_id == run.run_id is not None
         tracker.log_params({"ga": {"population": 50, "pc": 0.7, "bounds": np.array([0.0, 1.0])},
                             "long": "y" * (MAX_PARAM_VAL_LENGTH + 500)})
@@ -95,7 +95,7 @@ def test_params_metrics_and_history(tracker):
     assert data.params["ga.pc"] == "0.7"
     assert data.params["ga.bounds"] == "[0.0, 1.0]"
     assert len(data.params["long"]) == MAX_PARAM_VAL_LENGTH
-    assert data.tags["stage"] == "1"
+    assert data.tags["stage"] == "1" and data.tags["x _mm_"] == "y"
     assert data.metrics["rms_um"] == 1.25 and data.metrics["stage.fitness"] == 3.0
     assert [m.step for m in tracker.client.get_metric_history(run.run_id, "stage.fitness")] == [7]
     series = sorted(tracker.client.get_metric_history(run.run_id, "best_fitness"), key=lambda m: m.step)

@@ -26,7 +26,7 @@ G_R1, G_R2, G_R3, G_R4, G_R5, G_H, G_PHI, G_P, G_Z, G_G, G_XBL, G_EPS = range(12
 OK, MODEL_FAILURE, SOLVER_FAILURE, INVALID_PARAMS = 0, 1, 2, 3
 
 # ---- integrator settings array -----------------------------------------------------------------------------
-S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS = range(7)
+S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS, S_ROS = range(8)
 
 
 @nb.njit(cache=True, inline="always")
@@ -136,10 +136,11 @@ def _lookup(q, geo, tab, head):
 
 @nb.njit(cache=True)
 def _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep):
-    """dy/dt of the plant with all effect terms; ``contact`` is the mode decided by event location."""
+    """dy/dt of the plant with all effect terms; ``contact`` is the mode decided by event location.
+    Returns ok, q̇, ẇ, i̇ and ∂ẇ/∂i_q (exact: ẇ is affine in i_q)."""
     ok, x_B, dxB, dxC, b3, b5, db3, db5, dgB, dgC, x_C = _lookup(q, geo, tab, head)
     if not ok or x_B <= 0.0:
-        return False, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0
     z = x_B - geo[G_XBL]
     Z = geo[G_Z]
     eps = geo[G_EPS]
@@ -148,7 +149,7 @@ def _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use
     M = th[M2] * r2 * r2 + th[M3] * b3 + th[M5] * b5 + th[MB] * dxB * dxB + mCeff * dxC * dxC
     dM = th[M3] * db3 + th[M5] * db5 + th[MB] * dgB + mCeff * dgC
     if not M > 0.0:
-        return False, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0
     vB = dxB * w
     vC = dxC * w
     omega_m = Z * vC  # rotor speed, rad/s
@@ -169,13 +170,14 @@ def _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use
     if contact:
         F_i = th[K_L] * z + th[D_] * vB + th[K3] * z * z * z
     Q = F_C * dxC + (F_f - F_i) * dxB
-    wdot = (Q - 0.5 * dM * w * w) / M
+    inv_m = 1.0 / M
+    wdot = (Q - 0.5 * dM * w * w) * inv_m
     u = th[K_I] * _input(t, th, v, t0_rec, dt_rec, sweep, use_sweep)
     if th[S_SAT] > 0.0:
         lim = 1.0 / th[S_SAT]
         u = min(max(u, -lim), lim)
     idot = (u - th[R_S] * iq - geo[G_P] * th[LAMBDA_D] * omega_m) / th[L_Q]
-    return True, w, wdot, idot
+    return True, w, wdot, idot, Z * th[K_T] * dxC * inv_m
 
 
 @nb.njit(cache=True)
@@ -212,29 +214,156 @@ def _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec,
     """One Dormand–Prince step of size h from (t, y) with k1 = f(t, y). Returns ok, y(t+h) and the stages
     k3…k7 (k7 = f(t+h, y(t+h)), first-same-as-last) needed for the error estimate and dense output."""
     a = (th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
-    ok2, k2q, k2w, k2i = _rhs(t + _C2 * h, q + h * _A21 * k1q, w + h * _A21 * k1w, iq + h * _A21 * k1i, contact,
+    ok2, k2q, k2w, k2i, _ = _rhs(t + _C2 * h, q + h * _A21 * k1q, w + h * _A21 * k1w, iq + h * _A21 * k1i, contact,
                               a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    ok3, k3q, k3w, k3i = _rhs(t + _C3 * h, q + h * (_A31 * k1q + _A32 * k2q), w + h * (_A31 * k1w + _A32 * k2w),
+    ok3, k3q, k3w, k3i, _ = _rhs(t + _C3 * h, q + h * (_A31 * k1q + _A32 * k2q), w + h * (_A31 * k1w + _A32 * k2w),
                               iq + h * (_A31 * k1i + _A32 * k2i), contact, a[0], a[1], a[2], a[3], a[4], a[5], a[6],
                               a[7], a[8])
-    ok4, k4q, k4w, k4i = _rhs(t + _C4 * h, q + h * (_A41 * k1q + _A42 * k2q + _A43 * k3q),
+    ok4, k4q, k4w, k4i, _ = _rhs(t + _C4 * h, q + h * (_A41 * k1q + _A42 * k2q + _A43 * k3q),
                               w + h * (_A41 * k1w + _A42 * k2w + _A43 * k3w),
                               iq + h * (_A41 * k1i + _A42 * k2i + _A43 * k3i), contact,
                               a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    ok5, k5q, k5w, k5i = _rhs(t + _C5 * h, q + h * (_A51 * k1q + _A52 * k2q + _A53 * k3q + _A54 * k4q),
+    ok5, k5q, k5w, k5i, _ = _rhs(t + _C5 * h, q + h * (_A51 * k1q + _A52 * k2q + _A53 * k3q + _A54 * k4q),
                               w + h * (_A51 * k1w + _A52 * k2w + _A53 * k3w + _A54 * k4w),
                               iq + h * (_A51 * k1i + _A52 * k2i + _A53 * k3i + _A54 * k4i), contact,
                               a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    ok6, k6q, k6w, k6i = _rhs(t + h, q + h * (_A61 * k1q + _A62 * k2q + _A63 * k3q + _A64 * k4q + _A65 * k5q),
+    ok6, k6q, k6w, k6i, _ = _rhs(t + h, q + h * (_A61 * k1q + _A62 * k2q + _A63 * k3q + _A64 * k4q + _A65 * k5q),
                               w + h * (_A61 * k1w + _A62 * k2w + _A63 * k3w + _A64 * k4w + _A65 * k5w),
                               iq + h * (_A61 * k1i + _A62 * k2i + _A63 * k3i + _A64 * k4i + _A65 * k5i), contact,
                               a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
     qn = q + h * (_A71 * k1q + _A73 * k3q + _A74 * k4q + _A75 * k5q + _A76 * k6q)
     wn = w + h * (_A71 * k1w + _A73 * k3w + _A74 * k4w + _A75 * k5w + _A76 * k6w)
     inn = iq + h * (_A71 * k1i + _A73 * k3i + _A74 * k4i + _A75 * k5i + _A76 * k6i)
-    ok7, k7q, k7w, k7i = _rhs(t + h, qn, wn, inn, contact, a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+    ok7, k7q, k7w, k7i, _ = _rhs(t + h, qn, wn, inn, contact, a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
     ok = ok2 and ok3 and ok4 and ok5 and ok6 and ok7
     return (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w, k7i)
+
+
+# ---- Rodas4 (Hairer & Wanner, Solving ODEs II, §VI.4; coefficients of their code RODAS, 'transformed' form) --
+_RG = 0.25
+_RA21 = 1.544
+_RA31, _RA32 = 0.9466785280815826, 0.2557011698983284
+_RA41, _RA42, _RA43 = 3.314825187068521, 2.896124015972201, 0.9986419139977817
+_RA51, _RA52, _RA53, _RA54 = 1.221224509226641, 6.019134481288629, 12.53708332932087, -0.687886036105895
+_RC21 = -5.6688
+_RC31, _RC32 = -2.430093356833875, -0.2063599157091915
+_RC41, _RC42, _RC43 = -0.1073529058151375, -9.594562251023355, -20.47028614809616
+_RC51, _RC52, _RC53, _RC54 = 7.496443313967647, -10.24680431464352, -33.99990352819905, 11.7089089320616
+_RC61, _RC62, _RC63, _RC64, _RC65 = (8.083246795921522, -7.981132988064893, -31.52159432874371,
+                                     16.31930543123136, -6.058818238834054)
+_RCC2, _RCC3, _RCC4 = 0.386, 0.21, 0.63
+_RD1, _RD2, _RD3, _RD4 = 0.25, -0.1043, 0.1035, -0.0362
+_RH21, _RH22, _RH23, _RH24, _RH25 = (10.12623508344586, -7.487995877610167, -34.80091861555747,
+                                     -7.992771707568823, 1.025137723295662)
+_RH31, _RH32, _RH33, _RH34, _RH35 = (-0.6762803392801253, 6.087714651680015, 16.43084320892478,
+                                     24.76722511418386, -6.594389125716872)
+
+
+@nb.njit(cache=True, inline="always")
+def _wsolve(r0, r1, r2, hg, a, d, m11, m12, m21, m22, idet):
+    """Solve (I/(hγ) − J) x = r for the plant's Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] (the 2×2 block
+    m, its inverse determinant idet and hγ prepared by the caller)."""
+    s1 = r1 + a * hg * r0
+    s2 = r2 + d * hg * r0
+    x1 = (m22 * s1 - m12 * s2) * idet
+    x2 = (m11 * s2 - m21 * s1) * idet
+    return (r0 + x1) * hg, x1, x2
+
+
+@nb.njit(cache=True)
+def _input_slope(t, th, v, t0_rec, dt_rec, sweep, use_sweep):
+    """d v_in/dt at t (V/s): derivative of the swept sine, or the slope of the interpolation segment."""
+    t = t - th[TAU_D]
+    if t < t0_rec - 1e-12:
+        return 0.0
+    if use_sweep:
+        B, w0, w1, T = sweep[1], sweep[2], sweep[3], sweep[4]
+        tau = t - T * math.floor(t / T)
+        frac = t / T - math.floor(t / T)
+        om = w0 + (w1 - w0) * frac
+        return B * math.cos(om * tau) * (om + (w1 - w0) / T * tau)
+    x = (t - t0_rec) / dt_rec
+    k = int(math.floor(x))
+    if k >= v.shape[0] - 1 or k < 0:
+        return 0.0
+    return (v[k + 1] - v[k]) / dt_rec
+
+
+@nb.njit(cache=True)
+def _jacobian(t, q, w, iq, fw, fi, fc, contact, atq, atw, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep):
+    """Partial derivatives of (ẇ, i̇) w.r.t. (q, w) by forward differences from f(t, y) = (w, fw, fi); the i_q
+    column is exact (ẇ and i̇ are affine in i_q: ∂ẇ/∂i_q = ``fc``, ∂i̇/∂i_q = −R_s/L_q), and so is ∂i̇/∂t (the
+    input's slope). Returns ok, a, b, c, d, e, g, ft_i."""
+    dq = 1.5e-8 * max(abs(q), 1e3 * atq)
+    ok1, _, fw1, fi1, _ = _rhs(t, q + dq, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    if not ok1:
+        dq = -dq
+        ok1, _, fw1, fi1, _ = _rhs(t, q + dq, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                                   use_sweep)
+    dw = 1.5e-8 * max(abs(w), 1e3 * atw)
+    ok2, _, fw2, fi2, _ = _rhs(t, q, w + dw, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    inv_l = 1.0 / th[L_Q]
+    ft = th[K_I] * _input_slope(t, th, v, t0_rec, dt_rec, sweep, use_sweep) * inv_l
+    if th[S_SAT] > 0.0:
+        u = th[K_I] * _input(t, th, v, t0_rec, dt_rec, sweep, use_sweep)
+        if abs(u) * th[S_SAT] >= 1.0:
+            ft = 0.0
+    return (ok1 and ok2, (fw1 - fw) / dq, (fw2 - fw) / dw, fc, (fi1 - fi) / dq, (fi2 - fi) / dw,
+            -th[R_S] * inv_l, ft)
+
+
+@nb.njit(cache=True)
+def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, th, geo, tab, head, v, t0_rec, dt_rec,
+              sweep, use_sweep):
+    """One Rodas4 step of size h from (t, y) with f(t, y) = (w, f0w, f0i) and the Jacobian (a…g) and ∂f/∂t.
+    Returns ok, y(t+h), the error estimate and the dense-output coefficients (K1, K2) of q and i_q."""
+    hg = h * _RG
+    s = 1.0 / hg
+    m11 = s - jb - ja * hg
+    m12 = -jc
+    m21 = -je - jd * hg
+    m22 = s - jg
+    idet = 1.0 / (m11 * m22 - m12 * m21)
+    ih = 1.0 / h
+    k1q, k1w, k1i = _wsolve(w, f0w, f0i + _RD1 * h * fti, hg, ja, jd, m11, m12, m21, m22, idet)
+    ok2, f2q, f2w, f2i, _ = _rhs(t + _RCC2 * h, q + _RA21 * k1q, w + _RA21 * k1w, iq + _RA21 * k1i, contact,
+                              th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    k2q, k2w, k2i = _wsolve(f2q + ih * _RC21 * k1q, f2w + ih * _RC21 * k1w, f2i + _RD2 * h * fti + ih * _RC21 * k1i,
+                            hg, ja, jd, m11, m12, m21, m22, idet)
+    ok3, f3q, f3w, f3i, _ = _rhs(t + _RCC3 * h, q + _RA31 * k1q + _RA32 * k2q, w + _RA31 * k1w + _RA32 * k2w,
+                              iq + _RA31 * k1i + _RA32 * k2i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                              use_sweep)
+    k3q, k3w, k3i = _wsolve(f3q + ih * (_RC31 * k1q + _RC32 * k2q), f3w + ih * (_RC31 * k1w + _RC32 * k2w),
+                            f3i + _RD3 * h * fti + ih * (_RC31 * k1i + _RC32 * k2i),
+                            hg, ja, jd, m11, m12, m21, m22, idet)
+    ok4, f4q, f4w, f4i, _ = _rhs(t + _RCC4 * h, q + _RA41 * k1q + _RA42 * k2q + _RA43 * k3q,
+                              w + _RA41 * k1w + _RA42 * k2w + _RA43 * k3w,
+                              iq + _RA41 * k1i + _RA42 * k2i + _RA43 * k3i, contact, th, geo, tab, head, v, t0_rec,
+                              dt_rec, sweep, use_sweep)
+    k4q, k4w, k4i = _wsolve(f4q + ih * (_RC41 * k1q + _RC42 * k2q + _RC43 * k3q),
+                            f4w + ih * (_RC41 * k1w + _RC42 * k2w + _RC43 * k3w),
+                            f4i + _RD4 * h * fti + ih * (_RC41 * k1i + _RC42 * k2i + _RC43 * k3i),
+                            hg, ja, jd, m11, m12, m21, m22, idet)
+    y5q = q + _RA51 * k1q + _RA52 * k2q + _RA53 * k3q + _RA54 * k4q
+    y5w = w + _RA51 * k1w + _RA52 * k2w + _RA53 * k3w + _RA54 * k4w
+    y5i = iq + _RA51 * k1i + _RA52 * k2i + _RA53 * k3i + _RA54 * k4i
+    ok5, f5q, f5w, f5i, _ = _rhs(t + h, y5q, y5w, y5i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    k5q, k5w, k5i = _wsolve(f5q + ih * (_RC51 * k1q + _RC52 * k2q + _RC53 * k3q + _RC54 * k4q),
+                            f5w + ih * (_RC51 * k1w + _RC52 * k2w + _RC53 * k3w + _RC54 * k4w),
+                            f5i + ih * (_RC51 * k1i + _RC52 * k2i + _RC53 * k3i + _RC54 * k4i),
+                            hg, ja, jd, m11, m12, m21, m22, idet)
+    y6q, y6w, y6i = y5q + k5q, y5w + k5w, y5i + k5i
+    ok6, f6q, f6w, f6i, _ = _rhs(t + h, y6q, y6w, y6i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    k6q, k6w, k6i = _wsolve(f6q + ih * (_RC61 * k1q + _RC62 * k2q + _RC63 * k3q + _RC64 * k4q + _RC65 * k5q),
+                            f6w + ih * (_RC61 * k1w + _RC62 * k2w + _RC63 * k3w + _RC64 * k4w + _RC65 * k5w),
+                            f6i + ih * (_RC61 * k1i + _RC62 * k2i + _RC63 * k3i + _RC64 * k4i + _RC65 * k5i),
+                            hg, ja, jd, m11, m12, m21, m22, idet)
+    ok = ok2 and ok3 and ok4 and ok5 and ok6
+    d1q = _RH21 * k1q + _RH22 * k2q + _RH23 * k3q + _RH24 * k4q + _RH25 * k5q
+    d2q = _RH31 * k1q + _RH32 * k2q + _RH33 * k3q + _RH34 * k4q + _RH35 * k5q
+    d1i = _RH21 * k1i + _RH22 * k2i + _RH23 * k3i + _RH24 * k4i + _RH25 * k5i
+    d2i = _RH31 * k1i + _RH32 * k2i + _RH33 * k3i + _RH34 * k4i + _RH35 * k5i
+    return ok, y6q + k6q, y6w + k6w, y6i + k6i, k6q, k6w, k6i, d1q, d2q, d1i, d2i
 
 
 @nb.njit(cache=True)
@@ -243,8 +372,10 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     """Integrate one parameter vector from ``t_start`` (state y0, contact mode contact0) and write x_B and i_q
     at the samples t_out[k] ≥ t_start for k < n_out. Samples before t_start are left untouched.
 
-    The contact switch (q crossing q_L, i.e. x_B crossing x_B^L, either way) is located on the dense output
-    and the step is retaken to end exactly there, so every step integrates a smooth right-hand side.
+    Free motion is integrated by Dormand–Prince 5(4); the clamped (stiff) mode by the linearly implicit
+    Rodas4 (settings[S_ROS] = 1; 2: Rodas4 in both modes; 0: DOPRI5 in both). The contact switch (q crossing
+    q_L, i.e. x_B crossing x_B^L, either way) is located on the dense output and the step is retaken to end
+    exactly there, so every step integrates a smooth right-hand side.
     Returns (status, n_steps, t_contact, q_c, w_c, i_c): the first closing contact after t_start and the
     state there (t_contact = inf if none), from which stage 2 restarts.
     """
@@ -252,6 +383,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     atq, atw, ati = settings[S_ATOL_Q], settings[S_ATOL_W], settings[S_ATOL_I]
     hmax = settings[S_HMAX]
     max_steps = int(settings[S_MAXSTEPS])
+    ros_mode = int(settings[S_ROS])
     t0_rec = t_out[0]
     dt_rec = t_out[1] - t_out[0]
     r1, r3 = geo[G_R1], geo[G_R3]
@@ -276,14 +408,17 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
         return OK, 0, t_c, qc, wc, ic
     t_end = t_out[n_out - 1]
 
-    ok, k1q, k1w, k1i = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    ok, k1q, k1w, k1i, k1c = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
     if not ok:
         return MODEL_FAILURE, 0, t_c, qc, wc, ic
+    c_valid = True  # k1c = ∂ẇ/∂i_q at (t, y) is known
     h = min(settings[S_H0], hmax)
     facold = 1e-4
     n_steps = 0
     last_reject = False
     geom_fail = False
+    have_jac = False
+    ja = jb = jc = jd = je = jg = fti = 0.0
     while t < t_end - 1e-13:
         if n_steps >= max_steps:
             return SOLVER_FAILURE, n_steps, t_c, qc, wc, ic
@@ -292,17 +427,34 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
         if t + h > t_end:
             h = t_end - t
         n_steps += 1
-        (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
-         k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                      use_sweep)
+        use_ros = ros_mode == 2 or (ros_mode == 1 and contact == 1)
+        if use_ros:
+            if not have_jac:
+                if not c_valid:
+                    _, _, _, _, k1c = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                                           use_sweep)
+                okj, ja, jb, jc, jd, je, jg, fti = _jacobian(t, q, w, iq, k1w, k1i, k1c, contact, atq, atw, th, geo,
+                                                             tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+                have_jac = True
+            (ok, qn, wn, inn, eq, ew, ei, d1q, d2q, d1i, d2i) = _ros_step(
+                h, t, q, w, iq, k1w, k1i, ja, jb, jc, jd, je, jg, fti, contact, th, geo, tab, head, v, t0_rec,
+                dt_rec, sweep, use_sweep)
+            r3q, r4q, r5q, r3i, r4i, r5i = d1q, d2q, 0.0, d1i, d2i, 0.0
+            expo = 0.25
+        else:
+            (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
+             k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                          use_sweep)
+            if ok:
+                eq = h * (_E1 * k1q + _E3 * k3q + _E4 * k4q + _E5 * k5q + _E6 * k6q + _E7 * k7q)
+                ew = h * (_E1 * k1w + _E3 * k3w + _E4 * k4w + _E5 * k5w + _E6 * k6w + _E7 * k7w)
+                ei = h * (_E1 * k1i + _E3 * k3i + _E4 * k4i + _E5 * k5i + _E6 * k6i + _E7 * k7i)
+            expo = 0.2
         if not ok:  # a stage left the assembly range: shrink; if it persists the model has failed
             geom_fail = True
             h *= 0.25
             last_reject = True
             continue
-        eq = h * (_E1 * k1q + _E3 * k3q + _E4 * k4q + _E5 * k5q + _E6 * k6q + _E7 * k7q)
-        ew = h * (_E1 * k1w + _E3 * k3w + _E4 * k4w + _E5 * k5w + _E6 * k6w + _E7 * k7w)
-        ei = h * (_E1 * k1i + _E3 * k3i + _E4 * k4i + _E5 * k5i + _E6 * k6i + _E7 * k7i)
         sq = eq / (atq + rtol * max(abs(q), abs(qn)))
         sw = ew / (atw + rtol * max(abs(w), abs(wn)))
         si = ei / (ati + rtol * max(abs(iq), abs(inn)))
@@ -312,19 +464,36 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             h *= 0.25
             last_reject = True
             continue
-        # step-size control (PI controller of DOPRI5: beta = 0.04, safety 0.9, factors in [0.2, 10])
-        fac11 = err ** 0.17
-        if err > 1.0:
-            h = h / min(fac11 / 0.9, 5.0)
-            last_reject = True
-            continue
+        if use_ros:
+            fac = max(0.2, min(6.0, err ** expo / 0.9))
+            if err > 1.0:
+                h = h / fac
+                last_reject = True
+                continue
+            h_new = min(h / fac, hmax)
+        else:
+            # step-size control (PI controller of DOPRI5: beta = 0.04, safety 0.9, factors in [0.2, 10])
+            fac11 = err ** 0.17
+            if err > 1.0:
+                h = h / min(fac11 / 0.9, 5.0)
+                last_reject = True
+                continue
+            fac = max(0.1, min(5.0, fac11 / facold ** 0.04 / 0.9))
+            facold = max(err, 1e-4)
+            h_new = min(h / fac, hmax)
         geom_fail = False
-        fac = max(0.1, min(5.0, fac11 / facold ** 0.04 / 0.9))
-        facold = max(err, 1e-4)
-        h_new = min(h / fac, hmax)
         if last_reject:
             h_new = min(h_new, h)
         last_reject = False
+        if not use_ros:
+            dq = qn - q
+            di = inn - iq
+            r3q = h * k1q - dq
+            r4q = dq - h * k7q - r3q
+            r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
+            r3i = h * k1i - di
+            r4i = di - h * k7i - r3i
+            r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
         # --- contact event: does q cross q_L inside this step? ---
         g0 = q_L - q
         g1 = q_L - qn
@@ -334,9 +503,6 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             crossed = (g0 >= 0.0) and (g1 < 0.0)
         if crossed:
             dq = qn - q
-            r3q = h * k1q - dq
-            r4q = dq - h * k7q - r3q
-            r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
             a, b, ga, gb = 0.0, 1.0, g0, g1
             side = 0
             for _ in range(100):  # Illinois on the dense output of q
@@ -355,9 +521,23 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                 if (b - a) * h < 1e-13 or gm == 0.0:
                     break
             h = max(b * h, 1e-15)  # retake the step to the far side of the event, in the old mode
-            (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
-             k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                          use_sweep)
+            if use_ros:
+                (ok, qn, wn, inn, eq, ew, ei, r3q, r4q, r3i, r4i) = _ros_step(
+                    h, t, q, w, iq, k1w, k1i, ja, jb, jc, jd, je, jg, fti, contact, th, geo, tab, head, v, t0_rec,
+                    dt_rec, sweep, use_sweep)
+                r5q = r5i = 0.0
+            else:
+                (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
+                 k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                              use_sweep)
+                dq = qn - q
+                di = inn - iq
+                r3q = h * k1q - dq
+                r4q = dq - h * k7q - r3q
+                r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
+                r3i = h * k1i - di
+                r4i = di - h * k7i - r3i
+                r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
             if not ok:
                 return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
         # --- dense output at the samples inside (t, t + h] ---
@@ -365,12 +545,6 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
         if k < n_out and t_out[k] <= t_new + 1e-12:
             dq = qn - q
             di = inn - iq
-            r3q = h * k1q - dq
-            r4q = dq - h * k7q - r3q
-            r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
-            r3i = h * k1i - di
-            r4i = di - h * k7i - r3i
-            r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
             while k < n_out and t_out[k] <= t_new + 1e-12:
                 s = min((t_out[k] - t) / h, 1.0)
                 qs = _dense(s, q, dq, r3q, r4q, r5q)
@@ -386,11 +560,14 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             if contact == 0 and t_c == np.inf:
                 t_c, qc, wc, ic = t, q, w, iq
             contact = 1 - contact
-            ok, k7q, k7w, k7i = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                                     use_sweep)
+            h_new = min(h_new, max(h, 1e-6))
+        c_valid = use_ros or crossed
+        if c_valid:
+            ok, k7q, k7w, k7i, k1c = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
+                                          use_sweep)
             if not ok:
                 return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
-            h_new = min(h_new, max(h, 1e-6))
+        have_jac = False
         k1q, k1w, k1i = k7q, k7w, k7i
         h = h_new
     ok, xb, _, _, _, _, _, _, _, _, _, _ = _geometry(q, geo)

@@ -279,12 +279,13 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     def esc(v: Any) -> str:
         return _cell(v).replace("|", r"\|").replace("\n", " ")
 
-    lines = ["| " + " | ".join(esc(h) for h in header) + " |",
-             "| " + " | ".join("---:" if rows and all(_is_number(r[j]) for r in rows) else "---"
-                               for j in range(ncol)) + " |"]
     for i, row in enumerate(rows):
         if len(row) != ncol:
             raise ConfigError(f"table row {i} has {len(row)} cells for {ncol} columns")
+    lines = ["| " + " | ".join(esc(h) for h in header) + " |",
+             "| " + " | ".join("---:" if rows and all(_is_number(r[j]) for r in rows) else "---"
+                               for j in range(ncol)) + " |"]
+    for row in rows:
         lines.append("| " + " | ".join(esc(v) for v in row) + " |")
     return "\n".join(lines)
 

@@ -32,17 +32,18 @@ class SolverSettings:
     """Adaptive Dormand–Prince 5(4) settings: relative tolerance, absolute tolerances on (q rad, q̇ rad/s,
     i_q A), first step and largest step (s), and the step budget per simulation (beyond it: solver failure)."""
 
-    rtol: float = 1e-7
-    atol_q: float = 1e-9
-    atol_w: float = 1e-6
-    atol_i: float = 1e-3
+    rtol: float = 1e-5
+    atol_q: float = 1e-8
+    atol_w: float = 1e-4
+    atol_i: float = 1e-2
     h0: float = 1e-4
-    hmax: float = 5e-3
+    hmax: float = 5e-2
     max_steps: int = 50_000
+    ros: int = 2
 
     def as_array(self) -> np.ndarray:
         return np.array([self.rtol, self.atol_q, self.atol_w, self.atol_i, self.h0, self.hmax,
-                         float(self.max_steps)], dtype=float)
+                         float(self.max_steps), float(self.ros)], dtype=float)
 
 
 #: Fast tier (the GA): x_B within 1 µm of the references. Precise tier (polish, sensitivities, residuals).

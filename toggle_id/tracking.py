@@ -151,6 +151,12 @@ def sanitize_key(key: str) -> str:
     return key[:MAX_KEY_LENGTH]
 
 
+def _tag_key(key: Any) -> str:
+    """Tag key: MLflow's own ``mlflow.*`` keys unchanged, others sanitised."""
+    key = str(key)
+    return key if key.startswith("mlflow.") else sanitize_key(key)
+
+
 def _to_text(value: Any, limit: int) -> str:
     """String form of a parameter/tag value, truncated to ``limit`` characters (marked with ``…``)."""
     if isinstance(value, np.ndarray):
@@ -296,7 +302,7 @@ class Tracker:
         parts = []
         for op, n in self._dropped_counts.items():
             items = self._dropped_items[op]
-            parts.append(f"{op} ×{n}" + (f" ({items} items)" if items != n else ""))
+            parts.append(f"{op} ×{n}" + (f" ({items} items)" if items and items != n else ""))
         return ", ".join(parts)
 
     def clear_dropped(self) -> None:
@@ -454,7 +460,7 @@ class Tracker:
             if self.enabled:
                 self._drop("start_run", 1, "tracking disabled")
             return RunHandle(None, name, parent)
-        all_tags = {str(k): _to_text(v, MAX_TAG_VAL_LENGTH) for k, v in (tags or {}).items()}
+        all_tags = {_tag_key(k): _to_text(v, MAX_TAG_VAL_LENGTH) for k, v in (tags or {}).items()}
         if description:
             all_tags["mlflow.note.content"] = _to_text(description, MAX_TAG_VAL_LENGTH)
         if run_id:
@@ -499,7 +505,7 @@ class Tracker:
     def _log_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
         from mlflow.entities import RunTag
 
-        items = [RunTag(sanitize_key(k) if not k.startswith("mlflow.") else k, v) for k, v in tags.items()]
+        items = [RunTag(_tag_key(k), v) for k, v in tags.items()]
         for chunk in _chunks(items, MAX_PARAMS_TAGS_PER_BATCH):
             if not self._call("set_tags", len(chunk), self._client.log_batch, run_id, tags=chunk,
                               synchronous=True)[0]:

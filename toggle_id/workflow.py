@@ -47,6 +47,8 @@ def truth_vector(data: Mapping) -> np.ndarray:
     theta = extend(P.ASSIGNED)[0]
     for group in ("params", "effects"):
         for name, value in (data.get(group) or {}).items():
+            if value is None:  # null: the assigned value / effect off
+                continue
             if name not in ALL_INDEX:
                 raise ConfigError(f"data.{group}: unknown parameter {name!r}; known: {', '.join(ALL_NAMES)}")
             theta[ALL_INDEX[name]] = float(value)

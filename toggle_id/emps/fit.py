@@ -221,7 +221,7 @@ def max_abs_corr(corr: np.ndarray | None, new: Sequence[int]) -> float:
 
 def fit_output_error(record: EmpsRecord, free: Sequence[str], theta0: np.ndarray | Mapping[str, float],
                      lower: np.ndarray | None = None, upper: np.ndarray | None = None, *, max_nfev: int = 50,
-                     rel_step: float = 1e-5, solver: str = "scipy",
+                     rel_step: float = 1e-5, solver: str = "polish",
                      sim_options: Mapping | None = None) -> OEFitResult:
     """Fit θ[free] by output error (minimise ‖qm − q_sim‖²) from ``theta0``; other entries stay at ``theta0``.
 
@@ -273,7 +273,7 @@ def _compare_published(theta: np.ndarray, free: Sequence[str]) -> dict:
 
 def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
-                  max_effects: int | None = None, max_corr: float = 0.99, solver: str = "scipy",
+                  max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
                   reference_fit: bool = True,
                   sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.

@@ -1,0 +1,48 @@
+"""`python -m jobs.simulate out=FILE.csv [sweep=simulation|experiment] [params.NAME=VALUE ...] [noise_m=SIGMA] [seed=N]`
+
+Simulates the plant (PRECISE tier) and writes a record in the CSV format of MODEL.md §8 (t, v_in, x_B, i_q);
+the last line of output is `report: <absolute path of the CSV>`.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.utils import get_original_cwd
+from omegaconf import DictConfig, OmegaConf
+
+from jobs._cli import guarded, precheck
+
+
+def write_record(cfg: dict, cwd: str) -> Path:
+    from toggle_id.data import write_csv
+    from toggle_id.errors import ConfigError
+    from toggle_id.workflow import build_record
+
+    out = cfg.get("out")
+    if not out or out == "???":
+        raise ConfigError("out must name the CSV file to write (out=FILE.csv)")
+    data = {k: cfg[k] for k in ("sweep", "duration", "rate_hz", "params", "effects", "noise_m", "x_B0")}
+    data.update(source="simulated", noise_seed=cfg.get("seed", 0))
+    if not float(data["duration"]) > 0:
+        raise ConfigError(f"duration must be a positive time in seconds, got {data['duration']}")
+    record, _ = build_record(data)
+    path = Path(out).expanduser()
+    if not path.is_absolute():
+        path = Path(cwd) / path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_csv(record, path)
+    return path.resolve()
+
+
+@hydra.main(config_path="../conf", config_name="simulate", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    path = guarded(lambda: write_record(plain, get_original_cwd()))
+    print(f"report: {path}", flush=True)
+
+
+if __name__ == "__main__":
+    precheck("simulate", sys.argv[1:])
+    main()

@@ -1,0 +1,39 @@
+"""Shared fixtures: paths to the shared reference data, a scratch MLflow store, and job runners."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_dir() -> Path:
+    """``../shared`` beside the checkout (or ``$TOGGLE_ID_SHARED``)."""
+    env = os.environ.get("TOGGLE_ID_SHARED")
+    return Path(env) if env else ROOT.parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    path = shared_dir()
+    if not (path / "MODEL.md").exists():
+        pytest.skip(f"shared data not found at {path} (set TOGGLE_ID_SHARED)")
+    return path
+
+
+def run_job(module: str, *args: str, cwd: Path, env: dict | None = None, timeout: int = 600
+            ) -> subprocess.CompletedProcess:
+    """Run ``python -m module args...`` as a user would, in ``cwd``."""
+    full_env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {})}
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=full_env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+@pytest.fixture
+def job_env(tmp_path: Path) -> dict:
+    """Environment that points MLflow at a scratch store (absolute URI) for jobs run in a test."""
+    return {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}

@@ -1,0 +1,124 @@
+"""End-to-end tests of the jobs as a user runs them: `python -m jobs.simulate`, `python -m jobs.run`."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import run_job
+from toggle_id.data import read_csv
+
+pytestmark = pytest.mark.integration
+
+# a 1-s record and a tiny GA on the serial evaluator: the whole job in seconds
+QUICK = ["ga=small", "ga.population=16", "ga.generations=3", "evaluator=serial", "data.duration=1.0",
+         "polish.max_nfev=5", "progress=false"]
+
+
+def _last_line(proc) -> str:
+    lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
+    return lines[-1] if lines else ""
+
+
+def _one_line_error(proc) -> str:
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode != 0
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    return lines[0]
+
+
+def test_simulate_job_writes_a_record(tmp_path):
+    proc = run_job("jobs.simulate", "out=rec.csv", "params.K_t=0.6", "noise_m=1e-6", "seed=3", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert _last_line(proc) == f"report: {tmp_path / 'rec.csv'}"
+    rec = read_csv(tmp_path / "rec.csv")
+    assert rec.n == 5001 and rec.i_q is not None
+    assert 0.0559 < rec.x_B.max() < 0.06
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["out=a.csv", "params.Bogus=1"], "Bogus"),
+    (["out=a.csv", "duration=-1"], "duration"),
+    (["out=a.csv", "sweep=sideways"], "sweep"),
+    ([], "out"),
+])
+def test_simulate_job_rejects_bad_arguments_in_one_line(tmp_path, args, needle):
+    proc = run_job("jobs.simulate", *args, cwd=tmp_path)
+    assert needle in _one_line_error(proc)
+    assert not (tmp_path / "a.csv").exists()
+
+
+def test_identify_job_two_stage_end_to_end(tmp_path, job_env):
+    proc = run_job("jobs.run", "+experiment=two_stage", f"hydra.run.dir={tmp_path / 'run'}", *QUICK,
+                   cwd=tmp_path, env=job_env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = Path(_last_line(proc).removeprefix("report: "))
+    assert report == (tmp_path / "run" / "result.json").resolve()
+    res = json.loads(report.read_text())
+    assert res["method"] == "two_stage" and set(res["params"]) >= {"K_t", "D", "K_l"}
+    assert [s["name"] for s in res["stages"]] == ["stage1", "stage2"]
+    assert res["stages"][0]["generations"] == 3 and len(res["stages"][0]["fitness_history"]) == 3
+    assert res["fitness"] > 0 and set(res["seconds_per_stage"]) == {"stage1", "stage2"}
+    assert (tmp_path / "run" / "fitness_history.png").stat().st_size > 1000
+    assert (tmp_path / "run" / "response.png").stat().st_size > 1000
+    # MLflow: a parent run with one child per stage, fitness history as a stepped metric
+    from mlflow import MlflowClient
+
+    client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
+    exp = client.get_experiment_by_name("toggle-id")
+    runs = client.search_runs([exp.experiment_id])
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
+    assert len(parents) == 1 and sorted(r.info.run_name for r in children) == ["stage1", "stage2"]
+    hist = client.get_metric_history(children[0].info.run_id, "best_fitness")
+    assert [m.step for m in hist] == [1, 2, 3]
+
+
+def test_identify_job_on_a_csv_record(tmp_path, job_env):
+    assert run_job("jobs.simulate", "out=rec.csv", "duration=1.0", "noise_m=1e-6", cwd=tmp_path).returncode == 0
+    proc = run_job("jobs.run", "+experiment=one_stage", "data=csv", f"data.path={tmp_path / 'rec.csv'}",
+                   f"hydra.run.dir={tmp_path / 'run'}", *[a for a in QUICK if not a.startswith("data.")],
+                   cwd=tmp_path, env=job_env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert res["method"] == "one_stage" and "pct_error" not in res  # no truth for a measured record
+
+
+def test_multirun_sweep_gives_one_mlflow_run_per_config(tmp_path, job_env):
+    proc = run_job("jobs.run", "-m", "+experiment=one_stage", "ga.population=10,12",
+                   f"hydra.sweep.dir={tmp_path / 'multi'}", *[a for a in QUICK if "population" not in a],
+                   cwd=tmp_path, env=job_env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    from mlflow import MlflowClient
+
+    client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
+    runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
+    pops = sorted(r.data.params["ga.population"] for r in runs if "mlflow.parentRunId" not in r.data.tags)
+    assert pops == ["10", "12"]
+    assert len(list((tmp_path / "multi").glob("*/result.json"))) == 2
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["ga.population=1"], "population"),
+    (["ga.crossover_prob=1.5"], "crossover_prob"),
+    (["ga.generations=-3"], "generations"),
+    (["bounds.K_l=[2e7,1e7]"], "K_l"),
+    (["bounds.K_l=[1e7,.inf]"], "K_l"),
+    (["no_such_key=3"], "no_such_key"),
+    (["data=csv", "data.path=/nonexistent/record.csv"], "record.csv"),
+    (["method=three_stage"], "three_stage"),
+])
+def test_bad_configuration_fails_fast_in_one_line(tmp_path, job_env, args, needle):
+    proc = run_job("jobs.run", f"hydra.run.dir={tmp_path / 'run'}", *QUICK, *args, cwd=tmp_path, env=job_env)
+    assert needle in _one_line_error(proc)
+    assert not (tmp_path / "run" / "result.json").exists()
+
+
+def test_bad_csv_fails_fast_in_one_line(tmp_path, job_env):
+    (tmp_path / "bad.csv").write_text("t,v_in,xB\n0,0.05,0.02\n0.001,0.05,0.02\n")
+    proc = run_job("jobs.run", "data=csv", f"data.path={tmp_path / 'bad.csv'}", f"hydra.run.dir={tmp_path / 'run'}",
+                   *[a for a in QUICK if not a.startswith("data.")], cwd=tmp_path, env=job_env)
+    assert "x_B" in _one_line_error(proc)
