@@ -112,7 +112,8 @@ def test_multirun_sweep_gives_one_mlflow_run_per_config(tmp_path, job_env):
     (["method=three_stage"], "three_stage"),
 ])
 def test_bad_configuration_fails_fast_in_one_line(tmp_path, job_env, args, needle):
-    proc = run_job("jobs.run", f"hydra.run.dir={tmp_path / 'run'}", *QUICK, *args, cwd=tmp_path, env=job_env)
+    quick = [a for a in QUICK if not (a.startswith("data.") and "data=csv" in args)]
+    proc = run_job("jobs.run", f"hydra.run.dir={tmp_path / 'run'}", *quick, *args, cwd=tmp_path, env=job_env)
     assert needle in _one_line_error(proc)
     assert not (tmp_path / "run" / "result.json").exists()
 

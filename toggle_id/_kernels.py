@@ -1,11 +1,20 @@
-"""Compiled kernels: the plant's right-hand side and an adaptive Dormand–Prince 5(4) integrator with dense
-output and exact location of the contact instant, batched over parameter vectors.
+"""Compiled kernels: the plant's right-hand side, its Jacobian, and two adaptive integrators with dense output
+and exact location of the contact instant, batched over parameter vectors:
+
+- Rodas4 (Hairer & Wanner, a linearly implicit, L-stable Rosenbrock method of order 4 with an embedded order-3
+  estimate and an order-3 continuous extension) with the analytic 3×3 Jacobian: the fast tier. The clamped mode
+  is stiff (contact spring: ω ≈ 1700 rad/s), which limits any explicit method to steps of about 1.4 ms; Rodas4
+  steps are set by accuracy alone (about 580 steps for a 5-s record at the fast tolerances, against 3550).
+- Dormand–Prince 5(4) (DOPRI5, explicit, order-4 continuous extension): the precise tier, where the steps
+  are small for accuracy anyway and the cheaper explicit step wins.
 
 Small, pure functions on float64 arrays and scalars; failures are returned as status codes, never raised.
 The readable model and the independent reference for these kernels are in :mod:`toggle_id.plant`.
 
 State y = (q, q̇, i_q). The parameter vector ``th`` is the extended vector of :mod:`toggle_id.effects`: the 15
-physical parameters of MODEL.md §6 followed by the parameters of the candidate effects (zero = off).
+physical parameters of MODEL.md §6 followed by the parameters of the candidate effects (zero = off). The
+right-hand side reads the per-individual constants ``pc`` (:func:`_derived`: products and reciprocals of the
+parameters, and the input's description) so that one evaluation needs a single division (by M(q)).
 """
 from __future__ import annotations
 
@@ -26,30 +35,90 @@ G_R1, G_R2, G_R3, G_R4, G_R5, G_H, G_PHI, G_P, G_Z, G_G, G_XBL, G_EPS = range(12
 OK, MODEL_FAILURE, SOLVER_FAILURE, INVALID_PARAMS = 0, 1, 2, 3
 
 # ---- integrator settings array -----------------------------------------------------------------------------
-S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS, S_ROS = range(8)
+# S_METHOD: 0 = DOPRI5 in both modes, 1 = DOPRI5 free / Rodas4 clamped, 2 = Rodas4 in both modes
+S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS, S_METHOD = range(8)
+METHOD_DOPRI5, METHOD_MIXED, METHOD_RODAS4 = 0, 1, 2
+
+# ---- per-individual constants (see _derived) ---------------------------------------------------------------
+(PC_M0, PC_M3, PC_M5, PC_MB, PC_MC, PC_ZKT, PC_Z2BM, PC_FMU, PC_IEPS, PC_CB, PC_FLOAD, PC_KL, PC_D, PC_K3,
+ PC_XBL, PC_KI, PC_ILQ, PC_RSL, PC_PLZL, PC_ULIM, PC_ZTAUC, PC_ZACOG, PC_NZ, PC_PHI, PC_FS, PC_IVS, PC_TAUD,
+ PC_SA, PC_SB, PC_SW0, PC_SDW, PC_ST, PC_SIT, PC_SDWT, PC_T0, PC_IDT, PC_SWEEP, PC_XOFF) = range(38)
+N_PC = 38
+
+
+@nb.njit(cache=True)
+def _derived(th, geo, sweep, use_sweep, t0_rec, dt_rec):
+    """Per-individual constants of the right-hand side (products and reciprocals computed once per simulation)
+    and the description of the input: swept sine (A, B, ω0, ω1 − ω0, T, 1/T) or sampled (t0, 1/dt)."""
+    pc = np.empty(N_PC)
+    Z = geo[G_Z]
+    pc[PC_M0] = th[M2] * geo[G_R2] * geo[G_R2]
+    pc[PC_M3] = th[M3]
+    pc[PC_M5] = th[M5]
+    pc[PC_MB] = th[MB]
+    pc[PC_MC] = th[MC] + th[J_M] * Z * Z          # slider C plus the reflected rotor inertia (eq. 10)
+    pc[PC_ZKT] = Z * th[K_T]
+    pc[PC_Z2BM] = Z * Z * th[B_M]
+    pc[PC_FMU] = th[MU] * th[MB] * geo[G_G]
+    pc[PC_IEPS] = 1.0 / geo[G_EPS]
+    pc[PC_CB] = th[C_B]
+    pc[PC_FLOAD] = th[F_LOAD]
+    pc[PC_KL] = th[K_L]
+    pc[PC_D] = th[D_]
+    pc[PC_K3] = th[K3]
+    pc[PC_XBL] = geo[G_XBL]
+    pc[PC_KI] = th[K_I]
+    pc[PC_ILQ] = 1.0 / th[L_Q]
+    pc[PC_RSL] = th[R_S] / th[L_Q]
+    pc[PC_PLZL] = geo[G_P] * th[LAMBDA_D] * Z / th[L_Q]
+    pc[PC_ULIM] = 1.0 / th[S_SAT] if th[S_SAT] > 0.0 else np.inf
+    pc[PC_ZTAUC] = Z * th[TAU_C]
+    pc[PC_ZACOG] = Z * th[A_COG]
+    pc[PC_NZ] = th[N_COG] * Z
+    pc[PC_PHI] = th[PHI_COG]
+    pc[PC_FS] = th[F_S]
+    pc[PC_IVS] = 1.0 / th[V_S] if th[V_S] != 0.0 else np.inf
+    pc[PC_TAUD] = th[TAU_D]
+    pc[PC_SA], pc[PC_SB], pc[PC_SW0] = sweep[0], sweep[1], sweep[2]
+    pc[PC_SDW] = sweep[3] - sweep[2]
+    pc[PC_ST] = sweep[4]
+    pc[PC_SIT] = 1.0 / sweep[4] if sweep[4] > 0.0 else 0.0
+    pc[PC_SDWT] = pc[PC_SDW] * pc[PC_SIT]
+    pc[PC_T0] = t0_rec
+    pc[PC_IDT] = 1.0 / dt_rec
+    pc[PC_SWEEP] = 1.0 if use_sweep else 0.0
+    pc[PC_XOFF] = th[X_OFF]
+    return pc
 
 
 @nb.njit(cache=True, inline="always")
-def _input(t, th, v, t0_rec, dt_rec, sweep, use_sweep):
-    """Command v_in at time t (V): continuous swept sine or linear interpolation of the samples; dead time
-    shifts it; before the record starts (t < 0 after the shift) the command is 0."""
-    t = t - th[TAU_D]
-    if t < t0_rec - 1e-12:
-        return 0.0
-    if use_sweep:
-        A, B, w0, w1, T = sweep[0], sweep[1], sweep[2], sweep[3], sweep[4]
-        tau = t - T * math.floor(t / T)
-        frac = t / T - math.floor(t / T)
-        return A + B * math.sin((w0 + (w1 - w0) * frac) * tau)
-    x = (t - t0_rec) / dt_rec
+def _input(t, pc, v):
+    """Command v_in at time t (V) and its slope (V/s): continuous swept sine (eq. 31–32) or linear interpolation
+    of the samples ``v``; dead time shifts it; before the record starts (t < t0 after the shift) it is 0."""
+    t = t - pc[PC_TAUD]
+    if t < pc[PC_T0] - 1e-12:
+        return 0.0, 0.0
+    if pc[PC_SWEEP] != 0.0:
+        T = pc[PC_ST]
+        n = math.floor(t * pc[PC_SIT])
+        tau = t - T * n                       # mod(t, T), corrected for the rounding of t·(1/T)
+        if tau < 0.0:
+            tau += T
+        elif tau >= T:
+            tau -= T
+        om = pc[PC_SW0] + pc[PC_SDWT] * tau   # ω(t) = ω0 + (ω1 − ω0)·mod(t/T, 1)
+        ph = om * tau
+        return pc[PC_SA] + pc[PC_SB] * math.sin(ph), pc[PC_SB] * math.cos(ph) * (om + pc[PC_SDWT] * tau)
+    x = (t - pc[PC_T0]) * pc[PC_IDT]
     n = v.shape[0]
     k = int(math.floor(x))
     if k >= n - 1:
-        return v[n - 1]
+        return v[n - 1], 0.0
     if k < 0:
-        return v[0]
+        return v[0], 0.0
     f = x - k
-    return v[k] + f * (v[k + 1] - v[k])
+    slope = v[k + 1] - v[k]
+    return v[k] + f * slope, slope * pc[PC_IDT]
 
 
 @nb.njit(cache=True)
@@ -92,7 +161,7 @@ def _geometry(q, geo):
 T_XB, T_DXB, T_DXC, T_B3, T_B5, T_DB3, T_DB5, T_DGB, T_DGC, T_XC = range(10)
 N_TAB = 10
 # header of the table array: q_lo, 1/dq, number of nodes
-H_QLO, H_INVDQ, H_N = 0, 1, 2
+H_QLO, H_INVDQ, H_N, H_DQ = 0, 1, 2, 3
 
 
 @nb.njit(cache=True)
@@ -104,6 +173,15 @@ def _geometry_exact(q, geo):
     return (True, x_B, dxB, dxC, b3, b5, db3, db5, 2.0 * dxB * ddxB, 2.0 * dxC * ddxC, _xc_rel(q, geo))
 
 
+@nb.njit(cache=True)
+def _xc_rel(q, geo):
+    """x_C(q) (m), for the rotor angle Z·x_C of the cogging term."""
+    r4, r5, h, phi = geo[G_R4], geo[G_R5], geo[G_H], geo[G_PHI]
+    sp = math.sin(q + phi)
+    sin5 = (h - r4 * sp) / r5
+    return r4 * math.cos(q + phi) + r5 * math.sqrt(max(0.0, 1.0 - sin5 * sin5))
+
+
 @nb.njit(cache=True, inline="always")
 def _lookup(q, geo, tab, head):
     """Geometry at q from the Hermite table (exact closed form outside it)."""
@@ -112,12 +190,12 @@ def _lookup(q, geo, tab, head):
     if j < 0 or j >= int(head[H_N]) - 1:
         return _geometry_exact(q, geo)
     s = x - j
-    d = 1.0 / head[H_INVDQ]
+    d = head[H_DQ]
     s2 = s * s
     s3 = s2 * s
     h00 = 2.0 * s3 - 3.0 * s2 + 1.0
     h10 = (s3 - 2.0 * s2 + s) * d
-    h01 = -2.0 * s3 + 3.0 * s2
+    h01 = 1.0 - h00
     h11 = (s3 - s2) * d
     a = tab[j]
     b = tab[j + 1]
@@ -135,58 +213,149 @@ def _lookup(q, geo, tab, head):
 
 
 @nb.njit(cache=True)
-def _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep):
-    """dy/dt of the plant with all effect terms; ``contact`` is the mode decided by event location.
-    Returns ok, q̇, ẇ, i̇ and ∂ẇ/∂i_q (exact: ẇ is affine in i_q)."""
+def _lookup_d(q, geo, tab, head):
+    """q-derivatives of the tabulated x_B', x_C', b3', b5', (x_B'²)', (x_C'²)' at q: the exact derivatives of
+    the Hermite interpolants the right-hand side uses (central differences of the closed form outside the
+    table). Returns ok, x_B'', x_C'', b3'', b5'', (x_B'²)'', (x_C'²)''."""
+    x = (q - head[H_QLO]) * head[H_INVDQ]
+    j = int(math.floor(x)) if x >= 0.0 else -1
+    if j < 0 or j >= int(head[H_N]) - 1:
+        e = 1e-6
+        rp = _geometry_exact(q + e, geo)
+        rm = _geometry_exact(q - e, geo)
+        ie = 0.5 / e
+        return (rp[0] and rm[0], (rp[2] - rm[2]) * ie, (rp[3] - rm[3]) * ie, (rp[6] - rm[6]) * ie,
+                (rp[7] - rm[7]) * ie, (rp[8] - rm[8]) * ie, (rp[9] - rm[9]) * ie)
+    s = x - j
+    idq = head[H_INVDQ]
+    g00 = (6.0 * s * s - 6.0 * s) * idq
+    g10 = 3.0 * s * s - 4.0 * s + 1.0
+    g01 = -g00
+    g11 = 3.0 * s * s - 2.0 * s
+    a = tab[j]
+    b = tab[j + 1]
+    return (True,
+            g00 * a[1] + g10 * a[11] + g01 * b[1] + g11 * b[11],
+            g00 * a[2] + g10 * a[12] + g01 * b[2] + g11 * b[12],
+            g00 * a[5] + g10 * a[15] + g01 * b[5] + g11 * b[15],
+            g00 * a[6] + g10 * a[16] + g01 * b[6] + g11 * b[16],
+            g00 * a[7] + g10 * a[17] + g01 * b[7] + g11 * b[17],
+            g00 * a[8] + g10 * a[18] + g01 * b[8] + g11 * b[18])
+
+
+@nb.njit(cache=True, inline="always")
+def _forces(q, w, iq, contact, pc, geo, tab, head):
+    """Geometry at q and the generalised force terms shared by the right-hand side and its Jacobian."""
     ok, x_B, dxB, dxC, b3, b5, db3, db5, dgB, dgC, x_C = _lookup(q, geo, tab, head)
-    if not ok or x_B <= 0.0:
-        return False, 0.0, 0.0, 0.0, 0.0
-    z = x_B - geo[G_XBL]
-    Z = geo[G_Z]
-    eps = geo[G_EPS]
-    r2 = geo[G_R2]
-    mCeff = th[MC] + th[J_M] * Z * Z
-    M = th[M2] * r2 * r2 + th[M3] * b3 + th[M5] * b5 + th[MB] * dxB * dxB + mCeff * dxC * dxC
-    dM = th[M3] * db3 + th[M5] * db5 + th[MB] * dgB + mCeff * dgC
-    if not M > 0.0:
-        return False, 0.0, 0.0, 0.0, 0.0
+    M = pc[PC_M0] + pc[PC_M3] * b3 + pc[PC_M5] * b5 + pc[PC_MB] * dxB * dxB + pc[PC_MC] * dxC * dxC
+    dM = pc[PC_M3] * db3 + pc[PC_M5] * db5 + pc[PC_MB] * dgB + pc[PC_MC] * dgC
     vB = dxB * w
     vC = dxC * w
-    omega_m = Z * vC  # rotor speed, rad/s
-    # motor-side torque on the screw: electromagnetic − viscous − Coulomb − cogging (N·m)
-    tau = th[K_T] * iq - th[B_M] * omega_m
-    if th[TAU_C] != 0.0:
-        tau -= th[TAU_C] * math.tanh(omega_m / (Z * eps))
-    if th[A_COG] != 0.0:
-        tau += th[A_COG] * math.sin(th[N_COG] * Z * x_C + th[PHI_COG])
-    F_C = Z * tau
+    # motor force on slider C: electromagnetic − viscous − Coulomb + cogging, Z·τ (N)
+    F_C = pc[PC_ZKT] * iq - pc[PC_Z2BM] * vC
+    if pc[PC_ZTAUC] != 0.0:
+        F_C -= pc[PC_ZTAUC] * math.tanh(vC * pc[PC_IEPS])
+    if pc[PC_ZACOG] != 0.0:
+        F_C += pc[PC_ZACOG] * math.sin(pc[PC_NZ] * x_C + pc[PC_PHI])
     # forces on slider B: friction (Coulomb, Stribeck, viscous) and a constant load (N)
-    sg = math.tanh(vB / eps)
-    F_f = -th[MU] * th[MB] * geo[G_G] * sg - th[C_B] * vB - th[F_LOAD]
-    if th[F_S] != 0.0:
-        r = vB / th[V_S]
-        F_f -= th[F_S] * math.exp(-r * r) * sg
+    sg = math.tanh(vB * pc[PC_IEPS])
+    F_f = -pc[PC_FMU] * sg - pc[PC_CB] * vB - pc[PC_FLOAD]
+    if pc[PC_FS] != 0.0:
+        r = vB * pc[PC_IVS]
+        F_f -= pc[PC_FS] * math.exp(-r * r) * sg
+    z = x_B - pc[PC_XBL]
     F_i = 0.0
     if contact:
-        F_i = th[K_L] * z + th[D_] * vB + th[K3] * z * z * z
+        F_i = pc[PC_KL] * z + pc[PC_D] * vB + pc[PC_K3] * z * z * z
     Q = F_C * dxC + (F_f - F_i) * dxB
-    inv_m = 1.0 / M
-    wdot = (Q - 0.5 * dM * w * w) * inv_m
-    u = th[K_I] * _input(t, th, v, t0_rec, dt_rec, sweep, use_sweep)
-    if th[S_SAT] > 0.0:
-        lim = 1.0 / th[S_SAT]
-        u = min(max(u, -lim), lim)
-    idot = (u - th[R_S] * iq - geo[G_P] * th[LAMBDA_D] * omega_m) / th[L_Q]
-    return True, w, wdot, idot, Z * th[K_T] * dxC * inv_m
+    ok = ok and x_B > 0.0 and M > 0.0
+    return ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q
 
 
 @nb.njit(cache=True)
-def _xc_rel(q, geo):
-    """x_C(q) (m), for the rotor angle Z·x_C of the cogging term."""
-    r4, r5, h, phi = geo[G_R4], geo[G_R5], geo[G_H], geo[G_PHI]
-    sp = math.sin(q + phi)
-    sin5 = (h - r4 * sp) / r5
-    return r4 * math.cos(q + phi) + r5 * math.sqrt(max(0.0, 1.0 - sin5 * sin5))
+def _rhs(t, q, w, iq, contact, pc, geo, tab, head, v):
+    """dy/dt of the plant with all effect terms; ``contact`` is the mode decided by event location.
+    Returns ok (False outside the assembly range), q̇, ẇ, i̇ and ∂ẇ/∂i_q (exact: ẇ is affine in i_q)."""
+    ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q = _forces(q, w, iq, contact, pc, geo, tab, head)
+    if not ok:
+        return False, 0.0, 0.0, 0.0, 0.0
+    inv_m = 1.0 / M
+    wdot = (Q - 0.5 * dM * w * w) * inv_m
+    u = pc[PC_KI] * _input(t, pc, v)[0]
+    u = min(max(u, -pc[PC_ULIM]), pc[PC_ULIM])
+    idot = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * vC
+    return True, w, wdot, idot, pc[PC_ZKT] * dxC * inv_m
+
+
+@nb.njit(cache=True)
+def _rhs_jac(t, q, w, iq, contact, pc, geo, tab, head, v):
+    """Right-hand side and its analytic Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] and ∂i̇/∂t.
+    Returns ok, q̇, ẇ, i̇, a, b, c, d, e, g, ft."""
+    ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q = _forces(q, w, iq, contact, pc, geo, tab, head)
+    okd, ddxB, ddxC, ddb3, ddb5, ddgB, ddgC = _lookup_d(q, geo, tab, head)
+    if not (ok and okd):
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    inv_m = 1.0 / M
+    wdot = (Q - 0.5 * dM * w * w) * inv_m
+    vin, dvin = _input(t, pc, v)
+    u = pc[PC_KI] * vin
+    ft = pc[PC_KI] * dvin * pc[PC_ILQ]
+    if abs(u) >= pc[PC_ULIM]:
+        u = math.copysign(pc[PC_ULIM], u)
+        ft = 0.0
+    idot = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * vC
+    # partial derivatives of the forces w.r.t. the slider speeds and q (explicit)
+    dFC_dvC = -pc[PC_Z2BM]
+    if pc[PC_ZTAUC] != 0.0:
+        tc = math.tanh(vC * pc[PC_IEPS])
+        dFC_dvC -= pc[PC_ZTAUC] * (1.0 - tc * tc) * pc[PC_IEPS]
+    dFC_dq = 0.0
+    if pc[PC_ZACOG] != 0.0:
+        dFC_dq = pc[PC_ZACOG] * math.cos(pc[PC_NZ] * x_C + pc[PC_PHI]) * pc[PC_NZ] * dxC
+    dsg = (1.0 - sg * sg) * pc[PC_IEPS]
+    dFf_dvB = -pc[PC_FMU] * dsg - pc[PC_CB]
+    if pc[PC_FS] != 0.0:
+        r = vB * pc[PC_IVS]
+        ex = math.exp(-r * r)
+        dFf_dvB -= pc[PC_FS] * ex * (dsg - 2.0 * r * pc[PC_IVS] * sg)
+    dFi_dz = 0.0
+    dFi_dvB = 0.0
+    if contact:
+        dFi_dz = pc[PC_KL] + 3.0 * pc[PC_K3] * z * z
+        dFi_dvB = pc[PC_D]
+    dM2 = pc[PC_M3] * ddb3 + pc[PC_M5] * ddb5 + pc[PC_MB] * ddgB + pc[PC_MC] * ddgC
+    dQ_dw = dFC_dvC * dxC * dxC + (dFf_dvB - dFi_dvB) * dxB * dxB
+    dQ_dq = ((dFC_dvC * ddxC * w + dFC_dq) * dxC + F_C * ddxC
+             + ((dFf_dvB - dFi_dvB) * ddxB * w - dFi_dz * dxB) * dxB + (F_f - F_i) * ddxB)
+    ja = (dQ_dq - 0.5 * dM2 * w * w - wdot * dM) * inv_m
+    jb = (dQ_dw - dM * w) * inv_m
+    jc = pc[PC_ZKT] * dxC * inv_m
+    jd = -pc[PC_PLZL] * ddxC * w
+    je = -pc[PC_PLZL] * dxC
+    return True, w, wdot, idot, ja, jb, jc, jd, je, -pc[PC_RSL], ft
+
+
+@nb.njit(cache=True)
+def _jacobian_fd(t, q, w, iq, contact, pc, geo, tab, head, v, eps_rel=1e-5):
+    """Central-difference Jacobian of :func:`_rhs` (for tests). Returns a 3×3 array and ∂f/∂t (3,)."""
+    y = np.array([q, w, iq])
+    J = np.zeros((3, 3))
+    for c in range(3):
+        e = eps_rel * max(abs(y[c]), 1e-3)
+        yp = y.copy()
+        ym = y.copy()
+        yp[c] += e
+        ym[c] -= e
+        rp = _rhs(t, yp[0], yp[1], yp[2], contact, pc, geo, tab, head, v)
+        rm = _rhs(t, ym[0], ym[1], ym[2], contact, pc, geo, tab, head, v)
+        J[0, c] = (rp[1] - rm[1]) / (2 * e)
+        J[1, c] = (rp[2] - rm[2]) / (2 * e)
+        J[2, c] = (rp[3] - rm[3]) / (2 * e)
+    e = 1e-7
+    rp = _rhs(t + e, q, w, iq, contact, pc, geo, tab, head, v)
+    rm = _rhs(t - e, q, w, iq, contact, pc, geo, tab, head, v)
+    ft = np.array([(rp[1] - rm[1]) / (2 * e), (rp[2] - rm[2]) / (2 * e), (rp[3] - rm[3]) / (2 * e)])
+    return J, ft
 
 
 # Dormand–Prince 5(4) tableau, error weights and dense-output coefficients (Hairer, Nørsett & Wanner, DOPRI5)
@@ -200,43 +369,6 @@ _C2, _C3, _C4, _C5 = 1 / 5, 3 / 10, 4 / 5, 8 / 9
 _E1, _E3, _E4, _E5, _E6, _E7 = 71 / 57600, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40
 _D1, _D3, _D4 = -12715105075 / 11282082432, 87487479700 / 32700410799, -10690763975 / 1880347072
 _D5, _D6, _D7 = 701980252875 / 199316789632, -1453857185 / 822651844, 69997945 / 29380423
-
-
-@nb.njit(cache=True)
-def _dense(th_, r1, r2, r3, r4, r5):
-    """DOPRI5 continuous extension at fraction θ of the step."""
-    s = 1.0 - th_
-    return r1 + th_ * (r2 + s * (r3 + th_ * (r4 + s * r5)))
-
-
-@nb.njit(cache=True)
-def _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep):
-    """One Dormand–Prince step of size h from (t, y) with k1 = f(t, y). Returns ok, y(t+h) and the stages
-    k3…k7 (k7 = f(t+h, y(t+h)), first-same-as-last) needed for the error estimate and dense output."""
-    a = (th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
-    ok2, k2q, k2w, k2i, _ = _rhs(t + _C2 * h, q + h * _A21 * k1q, w + h * _A21 * k1w, iq + h * _A21 * k1i, contact,
-                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    ok3, k3q, k3w, k3i, _ = _rhs(t + _C3 * h, q + h * (_A31 * k1q + _A32 * k2q), w + h * (_A31 * k1w + _A32 * k2w),
-                              iq + h * (_A31 * k1i + _A32 * k2i), contact, a[0], a[1], a[2], a[3], a[4], a[5], a[6],
-                              a[7], a[8])
-    ok4, k4q, k4w, k4i, _ = _rhs(t + _C4 * h, q + h * (_A41 * k1q + _A42 * k2q + _A43 * k3q),
-                              w + h * (_A41 * k1w + _A42 * k2w + _A43 * k3w),
-                              iq + h * (_A41 * k1i + _A42 * k2i + _A43 * k3i), contact,
-                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    ok5, k5q, k5w, k5i, _ = _rhs(t + _C5 * h, q + h * (_A51 * k1q + _A52 * k2q + _A53 * k3q + _A54 * k4q),
-                              w + h * (_A51 * k1w + _A52 * k2w + _A53 * k3w + _A54 * k4w),
-                              iq + h * (_A51 * k1i + _A52 * k2i + _A53 * k3i + _A54 * k4i), contact,
-                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    ok6, k6q, k6w, k6i, _ = _rhs(t + h, q + h * (_A61 * k1q + _A62 * k2q + _A63 * k3q + _A64 * k4q + _A65 * k5q),
-                              w + h * (_A61 * k1w + _A62 * k2w + _A63 * k3w + _A64 * k4w + _A65 * k5w),
-                              iq + h * (_A61 * k1i + _A62 * k2i + _A63 * k3i + _A64 * k4i + _A65 * k5i), contact,
-                              a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    qn = q + h * (_A71 * k1q + _A73 * k3q + _A74 * k4q + _A75 * k5q + _A76 * k6q)
-    wn = w + h * (_A71 * k1w + _A73 * k3w + _A74 * k4w + _A75 * k5w + _A76 * k6w)
-    inn = iq + h * (_A71 * k1i + _A73 * k3i + _A74 * k4i + _A75 * k5i + _A76 * k6i)
-    ok7, k7q, k7w, k7i, _ = _rhs(t + h, qn, wn, inn, contact, a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
-    ok = ok2 and ok3 and ok4 and ok5 and ok6 and ok7
-    return (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w, k7i)
 
 
 # ---- Rodas4 (Hairer & Wanner, Solving ODEs II, §VI.4; coefficients of their code RODAS, 'transformed' form) --
@@ -260,9 +392,55 @@ _RH31, _RH32, _RH33, _RH34, _RH35 = (-0.6762803392801253, 6.087714651680015, 16.
 
 
 @nb.njit(cache=True, inline="always")
+def _dense(th_, r1, r2, r3, r4, r5):
+    """Continuous extension at fraction θ of the step: r1 + θ(r2 + (1−θ)(r3 + θ(r4 + (1−θ) r5))) (DOPRI5's;
+    Rodas4's is the same form with r5 = 0)."""
+    s = 1.0 - th_
+    return r1 + th_ * (r2 + s * (r3 + th_ * (r4 + s * r5)))
+
+
+@nb.njit(cache=True)
+def _dopri_step(h, t, q, w, iq, k1q, k1w, k1i, contact, pc, geo, tab, head, v):
+    """One Dormand–Prince step of size h from (t, y) with k1 = f(t, y). Returns ok, y(t+h), k7 = f(t+h, y(t+h))
+    (first same as last), the error estimate and the dense-output coefficients (r3, r4, r5) of q and i_q."""
+    ok2, k2q, k2w, k2i, _ = _rhs(t + _C2 * h, q + h * _A21 * k1q, w + h * _A21 * k1w, iq + h * _A21 * k1i, contact,
+                                 pc, geo, tab, head, v)
+    ok3, k3q, k3w, k3i, _ = _rhs(t + _C3 * h, q + h * (_A31 * k1q + _A32 * k2q), w + h * (_A31 * k1w + _A32 * k2w),
+                                 iq + h * (_A31 * k1i + _A32 * k2i), contact, pc, geo, tab, head, v)
+    ok4, k4q, k4w, k4i, _ = _rhs(t + _C4 * h, q + h * (_A41 * k1q + _A42 * k2q + _A43 * k3q),
+                                 w + h * (_A41 * k1w + _A42 * k2w + _A43 * k3w),
+                                 iq + h * (_A41 * k1i + _A42 * k2i + _A43 * k3i), contact, pc, geo, tab, head, v)
+    ok5, k5q, k5w, k5i, _ = _rhs(t + _C5 * h, q + h * (_A51 * k1q + _A52 * k2q + _A53 * k3q + _A54 * k4q),
+                                 w + h * (_A51 * k1w + _A52 * k2w + _A53 * k3w + _A54 * k4w),
+                                 iq + h * (_A51 * k1i + _A52 * k2i + _A53 * k3i + _A54 * k4i), contact,
+                                 pc, geo, tab, head, v)
+    ok6, k6q, k6w, k6i, _ = _rhs(t + h, q + h * (_A61 * k1q + _A62 * k2q + _A63 * k3q + _A64 * k4q + _A65 * k5q),
+                                 w + h * (_A61 * k1w + _A62 * k2w + _A63 * k3w + _A64 * k4w + _A65 * k5w),
+                                 iq + h * (_A61 * k1i + _A62 * k2i + _A63 * k3i + _A64 * k4i + _A65 * k5i), contact,
+                                 pc, geo, tab, head, v)
+    qn = q + h * (_A71 * k1q + _A73 * k3q + _A74 * k4q + _A75 * k5q + _A76 * k6q)
+    wn = w + h * (_A71 * k1w + _A73 * k3w + _A74 * k4w + _A75 * k5w + _A76 * k6w)
+    inn = iq + h * (_A71 * k1i + _A73 * k3i + _A74 * k4i + _A75 * k5i + _A76 * k6i)
+    ok7, k7q, k7w, k7i, k7c = _rhs(t + h, qn, wn, inn, contact, pc, geo, tab, head, v)
+    ok = ok2 and ok3 and ok4 and ok5 and ok6 and ok7
+    eq = h * (_E1 * k1q + _E3 * k3q + _E4 * k4q + _E5 * k5q + _E6 * k6q + _E7 * k7q)
+    ew = h * (_E1 * k1w + _E3 * k3w + _E4 * k4w + _E5 * k5w + _E6 * k6w + _E7 * k7w)
+    ei = h * (_E1 * k1i + _E3 * k3i + _E4 * k4i + _E5 * k5i + _E6 * k6i + _E7 * k7i)
+    dq = qn - q
+    di = inn - iq
+    r3q = h * k1q - dq
+    r4q = dq - h * k7q - r3q
+    r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
+    r3i = h * k1i - di
+    r4i = di - h * k7i - r3i
+    r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
+    return ok, qn, wn, inn, k7q, k7w, k7i, k7c, eq, ew, ei, r3q, r4q, r5q, r3i, r4i, r5i
+
+
+@nb.njit(cache=True, inline="always")
 def _wsolve(r0, r1, r2, hg, a, d, m11, m12, m21, m22, idet):
-    """Solve (I/(hγ) − J) x = r for the plant's Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] (the 2×2 block
-    m, its inverse determinant idet and hγ prepared by the caller)."""
+    """Solve (I/(hγ) − J) x = r for the plant's Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] (the reduced 2×2
+    block m, its inverse determinant idet and hγ prepared by the caller)."""
     s1 = r1 + a * hg * r0
     s2 = r2 + d * hg * r0
     x1 = (m22 * s1 - m12 * s2) * idet
@@ -271,51 +449,8 @@ def _wsolve(r0, r1, r2, hg, a, d, m11, m12, m21, m22, idet):
 
 
 @nb.njit(cache=True)
-def _input_slope(t, th, v, t0_rec, dt_rec, sweep, use_sweep):
-    """d v_in/dt at t (V/s): derivative of the swept sine, or the slope of the interpolation segment."""
-    t = t - th[TAU_D]
-    if t < t0_rec - 1e-12:
-        return 0.0
-    if use_sweep:
-        B, w0, w1, T = sweep[1], sweep[2], sweep[3], sweep[4]
-        tau = t - T * math.floor(t / T)
-        frac = t / T - math.floor(t / T)
-        om = w0 + (w1 - w0) * frac
-        return B * math.cos(om * tau) * (om + (w1 - w0) / T * tau)
-    x = (t - t0_rec) / dt_rec
-    k = int(math.floor(x))
-    if k >= v.shape[0] - 1 or k < 0:
-        return 0.0
-    return (v[k + 1] - v[k]) / dt_rec
-
-
-@nb.njit(cache=True)
-def _jacobian(t, q, w, iq, fw, fi, fc, contact, atq, atw, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep):
-    """Partial derivatives of (ẇ, i̇) w.r.t. (q, w) by forward differences from f(t, y) = (w, fw, fi); the i_q
-    column is exact (ẇ and i̇ are affine in i_q: ∂ẇ/∂i_q = ``fc``, ∂i̇/∂i_q = −R_s/L_q), and so is ∂i̇/∂t (the
-    input's slope). Returns ok, a, b, c, d, e, g, ft_i."""
-    dq = 1.5e-8 * max(abs(q), 1e3 * atq)
-    ok1, _, fw1, fi1, _ = _rhs(t, q + dq, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
-    if not ok1:
-        dq = -dq
-        ok1, _, fw1, fi1, _ = _rhs(t, q + dq, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                                   use_sweep)
-    dw = 1.5e-8 * max(abs(w), 1e3 * atw)
-    ok2, _, fw2, fi2, _ = _rhs(t, q, w + dw, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
-    inv_l = 1.0 / th[L_Q]
-    ft = th[K_I] * _input_slope(t, th, v, t0_rec, dt_rec, sweep, use_sweep) * inv_l
-    if th[S_SAT] > 0.0:
-        u = th[K_I] * _input(t, th, v, t0_rec, dt_rec, sweep, use_sweep)
-        if abs(u) * th[S_SAT] >= 1.0:
-            ft = 0.0
-    return (ok1 and ok2, (fw1 - fw) / dq, (fw2 - fw) / dw, fc, (fi1 - fi) / dq, (fi2 - fi) / dw,
-            -th[R_S] * inv_l, ft)
-
-
-@nb.njit(cache=True)
-def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, th, geo, tab, head, v, t0_rec, dt_rec,
-              sweep, use_sweep):
-    """One Rodas4 step of size h from (t, y) with f(t, y) = (w, f0w, f0i) and the Jacobian (a…g) and ∂f/∂t.
+def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, pc, geo, tab, head, v):
+    """One Rodas4 step of size h from (t, y) with f(t, y) = (w, f0w, f0i), the Jacobian (a…g) and ∂i̇/∂t.
     Returns ok, y(t+h), the error estimate and the dense-output coefficients (K1, K2) of q and i_q."""
     hg = h * _RG
     s = 1.0 / hg
@@ -327,19 +462,17 @@ def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, th
     ih = 1.0 / h
     k1q, k1w, k1i = _wsolve(w, f0w, f0i + _RD1 * h * fti, hg, ja, jd, m11, m12, m21, m22, idet)
     ok2, f2q, f2w, f2i, _ = _rhs(t + _RCC2 * h, q + _RA21 * k1q, w + _RA21 * k1w, iq + _RA21 * k1i, contact,
-                              th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+                                 pc, geo, tab, head, v)
     k2q, k2w, k2i = _wsolve(f2q + ih * _RC21 * k1q, f2w + ih * _RC21 * k1w, f2i + _RD2 * h * fti + ih * _RC21 * k1i,
                             hg, ja, jd, m11, m12, m21, m22, idet)
     ok3, f3q, f3w, f3i, _ = _rhs(t + _RCC3 * h, q + _RA31 * k1q + _RA32 * k2q, w + _RA31 * k1w + _RA32 * k2w,
-                              iq + _RA31 * k1i + _RA32 * k2i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                              use_sweep)
+                                 iq + _RA31 * k1i + _RA32 * k2i, contact, pc, geo, tab, head, v)
     k3q, k3w, k3i = _wsolve(f3q + ih * (_RC31 * k1q + _RC32 * k2q), f3w + ih * (_RC31 * k1w + _RC32 * k2w),
                             f3i + _RD3 * h * fti + ih * (_RC31 * k1i + _RC32 * k2i),
                             hg, ja, jd, m11, m12, m21, m22, idet)
     ok4, f4q, f4w, f4i, _ = _rhs(t + _RCC4 * h, q + _RA41 * k1q + _RA42 * k2q + _RA43 * k3q,
-                              w + _RA41 * k1w + _RA42 * k2w + _RA43 * k3w,
-                              iq + _RA41 * k1i + _RA42 * k2i + _RA43 * k3i, contact, th, geo, tab, head, v, t0_rec,
-                              dt_rec, sweep, use_sweep)
+                                 w + _RA41 * k1w + _RA42 * k2w + _RA43 * k3w,
+                                 iq + _RA41 * k1i + _RA42 * k2i + _RA43 * k3i, contact, pc, geo, tab, head, v)
     k4q, k4w, k4i = _wsolve(f4q + ih * (_RC41 * k1q + _RC42 * k2q + _RC43 * k3q),
                             f4w + ih * (_RC41 * k1w + _RC42 * k2w + _RC43 * k3w),
                             f4i + _RD4 * h * fti + ih * (_RC41 * k1i + _RC42 * k2i + _RC43 * k3i),
@@ -347,13 +480,13 @@ def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, th
     y5q = q + _RA51 * k1q + _RA52 * k2q + _RA53 * k3q + _RA54 * k4q
     y5w = w + _RA51 * k1w + _RA52 * k2w + _RA53 * k3w + _RA54 * k4w
     y5i = iq + _RA51 * k1i + _RA52 * k2i + _RA53 * k3i + _RA54 * k4i
-    ok5, f5q, f5w, f5i, _ = _rhs(t + h, y5q, y5w, y5i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    ok5, f5q, f5w, f5i, _ = _rhs(t + h, y5q, y5w, y5i, contact, pc, geo, tab, head, v)
     k5q, k5w, k5i = _wsolve(f5q + ih * (_RC51 * k1q + _RC52 * k2q + _RC53 * k3q + _RC54 * k4q),
                             f5w + ih * (_RC51 * k1w + _RC52 * k2w + _RC53 * k3w + _RC54 * k4w),
                             f5i + ih * (_RC51 * k1i + _RC52 * k2i + _RC53 * k3i + _RC54 * k4i),
                             hg, ja, jd, m11, m12, m21, m22, idet)
     y6q, y6w, y6i = y5q + k5q, y5w + k5w, y5i + k5i
-    ok6, f6q, f6w, f6i, _ = _rhs(t + h, y6q, y6w, y6i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
+    ok6, f6q, f6w, f6i, _ = _rhs(t + h, y6q, y6w, y6i, contact, pc, geo, tab, head, v)
     k6q, k6w, k6i = _wsolve(f6q + ih * (_RC61 * k1q + _RC62 * k2q + _RC63 * k3q + _RC64 * k4q + _RC65 * k5q),
                             f6w + ih * (_RC61 * k1w + _RC62 * k2w + _RC63 * k3w + _RC64 * k4w + _RC65 * k5w),
                             f6i + ih * (_RC61 * k1i + _RC62 * k2i + _RC63 * k3i + _RC64 * k4i + _RC65 * k5i),
@@ -366,29 +499,59 @@ def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, th
     return ok, y6q + k6q, y6w + k6w, y6i + k6i, k6q, k6w, k6i, d1q, d2q, d1i, d2i
 
 
+@nb.njit(cache=True, inline="always")
+def _x_of_q(q, geo):
+    """x_B(q) = r1 cos q + r3 cos θ2 (m)."""
+    r1, r3 = geo[G_R1], geo[G_R3]
+    sin2 = r1 * math.sin(q) / r3
+    return r1 * math.cos(q) + r3 * math.sqrt(max(0.0, 1.0 - sin2 * sin2))
+
+
+@nb.njit(cache=True)
+def _locate(q, q_L, h, g0, g1, r2, r3, r4, r5):
+    """Fraction b ∈ (0, 1] of the step at which the dense output of q reaches q_L (Illinois method; the returned
+    point lies on the far side of the switching surface)."""
+    a, b, ga, gb = 0.0, 1.0, g0, g1
+    side = 0
+    for _ in range(100):
+        th_ = (a * gb - b * ga) / (gb - ga)
+        gm = q_L - _dense(th_, q, r2, r3, r4, r5)
+        if (gm < 0.0) == (ga < 0.0):
+            a, ga = th_, gm
+            if side == -1:
+                gb *= 0.5
+            side = -1
+        else:
+            b, gb = th_, gm
+            if side == 1:
+                ga *= 0.5
+            side = 1
+        if (b - a) * h < 1e-13 or gm == 0.0:
+            break
+    return b
+
+
 @nb.njit(cache=True)
 def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
                   out_x, out_i):
     """Integrate one parameter vector from ``t_start`` (state y0, contact mode contact0) and write x_B and i_q
     at the samples t_out[k] ≥ t_start for k < n_out. Samples before t_start are left untouched.
 
-    Free motion is integrated by Dormand–Prince 5(4); the clamped (stiff) mode by the linearly implicit
-    Rodas4 (settings[S_ROS] = 1; 2: Rodas4 in both modes; 0: DOPRI5 in both). The contact switch (q crossing
-    q_L, i.e. x_B crossing x_B^L, either way) is located on the dense output and the step is retaken to end
-    exactly there, so every step integrates a smooth right-hand side.
+    The method (settings[S_METHOD]) is Rodas4, DOPRI5, or DOPRI5 in free motion and Rodas4 while clamped. The
+    contact switch (q crossing q_L, i.e. x_B crossing x_B^L, either way) is located on the dense output and
+    the step is retaken to end exactly there, so every step integrates a smooth right-hand side.
     Returns (status, n_steps, t_contact, q_c, w_c, i_c): the first closing contact after t_start and the
-    state there (t_contact = inf if none), from which stage 2 restarts.
+    state there (t_contact = inf if none), from which stage 2 restarts. n_steps counts accepted and rejected
+    steps; beyond settings[S_MAXSTEPS] the simulation is a solver failure.
     """
     rtol = settings[S_RTOL]
     atq, atw, ati = settings[S_ATOL_Q], settings[S_ATOL_W], settings[S_ATOL_I]
     hmax = settings[S_HMAX]
     max_steps = int(settings[S_MAXSTEPS])
-    ros_mode = int(settings[S_ROS])
-    t0_rec = t_out[0]
-    dt_rec = t_out[1] - t_out[0]
-    r1, r3 = geo[G_R1], geo[G_R3]
-    q_L = math.acos(geo[G_XBL] / (r1 + r3))  # contact iff q ≤ q_L (x_B ≥ x_B^L)
-    xoff = th[X_OFF]
+    method = int(settings[S_METHOD])
+    pc = _derived(th, geo, sweep, use_sweep, t_out[0], t_out[1] - t_out[0])
+    q_L = math.acos(geo[G_XBL] / (geo[G_R1] + geo[G_R3]))  # contact iff q ≤ q_L (x_B ≥ x_B^L)
+    xoff = pc[PC_XOFF]
     t_c, qc, wc, ic = np.inf, 0.0, 0.0, 0.0
 
     t = t_start
@@ -398,27 +561,23 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     while k < n_out and t_out[k] < t_start - 1e-12:
         k += 1
     if k < n_out and abs(t_out[k] - t) <= 1e-12:
-        ok, xb, _, _, _, _, _, _, _, _, _, _ = _geometry(q, geo)
-        if not ok:
+        if not _geometry(q, geo)[0]:
             return MODEL_FAILURE, 0, t_c, qc, wc, ic
-        out_x[k] = xb + xoff
+        out_x[k] = _x_of_q(q, geo) + xoff
         out_i[k] = iq
         k += 1
     if k >= n_out:
         return OK, 0, t_c, qc, wc, ic
     t_end = t_out[n_out - 1]
 
-    ok, k1q, k1w, k1i, k1c = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
-    if not ok:
-        return MODEL_FAILURE, 0, t_c, qc, wc, ic
-    c_valid = True  # k1c = ∂ẇ/∂i_q at (t, y) is known
     h = min(settings[S_H0], hmax)
     facold = 1e-4
     n_steps = 0
     last_reject = False
     geom_fail = False
-    have_jac = False
-    ja = jb = jc = jd = je = jg = fti = 0.0
+    have_f = False   # f(t, y) = (w, fw, fi) known
+    have_j = False   # Jacobian at (t, y) known
+    fw = fi = fc = ja = jb = jc = jd = je = jg = fti = 0.0
     while t < t_end - 1e-13:
         if n_steps >= max_steps:
             return SOLVER_FAILURE, n_steps, t_c, qc, wc, ic
@@ -426,30 +585,26 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             return (MODEL_FAILURE if geom_fail else SOLVER_FAILURE), n_steps, t_c, qc, wc, ic
         if t + h > t_end:
             h = t_end - t
+        use_ros = method == METHOD_RODAS4 or (method == METHOD_MIXED and contact == 1)
+        if use_ros and not have_j:
+            ok, _, fw, fi, ja, jb, jc, jd, je, jg, fti = _rhs_jac(t, q, w, iq, contact, pc, geo, tab, head, v)
+            if not ok:
+                return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
+            have_f = have_j = True
+        elif not have_f:
+            ok, _, fw, fi, fc = _rhs(t, q, w, iq, contact, pc, geo, tab, head, v)
+            if not ok:
+                return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
+            have_f = True
         n_steps += 1
-        use_ros = ros_mode == 2 or (ros_mode == 1 and contact == 1)
         if use_ros:
-            if not have_jac:
-                if not c_valid:
-                    _, _, _, _, k1c = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                                           use_sweep)
-                okj, ja, jb, jc, jd, je, jg, fti = _jacobian(t, q, w, iq, k1w, k1i, k1c, contact, atq, atw, th, geo,
-                                                             tab, head, v, t0_rec, dt_rec, sweep, use_sweep)
-                have_jac = True
-            (ok, qn, wn, inn, eq, ew, ei, d1q, d2q, d1i, d2i) = _ros_step(
-                h, t, q, w, iq, k1w, k1i, ja, jb, jc, jd, je, jg, fti, contact, th, geo, tab, head, v, t0_rec,
-                dt_rec, sweep, use_sweep)
-            r3q, r4q, r5q, r3i, r4i, r5i = d1q, d2q, 0.0, d1i, d2i, 0.0
-            expo = 0.25
+            ok, qn, wn, inn, eq, ew, ei, r3q, r4q, r3i, r4i = _ros_step(h, t, q, w, iq, fw, fi, ja, jb, jc, jd, je, jg,
+                                                                       fti, contact, pc, geo, tab, head, v)
+            r5q = r5i = 0.0
+            k7w = k7i = 0.0
         else:
-            (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
-             k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                          use_sweep)
-            if ok:
-                eq = h * (_E1 * k1q + _E3 * k3q + _E4 * k4q + _E5 * k5q + _E6 * k6q + _E7 * k7q)
-                ew = h * (_E1 * k1w + _E3 * k3w + _E4 * k4w + _E5 * k5w + _E6 * k6w + _E7 * k7w)
-                ei = h * (_E1 * k1i + _E3 * k3i + _E4 * k4i + _E5 * k5i + _E6 * k6i + _E7 * k7i)
-            expo = 0.2
+            (ok, qn, wn, inn, _, k7w, k7i, _, eq, ew, ei, r3q, r4q, r5q, r3i, r4i,
+             r5i) = _dopri_step(h, t, q, w, iq, w, fw, fi, contact, pc, geo, tab, head, v)
         if not ok:  # a stage left the assembly range: shrink; if it persists the model has failed
             geom_fail = True
             h *= 0.25
@@ -464,15 +619,14 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             h *= 0.25
             last_reject = True
             continue
-        if use_ros:
-            fac = max(0.2, min(6.0, err ** expo / 0.9))
+        geom_fail = False
+        if use_ros:  # standard controller, exponent 1/(order of the estimate + 1)
+            fac = max(0.2, min(6.0, err ** 0.25 / 0.9))
             if err > 1.0:
                 h = h / fac
                 last_reject = True
                 continue
-            h_new = min(h / fac, hmax)
-        else:
-            # step-size control (PI controller of DOPRI5: beta = 0.04, safety 0.9, factors in [0.2, 10])
+        else:  # PI controller of DOPRI5: beta = 0.04, safety 0.9, factors in [0.2, 10]
             fac11 = err ** 0.17
             if err > 1.0:
                 h = h / min(fac11 / 0.9, 5.0)
@@ -480,20 +634,10 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                 continue
             fac = max(0.1, min(5.0, fac11 / facold ** 0.04 / 0.9))
             facold = max(err, 1e-4)
-            h_new = min(h / fac, hmax)
-        geom_fail = False
+        h_new = min(h / fac, hmax)
         if last_reject:
             h_new = min(h_new, h)
         last_reject = False
-        if not use_ros:
-            dq = qn - q
-            di = inn - iq
-            r3q = h * k1q - dq
-            r4q = dq - h * k7q - r3q
-            r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
-            r3i = h * k1i - di
-            r4i = di - h * k7i - r3i
-            r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
         # --- contact event: does q cross q_L inside this step? ---
         g0 = q_L - q
         g1 = q_L - qn
@@ -501,43 +645,14 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             crossed = (g0 < 0.0) and (g1 >= 0.0)
         else:
             crossed = (g0 >= 0.0) and (g1 < 0.0)
-        if crossed:
-            dq = qn - q
-            a, b, ga, gb = 0.0, 1.0, g0, g1
-            side = 0
-            for _ in range(100):  # Illinois on the dense output of q
-                th_ = (a * gb - b * ga) / (gb - ga)
-                gm = q_L - _dense(th_, q, dq, r3q, r4q, r5q)
-                if (gm < 0.0) == (ga < 0.0):
-                    a, ga = th_, gm
-                    if side == -1:
-                        gb *= 0.5
-                    side = -1
-                else:
-                    b, gb = th_, gm
-                    if side == 1:
-                        ga *= 0.5
-                    side = 1
-                if (b - a) * h < 1e-13 or gm == 0.0:
-                    break
-            h = max(b * h, 1e-15)  # retake the step to the far side of the event, in the old mode
+        if crossed:  # retake the step to the far side of the event, in the old mode
+            h = max(_locate(q, q_L, h, g0, g1, qn - q, r3q, r4q, r5q) * h, 1e-15)
             if use_ros:
-                (ok, qn, wn, inn, eq, ew, ei, r3q, r4q, r3i, r4i) = _ros_step(
-                    h, t, q, w, iq, k1w, k1i, ja, jb, jc, jd, je, jg, fti, contact, th, geo, tab, head, v, t0_rec,
-                    dt_rec, sweep, use_sweep)
-                r5q = r5i = 0.0
+                ok, qn, wn, inn, _, _, _, r3q, r4q, r3i, r4i = _ros_step(h, t, q, w, iq, fw, fi, ja, jb, jc, jd, je,
+                                                                         jg, fti, contact, pc, geo, tab, head, v)
             else:
-                (ok, qn, wn, inn, k3q, k3w, k3i, k4q, k4w, k4i, k5q, k5w, k5i, k6q, k6w, k6i, k7q, k7w,
-                 k7i) = _step(h, t, q, w, iq, k1q, k1w, k1i, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                              use_sweep)
-                dq = qn - q
-                di = inn - iq
-                r3q = h * k1q - dq
-                r4q = dq - h * k7q - r3q
-                r5q = h * (_D1 * k1q + _D3 * k3q + _D4 * k4q + _D5 * k5q + _D6 * k6q + _D7 * k7q)
-                r3i = h * k1i - di
-                r4i = di - h * k7i - r3i
-                r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
+                (ok, qn, wn, inn, _, k7w, k7i, _, _, _, _, r3q, r4q, r5q, r3i, r4i,
+                 r5i) = _dopri_step(h, t, q, w, iq, w, fw, fi, contact, pc, geo, tab, head, v)
             if not ok:
                 return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
         # --- dense output at the samples inside (t, t + h] ---
@@ -545,33 +660,26 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
         if k < n_out and t_out[k] <= t_new + 1e-12:
             dq = qn - q
             di = inn - iq
+            ih = 1.0 / h
             while k < n_out and t_out[k] <= t_new + 1e-12:
-                s = min((t_out[k] - t) / h, 1.0)
-                qs = _dense(s, q, dq, r3q, r4q, r5q)
-                sin2 = r1 * math.sin(qs) / r3
-                out_x[k] = r1 * math.cos(qs) + r3 * math.sqrt(max(0.0, 1.0 - sin2 * sin2)) + xoff
+                s = min((t_out[k] - t) * ih, 1.0)
+                out_x[k] = _x_of_q(_dense(s, q, dq, r3q, r4q, r5q), geo) + xoff
                 out_i[k] = _dense(s, iq, di, r3i, r4i, r5i)
                 k += 1
         t = t_new
         q, w, iq = qn, wn, inn
         if not (math.isfinite(q) and math.isfinite(w) and math.isfinite(iq)):
             return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
+        have_j = False
+        have_f = not (use_ros or crossed)  # DOPRI5: first same as last
+        fw, fi = k7w, k7i
         if crossed:
             if contact == 0 and t_c == np.inf:
                 t_c, qc, wc, ic = t, q, w, iq
             contact = 1 - contact
             h_new = min(h_new, max(h, 1e-6))
-        c_valid = use_ros or crossed
-        if c_valid:
-            ok, k7q, k7w, k7i, k1c = _rhs(t, q, w, iq, contact, th, geo, tab, head, v, t0_rec, dt_rec, sweep,
-                                          use_sweep)
-            if not ok:
-                return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
-        have_jac = False
-        k1q, k1w, k1i = k7q, k7w, k7i
         h = h_new
-    ok, xb, _, _, _, _, _, _, _, _, _, _ = _geometry(q, geo)
-    if not ok or xb <= 0.0:
+    if not (_geometry(q, geo)[0] and _x_of_q(q, geo) > 0.0):
         return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
     return OK, n_steps, t_c, qc, wc, ic
 
@@ -612,24 +720,42 @@ def _build_table(geo, q_lo, dq, n):
 
 
 @nb.njit(cache=True)
-def _simulate_batch_serial(thetas, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
-                           out_x, out_i, status, n_steps, events):
-    """Serial loop over rows of ``thetas`` (one Ray actor = one core)."""
-    for p in range(thetas.shape[0]):
-        st, ns, tc, qc, wc, ic = _simulate_one(thetas[p], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0,
-                                               contact0, settings, out_x[p], out_i[p])
-        status[p] = st
-        n_steps[p] = ns
-        events[p, 0], events[p, 1], events[p, 2], events[p, 3] = tc, qc, wc, ic
+def _simulate_row(thetas, r, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
+                  out_x, out_i, status, n_steps, events):
+    """Simulate row r of ``thetas`` into row r of the outputs; samples not simulated (before ``t_start``, from
+    ``n_out`` on, or all of them when the simulation failed) are NaN."""
+    xr = out_x[r]
+    ir = out_i[r]
+    st, ns, tc, qc, wc, ic = _simulate_one(thetas[r], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start,
+                                           y0, contact0, settings, xr, ir)
+    n = t_out.shape[0]
+    if st != OK:
+        for k in range(n):
+            xr[k] = np.nan
+            ir[k] = np.nan
+    else:
+        for k in range(n):
+            if k >= n_out or t_out[k] < t_start - 1e-12:
+                xr[k] = np.nan
+                ir[k] = np.nan
+    status[r] = st
+    n_steps[r] = ns
+    events[r, 0], events[r, 1], events[r, 2], events[r, 3] = tc, qc, wc, ic
+
+
+@nb.njit(cache=True)
+def _simulate_batch_serial(thetas, rows, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0,
+                           settings, out_x, out_i, status, n_steps, events):
+    """Serial loop over the rows ``rows`` of ``thetas`` (one Ray actor = one core)."""
+    for p in range(rows.shape[0]):
+        _simulate_row(thetas, rows[p], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0,
+                      settings, out_x, out_i, status, n_steps, events)
 
 
 @nb.njit(cache=True, parallel=True)
-def _simulate_batch_parallel(thetas, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
-                             out_x, out_i, status, n_steps, events):
-    """Threaded loop over rows of ``thetas`` (standalone use: jobs.simulate, benchmarks)."""
-    for p in nb.prange(thetas.shape[0]):
-        st, ns, tc, qc, wc, ic = _simulate_one(thetas[p], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0,
-                                               contact0, settings, out_x[p], out_i[p])
-        status[p] = st
-        n_steps[p] = ns
-        events[p, 0], events[p, 1], events[p, 2], events[p, 3] = tc, qc, wc, ic
+def _simulate_batch_parallel(thetas, rows, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0,
+                             contact0, settings, out_x, out_i, status, n_steps, events):
+    """Threaded loop over the rows ``rows`` of ``thetas`` (standalone use: jobs.simulate, benchmarks)."""
+    for p in nb.prange(rows.shape[0]):
+        _simulate_row(thetas, rows[p], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0,
+                      settings, out_x, out_i, status, n_steps, events)

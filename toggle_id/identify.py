@@ -41,6 +41,7 @@ class PolishSettings:
     n_starts: int = 3          # the GA's best distinct individuals to start from
     max_nfev: int = 60         # residual evaluations per start (finite-difference Jacobians counted apart)
     fd_rel_step: float = 1e-6  # relative finite-difference step of the Jacobian (PRECISE simulations)
+    final_joint: bool = True   # two-stage: finish with a polish of all free parameters on the whole record
 
 
 @dataclass
@@ -367,11 +368,46 @@ def identify(record: Record, *, method: str = "two_stage", ga: GAConfig | None =
         stages.append(st)
         if on_stage is not None:
             on_stage(st)
+    if method == "two_stage" and polish.enabled and polish.final_joint:
+        st = _joint_polish(record, plan, theta, settings, i_q_weight, bounds, polish, identifiability, noise_var)
+        theta = st.theta.copy()
+        stages.append(st)
+        if on_stage is not None:
+            on_stage(st)
     full = FitProblem(record, ("D",), theta, (0, record.n), PRECISE)
     sse = float(full.sse(theta[None, ALL_INDEX["D"]][:, None])[0])
     return IdentificationResult(method=method, theta=theta, stages=stages,
                                 fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse, n_samples=record.n,
                                 seconds=time.perf_counter() - t_start, clamp_index=k_c)
+
+
+def _joint_polish(record: Record, plan: list, theta: np.ndarray, settings: SolverSettings, i_q_weight: float,
+                  bounds: Mapping[str, Sequence[float]] | None, polish: PolishSettings, identifiability: bool,
+                  noise_var: float | None) -> StageResult:
+    """After the two GA stages: all their free parameters polished together on the whole record.
+
+    Stage 1 sees only the free motion, where several parameter combinations are not determined; the clamped
+    phase then exposes them (e.g. the stall current K_i·v/R_s). The paper's stage values stay in the report.
+    """
+    free = tuple(dict.fromkeys(n for _, names, _ in plan for n in names))
+    problem = FitProblem(record, free, theta, (0, record.n), settings, i_q_weight=i_q_weight)
+    lo, hi = stage_bounds(list(free), bounds)
+    x0 = problem.x0()
+    t0 = time.perf_counter()
+    resid = lambda x: problem.residuals(x[None, :], PRECISE)[0]  # noqa: E731
+    jac = lambda x: _batched_jacobian(problem, x, polish.fd_rel_step, PRECISE)  # noqa: E731
+    res = polish_many(resid, x0[None, :], lo, hi, jac_fn=jac, max_nfev=polish.max_nfev)
+    x = res.x if res.improved else x0
+    sse = float(problem.sse(x[None, :], PRECISE)[0])
+    st = StageResult(name="joint_polish", free=free, x=x, theta=problem.thetas(x[None, :])[0], window=(0, record.n),
+                     fitness_ga=float("nan"), fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse, history=[],
+                     generations=0, converged_generation=0, n_evaluations=0, seconds_ga=0.0,
+                     seconds_polish=time.perf_counter() - t0,
+                     polish={"improved": bool(res.improved), "sse_before": float(res.sse0),
+                             "sse_after": float(res.sse), "nfev": int(res.nfev), "message": str(res.message)})
+    if identifiability:
+        st.identifiability = identifiability_report(problem, x, noise_var)
+    return st
 
 
 def _stage_problem(record: Record, name: str, free: tuple[str, ...], window: tuple[int, int], theta: np.ndarray,

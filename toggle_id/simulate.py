@@ -25,6 +25,8 @@ STATUS_OK, STATUS_MODEL_FAILURE, STATUS_SOLVER_FAILURE, STATUS_INVALID = K.OK, K
 STATUS_NAMES = {STATUS_OK: "ok", STATUS_MODEL_FAILURE: "model failure", STATUS_SOLVER_FAILURE: "solver failure",
                 STATUS_INVALID: "invalid parameters"}
 N_THETA = K.N_THETA
+#: Integration methods: Rodas4 throughout, DOPRI5 throughout, or DOPRI5 in free motion and Rodas4 while clamped.
+METHODS = {"rodas4": K.METHOD_RODAS4, "dopri5": K.METHOD_DOPRI5, "mixed": K.METHOD_MIXED}
 
 
 @dataclass(frozen=True)
@@ -39,16 +41,16 @@ class SolverSettings:
     h0: float = 1e-4
     hmax: float = 5e-2
     max_steps: int = 50_000
-    ros: int = 2
+    method: str = "rodas4"
 
     def as_array(self) -> np.ndarray:
         return np.array([self.rtol, self.atol_q, self.atol_w, self.atol_i, self.h0, self.hmax,
-                         float(self.max_steps), float(self.ros)], dtype=float)
+                         float(self.max_steps), float(METHODS[self.method])], dtype=float)
 
 
 #: Fast tier (the GA): x_B within 1 µm of the references. Precise tier (polish, sensitivities, residuals).
 FAST = SolverSettings()
-PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=500_000)
+PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=500_000, method="dopri5")
 TIERS = {"fast": FAST, "precise": PRECISE}
 
 
@@ -95,7 +97,7 @@ def geometry_table(geometry: Geometry = GEOMETRY, dq: float = 5e-4) -> tuple[np.
     """Cubic-Hermite table of the q-only kinematics, built once per geometry and shared by all individuals.
 
     It spans the crank angles where link 5 is well away from its singular (|sin θ5| → 1) end; outside it the
-    kernel falls back to the closed form. Returns (table (n, 20), header [q_lo, 1/dq, n]).
+    kernel falls back to the closed form. Returns (table (n, 20), header [q_lo, 1/dq, n, dq]).
     """
     key = (tuple(geometry.as_array()), dq)
     if key not in _TABLES:
@@ -104,7 +106,7 @@ def geometry_table(geometry: Geometry = GEOMETRY, dq: float = 5e-4) -> tuple[np.
         q_hi = float(np.arccos(0.0)) - 1e-6
         n = int((q_hi - q_lo) / dq) + 1
         tab = K._build_table(geometry.as_array(), q_lo, dq, n)
-        _TABLES[key] = (tab, np.array([q_lo, 1.0 / dq, float(n)]))
+        _TABLES[key] = (tab, np.array([q_lo, 1.0 / dq, float(n), dq]))
     return _TABLES[key]
 
 
@@ -140,27 +142,20 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
         start = (float(record.t[0]), (q0, 0.0, 0.0), int(record.x_B0 >= geometry.x_B_L))
     t0, y0, contact0 = start
     y0 = np.asarray(y0, dtype=float)
-    x = np.full((P, record.n), np.nan)
-    i = np.full((P, record.n), np.nan)
+    x = np.empty((P, record.n))
+    i = np.empty((P, record.n))
     status = np.zeros(P, dtype=np.int8)
     n_steps = np.zeros(P, dtype=np.int64)
     events = np.full((P, 4), np.nan)
     bad = _invalid_rows(thetas, geometry)
-    good = np.flatnonzero(~bad)
     status[bad] = STATUS_INVALID
+    x[bad] = np.nan
+    i[bad] = np.nan
+    good = np.flatnonzero(~bad)
     if good.size:
         sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
         kern = K._simulate_batch_parallel if parallel else K._simulate_batch_serial
-        xs, is_ = np.full((good.size, record.n), np.nan), np.full((good.size, record.n), np.nan)
-        st, ns, ev = np.zeros(good.size, np.int8), np.zeros(good.size, np.int64), np.zeros((good.size, 4))
         tab, head = geometry_table(geometry)
-        kern(np.ascontiguousarray(thetas[good]), geo, tab, head, record.t, N, record.v_in, sweep, record.sweep is not None,
-             float(t0), y0, int(contact0), settings.as_array(), xs, is_, st, ns, ev)
-        x[good], i[good], status[good], n_steps[good], events[good] = xs, is_, st, ns, ev
-    failed = status != STATUS_OK
-    x[failed] = np.nan
-    i[failed] = np.nan
-    if N < record.n:
-        x[:, N:] = np.nan
-        i[:, N:] = np.nan
+        kern(thetas, good, geo, tab, head, record.t, N, record.v_in, sweep, record.sweep is not None, float(t0), y0,
+             int(contact0), settings.as_array(), x, i, status, n_steps, events)
     return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events)

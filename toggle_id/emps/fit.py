@@ -287,6 +287,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     - ``position_rel_error_pct_before`` (nominal M, Fv fit), ``position_rel_error_pct_after`` (final model), %;
     - ``effects_added`` [{name, params}], ``candidates`` [{round, name, score = ΔBIC (negative = better),
       p_value, max_corr, sse_ratio, rel_error_pct, params, accepted, seconds}], ``free`` (final free parameters);
+    - ``nominal``: the nominal fit {free, identified (M, Fv), rel_error_pct};
     - ``identified`` (all 8 parameters), ``std`` (approximate σ of the free ones, white-residual assumption);
     - ``published``, ``pct_diff_vs_published`` (M, Fv, Fc, offset; None where not in the final model) and, if the
       asymmetry was added, ``pct_diff_vs_published_asym`` and ``asymmetric_values`` (Fv±, Fc±);
@@ -319,6 +320,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         pass
     free: list[str] = list(NOMINAL_NAMES)
     current = fit_output_error(record, free, theta, **fit_kw)
+    nominal = current
     before = current.rel_error_pct
 
     added: list[dict] = []
@@ -368,6 +370,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "effects_added": added,
         "candidates": tried,
         "free": list(free),
+        "nominal": {"free": list(NOMINAL_NAMES), "identified": {k: nominal.params[k] for k in NOMINAL_NAMES},
+                    "rel_error_pct": float(before)},
         "identified": current.params,
         "std": dict(current.std),
         "published": dict(PUBLISHED),

@@ -316,6 +316,18 @@ def controller_law(record: EmpsRecord, q: np.ndarray | None = None) -> np.ndarra
     return np.clip(nu, -record.v_sat, record.v_sat)
 
 
+def friction_force(theta: np.ndarray | Mapping[str, float], v: np.ndarray, eps: float = 1e-4) -> np.ndarray:
+    """Model friction f(v) (N) at velocities ``v`` (m/s) for one θ (dict or vector): the same expression as the
+    simulator's kernel, Fv·v + Fc·s + offset + Fs·s·exp(−(v/vs)²) + Fc_asym·|s| + Fv_asym·v·s, s = tanh(v/eps)."""
+    M, Fv, Fc, off, Fs, vs, dFc, dFv = as_theta_batch(theta)[0]
+    v = np.asarray(v, dtype=float)
+    s = np.tanh(v / eps)
+    f = Fv * v + Fc * s + off + dFc * np.abs(s) + dFv * v * s
+    if Fs != 0.0 and vs > 0.0:
+        f = f + Fs * s * np.exp(-(v / vs) ** 2)
+    return f
+
+
 def position_rel_error_pct(qm: np.ndarray, q_sim: np.ndarray) -> np.ndarray | float:
     """100·‖qm − q_sim‖/‖qm‖ (%), per row for a (P, N) ``q_sim``; NaN rows give NaN."""
     q_sim = np.asarray(q_sim, dtype=float)

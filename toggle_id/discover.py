@@ -1,0 +1,949 @@
+"""Close the loop: find the residual structure, trace it to the effect the model lacks, add it, repeat.
+
+The loop (:func:`discover`) works on one record and the extended parameter vector of
+:mod:`toggle_id.effects`; it never names an effect — it only reads the library (``EFFECTS``), so adding an
+effect is adding a term and an :class:`~toggle_id.effects.Effect` entry there.
+
+1. *Baseline*: the nominal fit (e.g. the two-stage RGA + polish of :func:`toggle_id.identify.identify`) is
+   polished on the whole record with all its free parameters together (PRECISE tier, log space). Every
+   later comparison is against a model fitted to the same samples with the same machinery.
+2. *Diagnostics* of the residual (:mod:`toggle_id.residuals`): whiteness, input and state correlation.
+3. *Score* each candidate effect not yet in the model by the Lagrange-multiplier (score) test at "effect
+   off": s = y(θ with the effect at a probe setting) − y(θ) (PRECISE, finite difference), projected off
+   the sensitivities J of the free parameters (log-space Jacobian, SVD basis of its range),
+   s⊥ = (I − U Uᵀ) s; score = (s⊥·r)² / (σ² s⊥·s⊥) with σ² = r·r/(N − rank J), the best probe per effect.
+   Under "the effect is absent" it is χ²(1) (the best of several probes is somewhat larger: the probes
+   of an effect with nuisance parameters are a small grid). An effect whose s⊥ vanishes is either silent
+   on this record (‖s‖ = 0) or absorbed by the nominal parameters (‖s⊥‖ ≪ ‖s‖): no test possible.
+4. *Refit* the ``top_k`` highest-scoring candidates: a 1-D search on the effect's magnitude (each probe's
+   nuisance setting × a geometric grid up to the feasible bound, ranked by the residual left after the
+   linearised re-adjustment of the free parameters), then a polish of the free parameters + the effect's
+   parameters from the best grid point.
+5. *Accept* a refit only if the F-test on the SSE (k added parameters) has p < ``alpha`` AND BIC improves.
+   Before accepting, the nominal model is re-polished from the refit's nominal parameters (effect off):
+   a refit that only found a better nominal optimum is not evidence for the effect. The best accepted
+   candidate joins the model; repeat from 2 until nothing is accepted or ``max_effects`` is reached.
+
+When nothing in the library is accepted while the residual still fails the whiteness or input-correlation
+test, the result says so (``unexplained``) instead of forcing an effect in.
+
+:func:`run_discover` is the job (``python -m jobs.run +experiment=discover``).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+from . import params as P
+from . import residuals as R
+from .effects import ALL_INDEX, ALL_NAMES, EFFECTS, EFFECTS_BY_NAME, Effect
+from .errors import ConfigError, DataError
+from .identify import IdentificationResult, stage_bounds
+from .plant import GEOMETRY
+from .polish import polish
+from .record import Record
+from .simulate import PRECISE, STATUS_OK, SolverSettings, extend, simulate
+
+log = logging.getLogger("toggle_id")
+
+
+# ------------------------------------------------------------------------------------------ settings
+@dataclass
+class DiscoverSettings:
+    """Numbers of the discovery loop a user may change (conf/experiment/discover.yaml, node ``discover``).
+
+    top_k: candidates refitted per iteration (highest scores). alpha: level of the F-test an effect must pass.
+    max_effects: most effects added. candidates: effect names to consider (None: the whole library).
+    alpha_diag: level of the residual diagnostics. acf_lags / ccf_lags / ccf_step: lags (samples) of the
+    Ljung–Box and input tests. baseline_nfev / refit_nfev / null_nfev: polish budgets (residual evaluations)
+    of the baseline, of a refit and of the nominal re-polish that guards each acceptance. grid_points: magnitudes
+    per probe in the 1-D search. fd_rel_step: relative forward-difference step of the polish Jacobian.
+    jac_rel_step: (log-)step of the sensitivity matrix J. rank_rtol: relative singular-value cut-off of J.
+    absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts as absorbed by the free parameters.
+    noise_std: known measurement noise (m), reported as rms/noise (None: unknown). parallel: threaded
+    batches of simulations.
+    """
+
+    top_k: int = 3
+    alpha: float = 1e-3
+    max_effects: int = 3
+    candidates: tuple[str, ...] | None = None
+    alpha_diag: float = 0.01
+    acf_lags: int = 20
+    ccf_lags: int = 50
+    ccf_step: int = 5
+    baseline_nfev: int = 60
+    refit_nfev: int = 40
+    null_nfev: int = 30
+    grid_points: int = 14
+    fd_rel_step: float = 1e-6
+    jac_rel_step: float = 1e-5
+    rank_rtol: float = 1e-7
+    absorbed_ratio: float = 1e-4
+    noise_std: float | None = None
+    parallel: bool = True
+
+    def validate(self) -> "DiscoverSettings":
+        """Raise ConfigError naming the first bad value; normalise ``candidates``."""
+        if not isinstance(self.top_k, int) or self.top_k < 1:
+            raise ConfigError(f"discover.top_k must be a positive integer, got {self.top_k!r}")
+        if not 0.0 < float(self.alpha) < 1.0:
+            raise ConfigError(f"discover.alpha must lie in (0, 1), got {self.alpha!r}")
+        if not 0.0 < float(self.alpha_diag) < 1.0:
+            raise ConfigError(f"discover.alpha_diag must lie in (0, 1), got {self.alpha_diag!r}")
+        if not isinstance(self.max_effects, int) or self.max_effects < 0:
+            raise ConfigError(f"discover.max_effects must be a non-negative integer, got {self.max_effects!r}")
+        for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "grid_points"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ConfigError(f"discover.{name} must be a positive integer, got {v!r}")
+        for name in ("fd_rel_step", "jac_rel_step", "rank_rtol", "absorbed_ratio"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 < float(v) < 1.0):
+                raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
+        if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std > 0):
+            raise ConfigError(f"discover.noise_std must be a positive number of metres or null, got {self.noise_std!r}")
+        if self.candidates is not None:
+            if isinstance(self.candidates, str):
+                self.candidates = None if self.candidates == "all" else (self.candidates,)
+            if self.candidates is not None:
+                names = tuple(str(c) for c in self.candidates)
+                unknown = [c for c in names if c not in EFFECTS_BY_NAME]
+                if unknown:
+                    raise ConfigError(f"discover.candidates: unknown effect(s) {', '.join(unknown)}; "
+                                      f"known: {', '.join(EFFECTS_BY_NAME)}")
+                self.candidates = names
+        return self
+
+    @classmethod
+    def from_dict(cls, node: Mapping[str, Any] | None) -> "DiscoverSettings":
+        """Settings from a config node; unknown keys are a ConfigError."""
+        node = dict(node or {})
+        known = {f for f in cls.__dataclass_fields__}
+        extra = sorted(set(node) - known - {"nominal"})
+        if extra:
+            raise ConfigError(f"discover: unknown setting(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
+        kw = {k: v for k, v in node.items() if k in known}
+        if isinstance(kw.get("candidates"), (list, tuple)):
+            kw["candidates"] = tuple(kw["candidates"])
+        return cls(**kw).validate()
+
+
+# ------------------------------------------------------------------------------------------ the model
+class Model:
+    """Simulations of one record in the PRECISE tier: residuals, batched, with failures as NaN rows."""
+
+    def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True) -> None:
+        if record.x_B is None:
+            raise DataError(f"record {record.name!r} has no measured x_B to fit")
+        self.record = record
+        self.settings = settings
+        self.parallel = parallel
+        self.n_sims = 0
+
+    @property
+    def n(self) -> int:
+        return self.record.n
+
+    def outputs(self, thetas: np.ndarray) -> np.ndarray:
+        """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA); NaN rows for failures."""
+        thetas = np.atleast_2d(thetas)
+        self.n_sims += thetas.shape[0]
+        res = simulate(thetas, self.record, self.settings, parallel=self.parallel and thetas.shape[0] > 1)
+        x = res.x_B
+        x[res.status != STATUS_OK] = np.nan
+        return x
+
+    def residuals(self, thetas: np.ndarray) -> np.ndarray:
+        """(P, N) measured − model [m]."""
+        return self.record.x_B[None, :] - self.outputs(thetas)
+
+    def response(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """x_B [m], i_q [A] and the status of one vector."""
+        res = simulate(np.atleast_2d(theta), self.record, self.settings)
+        return res.x_B[0], res.i_q[0], int(res.status[0])
+
+
+def _sse(r: np.ndarray) -> np.ndarray:
+    r = np.atleast_2d(r)
+    s = np.einsum("ij,ij->i", r, r)
+    s[~np.isfinite(s)] = np.inf
+    return s
+
+
+def _typical(names: Sequence[str], theta: np.ndarray) -> np.ndarray:
+    """A typical magnitude per parameter: |value|, or for an effect parameter at 0 its probe size."""
+    out = np.abs(np.array([theta[ALL_INDEX[n]] for n in names], float))
+    probe_size: dict[str, float] = {}
+    for e in EFFECTS:
+        for pr in e.probe:
+            for k, v in pr.items():
+                off = next(p.off for p in e.params if p.name == k)
+                probe_size[k] = max(probe_size.get(k, 0.0), abs(float(v) - off))
+    for j, n in enumerate(names):
+        floor = probe_size.get(n, 0.0) or 1e-12
+        out[j] = max(out[j], floor)
+    return out
+
+
+def _coords(names: Sequence[str], theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Analysis coordinates of ``names`` at ``theta``: log for positive parameters with lower bound ≥ 0,
+    else u = x / scale. Returns (log_mask, scale)."""
+    lo, _ = stage_bounds(list(names))
+    x = np.array([theta[ALL_INDEX[n]] for n in names], float)
+    mask = (lo >= 0.0) & (x > 0.0)
+    return mask, _typical(names, theta)
+
+
+def sensitivities(model: Model, theta: np.ndarray, names: Sequence[str], rel_step: float = 1e-5) -> np.ndarray:
+    """Central-difference Jacobian (N, p) of the model output w.r.t. the analysis coordinates of ``names``
+    (see :func:`_coords`), one batched simulation. Columns whose simulation failed are zero."""
+    mask, scale = _coords(names, theta)
+    p = len(names)
+    T = np.repeat(theta[None, :], 2 * p, axis=0)
+    steps = np.empty(p)
+    for j, n in enumerate(names):
+        i = ALL_INDEX[n]
+        if mask[j]:
+            T[2 * j, i] = theta[i] * np.exp(rel_step)
+            T[2 * j + 1, i] = theta[i] * np.exp(-rel_step)
+            steps[j] = rel_step
+        else:
+            T[2 * j, i] = theta[i] + rel_step * scale[j]
+            T[2 * j + 1, i] = theta[i] - rel_step * scale[j]
+            steps[j] = rel_step
+    Y = model.outputs(T)
+    J = ((Y[0::2] - Y[1::2]) / (2.0 * steps[:, None])).T
+    J[:, ~np.all(np.isfinite(J), axis=0)] = 0.0
+    return J
+
+
+@dataclass
+class Projector:
+    """Orthonormal basis U of the range of J (rank by ``rank_rtol``) and its pseudo-inverse pieces."""
+
+    U: np.ndarray
+    s: np.ndarray
+    Vt: np.ndarray
+
+    @classmethod
+    def of(cls, J: np.ndarray, rank_rtol: float = 1e-7) -> "Projector":
+        if J.size == 0:
+            return cls(np.zeros((J.shape[0], 0)), np.zeros(0), np.zeros((0, J.shape[1])))
+        U, s, Vt = np.linalg.svd(J, full_matrices=False)
+        k = int(np.sum(s > rank_rtol * s[0])) if s.size and s[0] > 0 else 0
+        return cls(U[:, :k], s[:k], Vt[:k])
+
+    @property
+    def rank(self) -> int:
+        return int(self.s.size)
+
+    def perp(self, v: np.ndarray) -> np.ndarray:
+        """(I − U Uᵀ) v for v (N,) or (P, N) rows."""
+        v = np.asarray(v, float)
+        if self.rank == 0:
+            return v.copy()
+        return v - (v @ self.U) @ self.U.T
+
+    def solve(self, r: np.ndarray) -> np.ndarray:
+        """Minimum-norm least-squares step δu with J δu ≈ r."""
+        if self.rank == 0:
+            return np.zeros(self.Vt.shape[1])
+        return self.Vt.T @ ((self.U.T @ r) / self.s)
+
+
+# ------------------------------------------------------------------------------------------ scoring
+@dataclass
+class CandidateScore:
+    """Score test of one effect at the current fit: the best probe, its χ²(1) statistic and p-value,
+    the first-order magnitude estimate (LM step) and why no test was possible (``note``)."""
+
+    name: str
+    score: float
+    p_value: float
+    probe: dict
+    magnitude_linear: float | None
+    sensitivity_norm_m: float
+    perp_ratio: float
+    note: str = ""
+    probes: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "score": self.score, "p_value": self.p_value, "probe": self.probe,
+                "magnitude_linear": self.magnitude_linear, "sensitivity_norm_m": self.sensitivity_norm_m,
+                "perp_ratio": self.perp_ratio, "note": self.note}
+
+
+def _with(theta: np.ndarray, values: Mapping[str, float]) -> np.ndarray:
+    out = theta.copy()
+    for k, v in values.items():
+        out[ALL_INDEX[k]] = float(v)
+    return out
+
+
+def _off_values(effect: Effect) -> dict[str, float]:
+    return {p.name: p.off for p in effect.params}
+
+
+def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effects: Sequence[Effect],
+                     absorbed_ratio: float = 1e-4) -> list[CandidateScore]:
+    """Score test of every effect in ``effects`` (see the module docstring), sorted by score (best first).
+
+    ``theta``: current fit (the effects' parameters at their off values); ``r``: its residual (N,);
+    ``proj``: range of the free parameters' sensitivities. One batched simulation for all probes.
+    """
+    n = r.size
+    sigma2 = float(r @ r) / max(n - proj.rank, 1)
+    y0 = model.outputs(theta[None, :])[0]
+    rows, owners = [], []
+    for e in effects:
+        base = _with(theta, _off_values(e))
+        for pr in e.probe:
+            rows.append(_with(base, pr))
+            owners.append((e, pr))
+    Y = model.outputs(np.array(rows)) if rows else np.zeros((0, n))
+    noise_floor = 1e-12 * np.sqrt(n)  # integrator round-off, m
+    per_effect: dict[str, list[CandidateScore]] = {}
+    for (e, pr), y in zip(owners, Y):
+        mag = e.magnitude
+        if not np.all(np.isfinite(y)):
+            cand = CandidateScore(e.name, 0.0, 1.0, dict(pr), None, float("nan"), 0.0, "probe simulation failed")
+        else:
+            s = y - y0
+            s_norm = float(np.linalg.norm(s))
+            sp = proj.perp(s)
+            sp_norm = float(np.linalg.norm(sp))
+            ratio = sp_norm / s_norm if s_norm > 0 else 0.0
+            if s_norm <= noise_floor:
+                cand = CandidateScore(e.name, 0.0, 1.0, dict(pr), None, s_norm, ratio,
+                                      "no output sensitivity on this record (term silent or not implemented)")
+            elif ratio < absorbed_ratio:
+                cand = CandidateScore(e.name, 0.0, 1.0, dict(pr), None, s_norm, ratio,
+                                      "absorbed by the free parameters (no direction of its own)")
+            else:
+                c = float(sp @ r) / (sp_norm ** 2)
+                score = float(sp @ r) ** 2 / (sigma2 * sp_norm ** 2) if sigma2 > 0 else 0.0
+                step = float(pr.get(mag.name, mag.off)) - mag.off
+                cand = CandidateScore(e.name, score, float(stats.chi2.sf(score, 1)), dict(pr),
+                                      mag.off + c * step, s_norm, ratio)
+        per_effect.setdefault(e.name, []).append(cand)
+    best: dict[str, CandidateScore] = {}
+    for name, cands in per_effect.items():
+        top = max(cands, key=lambda c: c.score)
+        top.probes = [{"probe": c.probe, "score": c.score, "magnitude_linear": c.magnitude_linear, "note": c.note}
+                      for c in cands]
+        best[name] = top
+    return sorted(best.values(), key=lambda c: -c.score)
+
+
+# ------------------------------------------------------------------------------------------ fitting
+@dataclass
+class Fit:
+    """A fitted model: extended vector, free names, SSE on the whole record and the polish's record."""
+
+    theta: np.ndarray
+    free: tuple[str, ...]
+    sse: float
+    info: dict = field(default_factory=dict)
+    jac_u: np.ndarray | None = None
+    scaling: Any = None
+
+    def rmse(self, n: int) -> float:
+        return float(np.sqrt(self.sse / n))
+
+
+def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-6,
+             bounds: Mapping[str, Sequence[float]] | None = None) -> Fit:
+    """Polish ``free`` parameters of ``theta`` on the whole record (PRECISE, bounded least squares in log
+    space for positive parameters). Keeps ``theta`` when nothing improves; never raises for a failed trial."""
+    free = tuple(free)
+    idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
+    lo, hi = stage_bounds(list(free), bounds)
+    x0 = np.clip(theta[idx].astype(float), lo, hi)
+    typ = _typical(free, theta)
+    mask = (lo >= 0.0) & (x0 > 0.0)
+    # a log parameter must start strictly inside its bounds
+    x0 = np.where(mask, np.clip(x0, lo + 1e-12 * typ, hi * (1 - 1e-12)), x0)
+
+    def thetas_of(X: np.ndarray) -> np.ndarray:
+        T = np.repeat(theta[None, :], X.shape[0], axis=0)
+        T[:, idx] = X
+        return T
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        return model.residuals(thetas_of(x[None, :]))[0]
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        h = fd_rel_step * np.maximum(np.abs(x), typ)
+        h = np.where(x + h > hi, -h, h)
+        X = np.repeat(x[None, :], len(free) + 1, axis=0)
+        X[1:] += np.diag(h)
+        Rr = model.residuals(thetas_of(X))
+        return (Rr[1:] - Rr[0]).T / h
+
+    t0 = time.perf_counter()
+    res = polish(resid, x0, lo, hi, log_mask=mask, jac_fn=jac, max_nfev=max_nfev)
+    out = thetas_of(res.x[None, :])[0]
+    info = {"sse_before": float(res.sse0), "sse_after": float(res.sse), "improved": bool(res.improved),
+            "nfev": int(res.nfev), "message": str(res.message), "seconds": time.perf_counter() - t0}
+    return Fit(out, free, float(res.sse), info, res.jac, res.scaling)
+
+
+def _std_errors(fit: Fit, names: Sequence[str], n: int) -> dict[str, float | None]:
+    """Gauss–Newton standard errors (physical units) of ``names`` from the polish's Jacobian (pseudo-inverse:
+    directions the data do not see are left out, so read them as lower bounds there)."""
+    if fit.jac_u is None or fit.scaling is None:
+        return {k: None for k in names}
+    J = np.asarray(fit.jac_u, float)
+    sigma2 = fit.sse / max(n - J.shape[1], 1)
+    try:
+        cov = sigma2 * np.linalg.pinv(J.T @ J, rcond=1e-12)
+    except np.linalg.LinAlgError:
+        return {k: None for k in names}
+    x = np.array([fit.theta[ALL_INDEX[k]] for k in fit.free])
+    dxdu = fit.scaling.dx_du(x)
+    out = {}
+    for k in names:
+        j = fit.free.index(k)
+        v = cov[j, j]
+        out[k] = float(np.sqrt(v) * abs(dxdu[j])) if np.isfinite(v) and v >= 0 else None
+    return out
+
+
+def _magnitude_grid(effect: Effect, probe: Mapping[str, float], linear: float | None, points: int) -> np.ndarray:
+    """Magnitudes to try for ``effect`` at ``probe``'s nuisance setting: geometric on |m − off| from a tenth
+    of the probe step to the feasible bound, on each side the domain allows, plus the LM estimate."""
+    mag = effect.magnitude
+    step = abs(float(probe.get(mag.name, mag.off)) - mag.off) or 1e-12
+    vals = []
+    for sign, bound in ((1.0, mag.upper), (-1.0, mag.lower)):
+        room = (bound - mag.off) * sign
+        if room <= 0:
+            continue
+        lo_ = min(0.1 * step, 0.5 * room)
+        hi_ = 0.98 * room
+        vals.extend(mag.off + sign * np.geomspace(lo_, hi_, points))
+    if linear is not None and np.isfinite(linear):
+        vals.append(float(np.clip(linear, mag.lower, mag.upper)))
+    v = np.unique(np.array(vals, float))
+    return v[(v != mag.off) & (v >= mag.lower) & (v <= mag.upper)]
+
+
+def line_search(model: Model, theta: np.ndarray, free: Sequence[str], proj: Projector, effect: Effect,
+                cand: CandidateScore, points: int = 14) -> tuple[np.ndarray, dict]:
+    """Start of a refit: every probe's nuisance setting × magnitude grid, ranked by the residual left after the
+    linearised re-adjustment of the free parameters, ‖(I − UUᵀ)(y_meas − y(θ_m))‖²; the best two grid points
+    are tried with the free parameters as they are and with the linear (minimum-norm) correction, and the
+    lowest actual SSE wins. Returns (start vector, info)."""
+    base = _with(theta, _off_values(effect))
+    mag = effect.magnitude
+    rows, labels = [], []
+    lin = {json_key(s["probe"]): s.get("magnitude_linear") for s in cand.probes}
+    for pr in effect.probe:
+        for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points):
+            setting = dict(pr)
+            setting[mag.name] = float(m)
+            rows.append(_with(base, setting))
+            labels.append(setting)
+    if not rows:
+        return _with(base, effect.probe[0]), {"grid": 0}
+    Rr = model.residuals(np.array(rows))
+    ok = np.all(np.isfinite(Rr), axis=1)
+    perp = np.full(len(rows), np.inf)
+    if ok.any():
+        Pp = proj.perp(Rr[ok])
+        perp[ok] = np.einsum("ij,ij->i", Pp, Pp)
+    order = np.argsort(perp)[:2]
+    order = [int(i) for i in order if np.isfinite(perp[i])]
+    if not order:
+        return _with(base, effect.probe[0]), {"grid": len(rows), "note": "every grid simulation failed"}
+    mask, scale = _coords(free, theta)
+    idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
+    lo, hi = stage_bounds(list(free))
+    starts = []
+    for i in order:
+        starts.append(rows[i])
+        du = np.clip(proj.solve(Rr[i]), -0.5, 0.5)
+        corrected = rows[i].copy()
+        x = corrected[idx]
+        x = np.where(mask, x * np.exp(du), x + du * scale)
+        corrected[idx] = np.clip(x, lo, hi)
+        starts.append(corrected)
+    S = np.array(starts)
+    sse = _sse(model.residuals(S))
+    j = int(np.argmin(sse))
+    pick = labels[order[j // 2]]
+    info = {"grid": len(rows), "best_grid": {k: float(v) for k, v in pick.items()},
+            "grid_perp_sse_m2": float(perp[order[j // 2]]), "start_sse_m2": float(sse[j]),
+            "start_corrected": bool(j % 2)}
+    return S[j], info
+
+
+def json_key(d: Mapping[str, float]) -> tuple:
+    return tuple(sorted((k, round(float(v), 12)) for k, v in d.items()))
+
+
+@dataclass
+class Refit:
+    """One candidate refitted: its fit, the F-test and BIC against the nominal baseline, and the verdict."""
+
+    name: str
+    iteration: int
+    fit: Fit | None
+    params: dict
+    sse0: float
+    sse1: float
+    k: int
+    p1: int
+    F: float
+    p_value: float
+    delta_bic: float
+    accepted: bool
+    reason: str
+    search: dict
+    null_sse: float | None = None
+    std_errors: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def to_dict(self, n: int) -> dict:
+        return {"name": self.name, "iteration": self.iteration, "params": self.params, "std_errors": self.std_errors,
+                "sse_before_m2": self.sse0, "sse_after_m2": self.sse1, "rmse_before_m": float(np.sqrt(self.sse0 / n)),
+                "rmse_after_m": float(np.sqrt(self.sse1 / n)) if np.isfinite(self.sse1) else None,
+                "added_params": self.k, "total_params": self.p1, "F": self.F, "p_value": self.p_value,
+                "delta_bic": self.delta_bic, "significant": self.accepted, "reason": self.reason,
+                "null_refit_sse_m2": self.null_sse, "search": self.search,
+                "polish": self.fit.info if self.fit else None, "seconds": self.seconds}
+
+
+def f_test(sse0: float, sse1: float, k: int, n: int, p1: int) -> tuple[float, float, float]:
+    """F statistic and p-value of adding ``k`` parameters (model with ``p1`` in all, ``n`` residuals) and
+    ΔBIC = n·ln(SSE1/SSE0) + k·ln n (negative: the larger model is preferred)."""
+    dof2 = max(n - p1, 1)
+    if not (np.isfinite(sse1) and sse1 > 0) or not np.isfinite(sse0):
+        return 0.0, 1.0, float("inf")
+    F = ((sse0 - sse1) / k) / (sse1 / dof2)
+    p = float(stats.f.sf(F, k, dof2)) if F > 0 else 1.0
+    dbic = float(n * np.log(sse1 / sse0) + k * np.log(n))
+    return float(F), p, dbic
+
+
+def refit_candidate(model: Model, base: Fit, proj: Projector, effect: Effect, cand: CandidateScore,
+                    settings: DiscoverSettings, iteration: int) -> Refit:
+    """Line search + polish with the effect's parameters freed, then the F-test/BIC against ``base``."""
+    t0 = time.perf_counter()
+    n = model.n
+    start, search = line_search(model, base.theta, base.free, proj, effect, cand, settings.grid_points)
+    names = effect.names
+    k = len(names)
+    p1 = len(base.free) + k
+    if not np.isfinite(search.get("start_sse_m2", np.inf)):
+        return Refit(effect.name, iteration, None, {}, base.sse, float("inf"), k, p1, 0.0, 1.0, float("inf"),
+                     False, "no simulable start for the effect", search, seconds=time.perf_counter() - t0)
+    fit = fit_free(model, start, base.free + names, settings.refit_nfev, settings.fd_rel_step)
+    params = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in names}
+    F, p, dbic = f_test(base.sse, fit.sse, k, n, p1)
+    passed = p < settings.alpha and dbic < 0
+    reason = "significant (F-test and BIC)" if passed else \
+        ("F-test not significant" if p >= settings.alpha else "BIC does not improve")
+    out = Refit(effect.name, iteration, fit, params, base.sse, fit.sse, k, p1, F, p, dbic, passed, reason, search,
+                std_errors=_std_errors(fit, names, n))
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: DiscoverSettings) -> Fit | None:
+    """Re-polish the model without the effect from the refit's parameters; if it beats the baseline the
+    refit is re-tested against it. Returns the better null fit (or None when it did not improve)."""
+    start = _with(refit.fit.theta, _off_values(effect))
+    null = fit_free(model, start, base.free, settings.null_nfev, settings.fd_rel_step)
+    refit.null_sse = null.sse
+    if null.sse < base.sse:
+        F, p, dbic = f_test(null.sse, refit.sse1, refit.k, model.n, refit.p1)
+        refit.sse0, refit.F, refit.p_value, refit.delta_bic = null.sse, F, p, dbic
+        refit.accepted = p < settings.alpha and dbic < 0
+        if not refit.accepted:
+            refit.reason = ("a better nominal optimum explains the gain: " +
+                            ("F-test not significant" if p >= settings.alpha else "BIC does not improve"))
+        return null
+    return None
+
+
+# ------------------------------------------------------------------------------------------ result
+@dataclass
+class DiscoveryResult:
+    """What the loop found: the model before and after, every candidate's score and refit, the diagnostics."""
+
+    record: str
+    n: int
+    baseline: Fit
+    final: Fit
+    effects_added: list[dict]
+    candidates: list[dict]
+    iterations: list[dict]
+    diagnostics_before: dict
+    diagnostics_after: dict
+    residual_before: np.ndarray
+    residual_after: np.ndarray
+    nominal: dict | None
+    conclusion: str
+    unexplained: bool
+    seconds: float
+    n_simulations: int
+    refits: list[Refit] = field(default_factory=list)
+
+    @property
+    def rmse_before_m(self) -> float:
+        return self.baseline.rmse(self.n)
+
+    @property
+    def rmse_after_m(self) -> float:
+        return self.final.rmse(self.n)
+
+    def to_dict(self) -> dict:
+        def params_of(fit: Fit) -> dict:
+            return {"physical": {nm: float(fit.theta[i]) for i, nm in enumerate(P.PARAM_NAMES)},
+                    "effects": {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]},
+                    "free": list(fit.free)}
+
+        return {"record": self.record, "n_samples": self.n,
+                "effects_added": self.effects_added, "candidates": self.candidates,
+                "rmse_before_m": self.rmse_before_m, "rmse_after_m": self.rmse_after_m,
+                "fitness_before": 1.0 / self.baseline.sse if self.baseline.sse > 0 else float("inf"),
+                "fitness_after": 1.0 / self.final.sse if self.final.sse > 0 else float("inf"),
+                "sse_before_m2": self.baseline.sse, "sse_after_m2": self.final.sse,
+                "params_before": params_of(self.baseline), "params_after": params_of(self.final),
+                "final_params": {**params_of(self.final)["physical"],
+                                 **{nm: float(self.final.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]}},
+                "residual_tests_before": self.diagnostics_before, "residual_tests_after": self.diagnostics_after,
+                "conclusion": self.conclusion, "unexplained": self.unexplained, "iterations": self.iterations,
+                "baseline_polish": self.baseline.info, "nominal": self.nominal, "seconds": self.seconds,
+                "n_simulations": self.n_simulations}
+
+
+# ------------------------------------------------------------------------------------------ the loop
+def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None
+                    ) -> tuple[dict, np.ndarray, dict]:
+    """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals."""
+    x, i_q, status = model.response(theta)
+    rec = model.record
+    r = rec.x_B - x
+    if status != STATUS_OK or not np.all(np.isfinite(r)):
+        return {"error": f"the model cannot be simulated on this record (status {status})"}, r, {}
+    states = R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]]))
+    d = R.diagnose(rec.t, r, rec.v_in, states, alpha=settings.alpha_diag, acf_lags=settings.acf_lags,
+                   ccf_lags=settings.ccf_lags, ccf_step=settings.ccf_step, split_index=split_index,
+                   noise_std=settings.noise_std)
+    return d, r, states
+
+
+def _nominal_theta(nominal: IdentificationResult | np.ndarray | Mapping[str, float] | None) -> np.ndarray:
+    theta = extend(P.ASSIGNED)[0]
+    if nominal is None:
+        return theta
+    if isinstance(nominal, IdentificationResult):
+        return extend(np.asarray(nominal.theta, float))[0]
+    if isinstance(nominal, Mapping):
+        return _with(theta, nominal)
+    return extend(np.asarray(nominal, float))[0]
+
+
+def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Mapping[str, float] | None = None,
+             effects: Sequence[Effect] = EFFECTS, settings: DiscoverSettings | None = None,
+             free: Sequence[str] | None = None, fixed: Mapping[str, float] | None = None,
+             on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
+             ) -> DiscoveryResult:
+    """Run the discovery loop on ``record`` (see the module docstring).
+
+    nominal: the nominal fit (an :class:`IdentificationResult`, an extended/physical vector or a name → value
+        mapping; None: the assigned values) — the loop starts by polishing it on the whole record.
+    effects: the candidate library (default all of :data:`toggle_id.effects.EFFECTS`), filtered by
+        ``settings.candidates``. free: nominal parameters fitted (default the 15 physical ones minus
+        ``fixed``); fixed: parameters held at given values.
+    on_refit: called with every :class:`Refit` (e.g. to log an MLflow child run); progress: one-line messages.
+    """
+    settings = (settings or DiscoverSettings()).validate()
+    say = progress or (lambda msg: log.info(msg))
+    t_start = time.perf_counter()
+    model = Model(record, PRECISE, settings.parallel)
+    fixed = dict(fixed or {})
+    for k in fixed:
+        if k not in ALL_INDEX:
+            raise ConfigError(f"fixed: unknown parameter {k!r}")
+    theta = _with(_nominal_theta(nominal), fixed)
+    free = tuple(free) if free is not None else tuple(n for n in P.PARAM_NAMES if n not in fixed)
+    for k in free:
+        if k not in ALL_INDEX:
+            raise ConfigError(f"unknown free parameter {k!r}")
+    pool = [e for e in effects if settings.candidates is None or e.name in settings.candidates]
+    pool = [e for e in pool if not any(p in free or p in fixed for p in e.names)]
+    split = record.clamp_index(GEOMETRY.x_B_L)
+    split = split if 0 < split < record.n else None
+    n = record.n
+
+    # 1. baseline: the nominal model polished on the whole record
+    y0 = model.residuals(theta[None, :])[0]
+    if not np.all(np.isfinite(y0)):
+        raise DataError("the nominal model cannot be simulated on this record; fit it first (e.g. identify)")
+    say(f"baseline polish of {len(free)} parameters on {n} samples")
+    current = fit_free(model, theta, free, settings.baseline_nfev, settings.fd_rel_step)
+    baseline = current
+    say(f"baseline rms {current.rmse(n) * 1e6:.4g} µm ({current.info['nfev']} evaluations, "
+        f"{current.info['seconds']:.1f} s)")
+    diag_before, r_before, _ = residual_report(model, current.theta, settings, split)
+
+    iterations: list[dict] = []
+    added: list[dict] = []
+    first_scores: list[CandidateScore] | None = None
+    accepted_names: set[str] = set()
+    all_refits: list[Refit] = []
+    for it in range(1, settings.max_effects + 1):
+        remaining = [e for e in pool if e.name not in accepted_names]
+        if not remaining:
+            break
+        r = model.residuals(current.theta[None, :])[0]
+        J = sensitivities(model, current.theta, current.free, settings.jac_rel_step)
+        proj = Projector.of(J, settings.rank_rtol)
+        scores = score_candidates(model, current.theta, r, proj, remaining, settings.absorbed_ratio)
+        if first_scores is None:
+            first_scores = scores
+        say("scores: " + ", ".join(f"{c.name} {c.score:.3g}" for c in scores))
+        testable = [c for c in scores if c.score > 0.0][:settings.top_k]
+        refits: list[Refit] = []
+        for cand in testable:
+            eff = EFFECTS_BY_NAME[cand.name]
+            rf = refit_candidate(model, current, proj, eff, cand, settings, it)
+            if rf.accepted:
+                better_null = guard_null(model, current, rf, eff, settings)
+                if better_null is not None and better_null.sse < current.sse:
+                    say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
+                        f"{better_null.rmse(n) * 1e6:.4g} µm")
+                    current = better_null
+                    for other in refits:  # earlier refits are compared with the better baseline too
+                        if other.accepted:
+                            F, p, dbic = f_test(current.sse, other.sse1, other.k, n, other.p1)
+                            other.sse0, other.F, other.p_value, other.delta_bic = current.sse, F, p, dbic
+                            other.accepted = p < settings.alpha and dbic < 0
+                            if not other.accepted:
+                                other.reason = "not significant against the re-polished nominal model"
+            say(f"  refit {eff.name}: rms {np.sqrt(rf.sse1 / n) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
+                f"ΔBIC {rf.delta_bic:.4g} → {'accepted' if rf.accepted else 'rejected'} ({rf.seconds:.1f} s)")
+            refits.append(rf)
+            all_refits.append(rf)
+            if on_refit is not None:
+                on_refit(rf)
+        winners = [rf for rf in refits if rf.accepted]
+        chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
+        iterations.append({"iteration": it, "rmse_m": current.rmse(n), "rank_J": proj.rank,
+                           "scores": [c.to_dict() for c in scores],
+                           "refits": [rf.to_dict(n) for rf in refits],
+                           "accepted": chosen.name if chosen else None})
+        if chosen is None:
+            break
+        accepted_names.add(chosen.name)
+        current = chosen.fit
+        eff = EFFECTS_BY_NAME[chosen.name]
+        added.append({"name": chosen.name, "params": chosen.params, "std_errors": chosen.std_errors,
+                      "magnitude": {"name": eff.magnitude.name, "value": chosen.params[eff.magnitude.name],
+                                    "unit": eff.magnitude.unit},
+                      "iteration": it, "F": chosen.F, "p_value": chosen.p_value, "delta_bic": chosen.delta_bic,
+                      "rmse_after_m": chosen.fit.rmse(n)})
+        say(f"added {chosen.name} {chosen.params}; rms {current.rmse(n) * 1e6:.4g} µm")
+
+    diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
+    cands = []
+    for c in first_scores or []:
+        tried = [rf for rf in all_refits if rf.name == c.name]
+        cands.append({**c.to_dict(), "accepted": c.name in accepted_names, "refitted": bool(tried),
+                      "refit_p_value": min((rf.p_value for rf in tried), default=None)})
+    structure = diag_after.get("verdict", {}).get("structure_left", False)
+    unexplained = bool(structure)
+    conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings)
+    return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,
+                           candidates=cands, iterations=iterations, diagnostics_before=diag_before,
+                           diagnostics_after=diag_after, residual_before=r_before, residual_after=r_after,
+                           nominal=nominal.to_dict() if isinstance(nominal, IdentificationResult) else None,
+                           conclusion=conclusion, unexplained=unexplained, seconds=time.perf_counter() - t_start,
+                           n_simulations=model.n_sims, refits=all_refits)
+
+
+def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings) -> str:
+    """One plain sentence (or two) on what was found and what is left."""
+    def tests(d: dict) -> str:
+        w = d.get("whiteness", {})
+        u = d.get("input_correlation", {})
+        return (f"Ljung–Box p = {w.get('p_value', float('nan')):.3g}, "
+                f"input-correlation p = {u.get('p_value', float('nan')):.3g} (level {s.alpha_diag:g})")
+
+    if added:
+        text = "added " + ", ".join(f"{a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.4g} "
+                                    f"{a['magnitude']['unit']})" for a in added)
+        text += f"; RMS error {before.get('rms_m', float('nan')) * 1e6:.4g} → {after.get('rms_m', float('nan')) * 1e6:.4g} µm."
+    else:
+        text = "no effect of the library is significant (F-test and BIC); the nominal model is kept."
+    if unexplained:
+        text += (" Residual structure remains that no effect of the library explains: " + tests(after) + ".")
+    else:
+        text += " The residual is consistent with white noise independent of the input: " + tests(after) + "."
+    return text
+
+
+# ------------------------------------------------------------------------------------------ the job
+def discover_settings(cfg: Mapping) -> DiscoverSettings:
+    """Settings from the ``discover`` node of a job config (ConfigError on a bad value)."""
+    node = dict(cfg.get("discover") or {})
+    nominal = node.get("nominal", "ga")
+    if nominal not in ("ga", "base"):
+        raise ConfigError(f"discover.nominal must be 'ga' (two-stage RGA + polish) or 'base' (polish from the "
+                          f"assigned/base values), got {nominal!r}")
+    if node.get("noise_std") is None:
+        noise = (cfg.get("identifiability") or {}).get("noise_std_m")
+        if noise is not None:
+            node["noise_std"] = float(noise)
+    try:
+        return DiscoverSettings.from_dict(node)
+    except TypeError as err:
+        raise ConfigError(f"discover: {err}") from err
+
+
+def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
+    """The discover job: nominal two-stage fit, the discovery loop, figures, MLflow, ``discovery.json``."""
+    from . import console, workflow
+    from .checkpoint import atomic_write_json, atomic_write_text
+    from .identify import identify
+
+    workflow.validate_config(cfg)
+    settings = discover_settings(cfg)
+    nominal_mode = (cfg.get("discover") or {}).get("nominal", "ga")
+    method = cfg.get("method", "two_stage")
+    fixed = dict(cfg.get("fixed") or {})
+    for nm in fixed:
+        if nm not in ALL_INDEX:
+            raise ConfigError(f"fixed: unknown parameter {nm!r}")
+    if cfg.get("extra_free"):
+        raise ConfigError("extra_free is not used by the discover job: the loop frees effect parameters itself")
+    ga = workflow.ga_config(cfg)
+    polish_cfg = workflow.polish_settings(cfg)
+    tier = workflow.solver_tier(cfg)
+    ev = cfg.get("evaluator") or {}
+    make_eval = workflow.evaluator_factory(ev)
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    record, truth = workflow.build_record(cfg.get("data") or {})
+    if record.x_B is None:
+        raise DataError(f"record {record.name!r} has no measured x_B")
+    if settings.noise_std is None and truth is not None:
+        noise = float((cfg.get("data") or {}).get("noise_m", 0.0) or 0.0)
+        settings.noise_std = noise if noise > 0 else None
+    tracker = workflow.make_tracker(cfg, project_root)
+    show = bool(cfg.get("progress", True))
+    t0 = time.perf_counter()
+    with workflow.ray_session(ev), tracker.run("discover", tags={"job": "discover", "method": method}) as run:
+        tracker.log_params(workflow._flat_config(cfg))
+        nominal_result: IdentificationResult | None = None
+        if nominal_mode == "ga":
+            with tracker.run("nominal", tags={"stage": "nominal"}, nested=True):
+                nominal_result = identify(record, method=method, ga=ga, seed=int(cfg.get("seed", 0)),
+                                          make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
+                                          settings=tier, polish=polish_cfg, identifiability=False,
+                                          progress=lambda total, desc: console.progress(total, desc, enabled=show),
+                                          on_stage=lambda st: workflow.stage_child_run(tracker, st, truth))
+                tracker.log_metrics({"fitness": nominal_result.fitness, "rmse_m": nominal_result.rmse_m,
+                                     "seconds": nominal_result.seconds})
+        nominal = nominal_result if nominal_result is not None else _base_vector(cfg)
+
+        def on_refit(rf: Refit) -> None:
+            with tracker.run(f"refit_{rf.iteration}_{rf.name}", tags={"effect": rf.name,
+                                                                       "iteration": str(rf.iteration)}, nested=True):
+                tracker.log_params({"effect": rf.name, "iteration": rf.iteration,
+                                    **{f"start.{k}": v for k, v in (rf.search.get("best_grid") or {}).items()}})
+                tracker.log_metrics({"sse_before_m2": rf.sse0, "sse_after_m2": rf.sse1, "F": rf.F,
+                                     "p_value": rf.p_value, "delta_bic": rf.delta_bic, "accepted": float(rf.accepted),
+                                     "rmse_after_m": float(np.sqrt(rf.sse1 / record.n)) if np.isfinite(rf.sse1) else
+                                     float("nan"), "seconds": rf.seconds,
+                                     **{f"param.{k}": v for k, v in rf.params.items()}})
+
+        res = discover(record, nominal=nominal, settings=settings, fixed=fixed, on_refit=on_refit,
+                       progress=(lambda msg: print(msg, flush=True)) if show else None)
+        wall = time.perf_counter() - t0
+        report = res.to_dict()
+        report.update({"job": "discover", "wall_seconds": wall, "mlflow_run_id": run.run_id,
+                       "config": workflow._jsonable_cfg(cfg), "nominal_mode": nominal_mode,
+                       "settings": asdict(settings)})
+        if truth is not None:
+            report["truth"] = {nm: float(truth[i]) for i, nm in enumerate(ALL_NAMES)}
+        tracker.log_metrics({"rmse_before_m": res.rmse_before_m, "rmse_after_m": res.rmse_after_m,
+                             "fitness_before": report["fitness_before"], "fitness_after": report["fitness_after"],
+                             "n_effects_added": len(res.effects_added), "wall_seconds": wall,
+                             "ljung_box_p_before": res.diagnostics_before.get("whiteness", {}).get("p_value", np.nan),
+                             "ljung_box_p_after": res.diagnostics_after.get("whiteness", {}).get("p_value", np.nan),
+                             **{f"score.{c['name']}": c["score"] for c in res.candidates}})
+        tracker.set_tags({"effects_added": ",".join(a["name"] for a in res.effects_added) or "none"})
+        for path in write_figures(run_dir, record, res, settings):
+            tracker.log_artifact(path, "figures")
+        text = summary_text(res)
+        print(text, flush=True)
+        atomic_write_text(run_dir / "discovery.txt", text + "\n")
+        path = atomic_write_json(run_dir / "discovery.json", report)
+        tracker.log_artifact(path)
+        tracker.log_artifact(run_dir / "discovery.txt")
+    return Path(path).resolve()
+
+
+def _base_vector(cfg: Mapping) -> np.ndarray:
+    """Start of the baseline polish when no GA runs: the assigned values with ``discover.base`` overrides."""
+    theta = extend(P.ASSIGNED)[0]
+    for k, v in ((cfg.get("discover") or {}).get("base") or {}).items():
+        if k not in ALL_INDEX:
+            raise ConfigError(f"discover.base: unknown parameter {k!r}")
+        theta[ALL_INDEX[k]] = float(v)
+    return theta
+
+
+def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings: DiscoverSettings) -> list[str]:
+    """Residual diagnostics before/after, residual against states and input, and the before/after comparison."""
+    from . import figures
+
+    out = []
+    split = record.clamp_index(GEOMETRY.x_B_L)
+    t_split = float(record.t[split]) if 0 < split < record.n else None
+    model = Model(record, PRECISE, settings.parallel)
+    for label, fit, r in (("before", res.baseline, res.residual_before), ("after", res.final, res.residual_after)):
+        if not np.all(np.isfinite(r)):
+            continue
+        fig = R.diagnostics_figure(record.t, r, alpha=settings.alpha_diag, title=f"Residual diagnostics ({label})")
+        out.append(figures.save(fig, run_dir / f"residual_{label}.png"))
+        x, i_q, _ = model.response(fit.theta)
+        states = R.plant_states(record.t, x, i_q, x_off=float(fit.theta[ALL_INDEX["x_off"]]))
+        fig = R.states_figure(r, states, record.v_in, dt=record.dt, alpha=settings.alpha_diag,
+                              title=f"Residual against the states and the input ({label})")
+        out.append(figures.save(fig, run_dir / f"residual_states_{label}.png"))
+    if np.all(np.isfinite(res.residual_before)) and np.all(np.isfinite(res.residual_after)):
+        names = ", ".join(a["name"] for a in res.effects_added) or "no effect added"
+        fig = R.comparison_figure(record.t, {"before (nominal)": res.residual_before, f"after ({names})":
+                                             res.residual_after}, noise_std=settings.noise_std, split_time=t_split)
+        out.append(figures.save(fig, run_dir / "residual_before_after.png"))
+    return out
+
+
+def summary_text(res: DiscoveryResult) -> str:
+    """Console summary: candidate table (first iteration), effects added, RMS before/after, conclusion."""
+    from . import console
+
+    rows = [[c["name"], c["score"], c["p_value"], "yes" if c["refitted"] else "", "yes" if c["accepted"] else "",
+             c["note"]] for c in res.candidates]
+    lines = [console.text_table(["effect", "score χ²(1)", "p", "refitted", "accepted", "note"], rows)]
+    for a in res.effects_added:
+        se = a["std_errors"].get(a["magnitude"]["name"])
+        lines.append(f"added {a['name']}: {a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
+                     f"{a['magnitude']['unit']}" + (f" ± {se:.2g}" if se else "") +
+                     f"  (F-test p {a['p_value']:.3g}, ΔBIC {a['delta_bic']:.4g})")
+    lines.append(f"RMS error before {res.rmse_before_m * 1e6:.4g} µm, after {res.rmse_after_m * 1e6:.4g} µm; "
+                 f"{res.seconds:.1f} s, {res.n_simulations} simulations")
+    lines.append(res.conclusion)
+    return "\n".join(lines)

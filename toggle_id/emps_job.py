@@ -1,0 +1,443 @@
+"""The EMPS job: identify the electro-mechanical positioning system benchmark from its measured record.
+
+``python -m jobs.run +experiment=emps`` composes ``conf/experiment/emps.yaml`` and calls :func:`run_emps` with the
+plain configuration. The job validates its settings and loads the record(s) before any work starts, runs the
+output-error effect-discovery loop (:func:`toggle_id.emps.run_emps_loop`: nominal M, Fv fit, then Coulomb friction,
+offset, Stribeck, asymmetry as the data support them), analyses the identifiability of the final model
+(:func:`toggle_id.identifiability.analyze`), compares M, Fv, Fc and offset with the benchmark's published IDIM-LS
+values, logs everything to MLflow (parent run ``emps``, one child run per fit), draws the figures, prints a short
+table and writes ``result.json`` atomically into the run directory; it returns that path. This module never
+imports Hydra, and it needs neither the GA nor Ray.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from . import console, figures
+from .checkpoint import atomic_write_json, atomic_write_text
+from .emps import EFFECTS, PUBLISHED, EmpsRecord, idim_ls, load_emps_csv, load_emps_mat, run_emps_loop, simulate_emps
+from .emps.fit import SOLVERS, make_jacobian, make_residual
+from .emps.idim import filtered_derivatives
+from .emps.model import INDEX, LOWER, PARAMS, PUBLISHED_THETA, UPPER, friction_force, theta_from_dict
+from .errors import ConfigError, DataError
+from .tracking import Tracker
+
+#: Repository root (the checkout holding the ``toggle_id`` package).
+REPO_ROOT = Path(__file__).resolve().parents[1]
+#: Default estimation record: the shared copy beside the checkout (see ../shared/data/emps/README.md).
+DEFAULT_RECORD = REPO_ROOT.parent / "shared" / "data" / "emps" / "emps_estimation.csv"
+#: Parameters that may be zero or negative: analysed in affine (not log) coordinates.
+SIGNED_PARAMS = frozenset({"offset", "Fs", "Fc_asym", "Fv_asym"})
+#: The published (IDIM-LS, symmetric model) parameters compared in the report and the console table.
+COMPARED = ("M", "Fv", "Fc", "offset")
+#: Keys of the ``emps`` config node and their defaults (also used when run_emps is called from Python).
+EMPS_DEFAULTS: dict[str, Any] = {
+    "path": None, "samples": None, "candidates": None, "alpha": 0.01, "max_effects": None, "max_corr": 0.99,
+    "solver": "polish", "max_nfev": 50, "reference_fit": True,
+    "sim": {"eps": 1e-4, "h_lambda": 0.5, "n_sub_max": 5000, "pulse_sign": 1.0},
+}
+_UNITS = {p.name: p.unit for p in PARAMS}
+
+
+# ------------------------------------------------------------------------------------------ configuration
+@dataclass(frozen=True)
+class EmpsJobSettings:
+    """Validated settings of the EMPS job (see conf/experiment/emps.yaml for the meaning of each)."""
+
+    path: Path
+    samples: int | None
+    candidates: tuple[str, ...]
+    alpha: float
+    max_effects: int | None
+    max_corr: float
+    solver: str
+    max_nfev: int
+    reference_fit: bool
+    sim: dict = field(default_factory=dict)
+    validation_path: Path | None = None
+    identifiability: bool = True
+    noise_std_m: float | None = None
+
+
+def _get(cfg: Mapping, path: str, default: Any = None) -> Any:
+    node: Any = cfg
+    for key in path.split("."):
+        if not isinstance(node, Mapping) or key not in node:
+            return default
+        node = node[key]
+    return node
+
+
+def _number(name: str, value: Any, *, integer: bool = False) -> float | int:
+    """``value`` as a finite float (or int); a one-line ConfigError naming ``name`` otherwise."""
+    if isinstance(value, bool) or value is None:
+        raise ConfigError(f"{name} must be a {'whole ' if integer else ''}number, got {value!r}")
+    try:
+        num = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} must be a {'whole ' if integer else ''}number, got {value!r}") from None
+    if not math.isfinite(num):
+        raise ConfigError(f"{name} must be finite, got {value!r}")
+    if integer:
+        if num != int(num):
+            raise ConfigError(f"{name} must be a whole number, got {value!r}")
+        return int(num)
+    return num
+
+
+def _resolve(path: Any, project_root: str | Path, what: str) -> Path:
+    if not isinstance(path, (str, Path)) or not str(path).strip() or str(path) == "???":
+        raise ConfigError(f"{what} must be a file path, got {path!r}")
+    p = Path(str(path)).expanduser()
+    return (p if p.is_absolute() else Path(project_root) / p).resolve()
+
+
+def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettings:
+    """Validate the ``emps``, ``validation`` and ``identifiability`` nodes; raise ConfigError (one line) on the
+    first problem. Relative paths are taken relative to ``project_root`` (the directory the job was started in)."""
+    node = dict(EMPS_DEFAULTS)
+    given = cfg.get("emps") or {}
+    if not isinstance(given, Mapping):
+        raise ConfigError(f"emps must be a mapping of settings, got {given!r}")
+    unknown = sorted(set(given) - set(EMPS_DEFAULTS))
+    if unknown:
+        raise ConfigError(f"emps: unknown setting(s) {unknown}; known: {sorted(EMPS_DEFAULTS)}")
+    node.update(given)
+    sim = dict(EMPS_DEFAULTS["sim"])
+    sim_given = node.get("sim") or {}
+    unknown = sorted(set(sim_given) - set(sim))
+    if unknown:
+        raise ConfigError(f"emps.sim: unknown setting(s) {unknown}; known: {sorted(sim)}")
+    sim.update(sim_given)
+
+    path = DEFAULT_RECORD if node["path"] is None else _resolve(node["path"], project_root, "emps.path")
+    samples = node["samples"]
+    if samples is not None:
+        samples = _number("emps.samples", samples, integer=True)
+        if samples < 10:
+            raise ConfigError(f"emps.samples must be null (all) or at least 10, got {samples}")
+    cands = node["candidates"]
+    if cands is None:
+        cands = list(EFFECTS)
+    if isinstance(cands, str) or not all(isinstance(c, str) for c in cands):
+        raise ConfigError(f"emps.candidates must be a list of effect names, got {cands!r}")
+    bad = [c for c in cands if c not in EFFECTS]
+    if bad:
+        raise ConfigError(f"emps.candidates: unknown effect(s) {bad}; known: {list(EFFECTS)}")
+    if len(set(cands)) != len(cands):
+        raise ConfigError(f"emps.candidates lists an effect twice: {list(cands)}")
+    alpha = _number("emps.alpha", node["alpha"])
+    if not 0 < alpha < 1:
+        raise ConfigError(f"emps.alpha must lie in (0, 1), got {alpha}")
+    max_effects = node["max_effects"]
+    if max_effects is not None:
+        max_effects = _number("emps.max_effects", max_effects, integer=True)
+        if max_effects < 0:
+            raise ConfigError(f"emps.max_effects must be null or >= 0, got {max_effects}")
+    max_corr = _number("emps.max_corr", node["max_corr"])
+    if not 0 < max_corr <= 1:
+        raise ConfigError(f"emps.max_corr must lie in (0, 1], got {max_corr}")
+    if node["solver"] not in SOLVERS:
+        raise ConfigError(f"emps.solver must be one of {list(SOLVERS)}, got {node['solver']!r}")
+    max_nfev = _number("emps.max_nfev", node["max_nfev"], integer=True)
+    if max_nfev < 1:
+        raise ConfigError(f"emps.max_nfev must be >= 1, got {max_nfev}")
+    sim_opts = {"eps": _number("emps.sim.eps", sim["eps"]), "h_lambda": _number("emps.sim.h_lambda", sim["h_lambda"]),
+                "n_sub_max": _number("emps.sim.n_sub_max", sim["n_sub_max"], integer=True),
+                "pulse_sign": _number("emps.sim.pulse_sign", sim["pulse_sign"])}
+    if sim_opts["eps"] <= 0 or sim_opts["h_lambda"] <= 0 or sim_opts["n_sub_max"] < 2:
+        raise ConfigError(f"emps.sim needs eps > 0, h_lambda > 0 and n_sub_max >= 2, got {sim_opts}")
+
+    vpath = _get(cfg, "validation.path")
+    vpath = None if vpath in (None, "") else _resolve(vpath, project_root, "validation.path")
+    noise = _get(cfg, "identifiability.noise_std_m")
+    if noise is not None:
+        noise = _number("identifiability.noise_std_m", noise)
+        if noise <= 0:
+            raise ConfigError(f"identifiability.noise_std_m must be null or > 0, got {noise}")
+    tracking = cfg.get("tracking") or {}
+    if not isinstance(tracking, Mapping):
+        raise ConfigError(f"tracking must be a mapping, got {tracking!r}")
+    return EmpsJobSettings(path=path, samples=samples, candidates=tuple(cands), alpha=alpha,
+                           max_effects=max_effects, max_corr=max_corr, solver=node["solver"], max_nfev=max_nfev,
+                           reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
+                           identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise)
+
+
+def load_record(path: str | Path) -> EmpsRecord:
+    """An EMPS record from a benchmark ``.mat`` or a ``.csv`` (t, vir, qm, qg[, pulses_N]); DataError otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"EMPS record not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".mat":
+        return load_emps_mat(path)
+    if suffix == ".csv":
+        return load_emps_csv(path)
+    raise DataError(f"EMPS record {path.name}: unknown format {suffix!r}; expected .mat or .csv")
+
+
+# ------------------------------------------------------------------------------------------ analysis
+def _pct_diff(value: float | None, reference: float) -> float | None:
+    """100·(value − reference)/|reference| (%), None when value is None."""
+    return None if value is None else float(100.0 * (value - reference) / abs(reference))
+
+
+def idim_reference(record: EmpsRecord) -> dict:
+    """The benchmark's IDIM-LS recipe on this record (symmetric model) with % differences from the published
+    values; ``{"error": ...}`` when the record is too short for it."""
+    try:
+        out = idim_ls(record)
+    except DataError as err:
+        return {"error": str(err)}
+    out["pct_diff_vs_published"] = {k: _pct_diff(out["params"][k], v) for k, v in PUBLISHED.items()}
+    return out
+
+
+def comparison(report: Mapping, idim: Mapping) -> dict:
+    """Per compared parameter (M, Fv, Fc, offset): the published value, this record's IDIM-LS value, the final
+    model's value and the output-error fit of the benchmark's own structure, each with its % difference from the
+    published value (None where the model lacks the parameter, e.g. an offset absorbed by asymmetric friction)."""
+    free = set(report["free"])
+    ref = (report.get("reference") or {}).get("identified") or {}
+    idim_p = idim.get("params") or {}
+    out = {}
+    for name in COMPARED:
+        pub = PUBLISHED[name]
+        final = report["identified"][name] if name in free else None
+        out[name] = {"unit": _UNITS[name], "published": pub,
+                     "idim_ls": idim_p.get(name), "idim_ls_pct_diff": _pct_diff(idim_p.get(name), pub),
+                     "final_model": final, "final_model_pct_diff": _pct_diff(final, pub),
+                     "reference_fit": ref.get(name), "reference_fit_pct_diff": _pct_diff(ref.get(name), pub)}
+    return out
+
+
+def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], sim_options: Mapping,
+                       noise_std_m: float | None = None, rel_step: float = 1e-5) -> dict:
+    """Local identifiability of the final model's free parameters on ``record`` (SVD of the output sensitivity).
+
+    Positive parameters are analysed in log coordinates, the signed ones (:data:`SIGNED_PARAMS`, and any whose
+    value is not > 0) in affine coordinates scaled by their magnitude. The residuals of a 1 kHz closed loop are
+    strongly autocorrelated, so the intervals (white-noise assumption) are optimistic; ranks and null directions
+    are what to read. Returns the JSON form of the report plus its console ``table``; ``{"error": ...}`` if the
+    analysis is impossible (e.g. a failed simulation)."""
+    from .identifiability import analyze, format_table, log_jacobian
+
+    idx = np.array([INDEX[n] for n in free])
+    x = np.asarray(theta, float)[idx]
+    try:
+        jac = make_jacobian(record, free, theta, LOWER[idx], UPPER[idx], rel_step, sim_options)(x)
+        res = make_residual(record, free, theta, sim_options)(x)
+        mask = np.array([n not in SIGNED_PARAMS and v > 0 for n, v in zip(free, x)])
+        rep = analyze(log_jacobian(jac, x, mask), res, free, x, n_params_fitted=len(free), log_mask=mask,
+                      noise_var=None if noise_std_m is None else noise_std_m ** 2)
+    except (DataError, ConfigError) as err:
+        return {"error": str(err)}
+    out = rep.to_dict()
+    out.pop("cov_log", None)
+    out["table"] = format_table(rep)
+    out["note"] = "white-residual intervals; the closed-loop residuals are autocorrelated, so they are optimistic"
+    return out
+
+
+# ------------------------------------------------------------------------------------------ figures
+def response_figure(record: EmpsRecord, models: Mapping[str, np.ndarray], title: str) -> Any:
+    """Measured and simulated position (mm), their difference (µm) and the measured controller output ν (V)."""
+    fig = figures.response_comparison(record.t, record.qm, models, v_in=record.vir, title=title)
+    ax = fig.axes
+    ax[0].set_ylabel("q [mm]")
+    ax[0].set_title("(a) load position", loc="left", fontsize="medium")
+    ax[1].set_ylabel(r"$q^{model} - q^{meas}$ [µm]")
+    ax[2].set_ylabel(r"$\nu$ [V]")
+    ax[2].set_title("(c) measured controller output", loc="left", fontsize="medium")
+    return fig
+
+
+def friction_figure(record: EmpsRecord, models: Mapping[str, np.ndarray], mass: float, eps: float) -> Any:
+    """Friction force (N) against velocity (mm/s): each model's curve, and the measured estimate
+    gtau·ν − M̂·q̈ (q̇, q̈ from the benchmark's 100 Hz zero-phase filter) as points, M̂ the final model's mass."""
+    from matplotlib.figure import Figure
+
+    _, qd, qdd = filtered_derivatives(record.qm, record.dt)
+    est = record.tau - mass * qdd
+    step = max(1, record.n // 4000)
+    vmax = float(np.max(np.abs(qd))) * 1.05 if record.n else 0.1
+    v = np.concatenate([np.linspace(-vmax, vmax, 801), np.linspace(-20 * eps, 20 * eps, 201)])
+    v.sort()
+    fig = Figure(figsize=(8.0, 4.6), dpi=figures.DPI, layout="constrained")
+    ax = fig.subplots()
+    ax.plot(qd[::step] * 1e3, est[::step], ".", ms=1.5, color="0.6", alpha=0.5,
+            label=r"measured: $g_\tau\nu - \hat M\ddot q$")
+    curves = {label: friction_force(theta, v, eps) for label, theta in models.items()}
+    for (label, f), ls in zip(curves.items(), ("-", "-", "--", ":", "-.")):
+        ax.plot(v * 1e3, f, lw=1.6, ls=ls, label=label)
+    lo = min(float(np.min(f)) for f in curves.values())
+    hi = max(float(np.max(f)) for f in curves.values())
+    pad = 0.15 * (hi - lo) if hi > lo else 1.0
+    ax.set_ylim(lo - pad, hi + pad)  # measured outliers (at reversals, where q̈ is noisy) would hide the curves
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.axvline(0.0, color="k", lw=0.5)
+    ax.set_xlabel(r"velocity $\dot q$ [mm/s]")
+    ax.set_ylabel("friction force [N]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small", loc="upper left")
+    fig.suptitle("EMPS friction law")
+    return fig
+
+
+# ------------------------------------------------------------------------------------------ console
+def console_text(report: Mapping) -> str:
+    """A short table: published vs identified M, Fv, Fc, offset, the other fitted parameters, errors, timing."""
+    cmp = report["comparison"]
+
+    def pct(v: float | None) -> str:
+        return "—" if v is None else f"{v:+.2f}%"
+
+    def val(v: float | None) -> str:
+        return "—" if v is None else f"{v:.5g}"
+
+    rows = [[n, c["unit"], val(c["published"]), val(c["idim_ls"]), pct(c["idim_ls_pct_diff"]),
+             val(c["final_model"]), pct(c["final_model_pct_diff"]), val(c["reference_fit"]),
+             pct(c["reference_fit_pct_diff"])] for n, c in cmp.items()]
+    for n in report["free"]:
+        if n not in cmp:
+            rows.append([n, _UNITS[n], "—", "—", "—", val(report["identified"][n]), "—", "—", "—"])
+    header = ["param", "unit", "published", "IDIM-LS", "%", "final", "%", "OE ref", "%"]
+    effects = ", ".join(e["name"] for e in report["effects_added"]) or "none"
+    lines = [f"EMPS: {report['record']} ({report['n_samples']} samples); effects added: {effects}",
+             console.text_table(header, rows),
+             f"position rel. error: nominal (M, Fv) {report['position_rel_error_pct_before']:.4g} %, "
+             f"final {report['position_rel_error_pct_after']:.4g} %, published values "
+             f"{report['published_model_rel_error_pct']:.4g} %"
+             + (f", OE ref {report['reference']['rel_error_pct']:.4g} %" if report.get("reference") else "")]
+    if "validation" in report:
+        v = report["validation"]
+        lines.append(f"validation {v['record']}: final {v['position_rel_error_pct']:.4g} %, published "
+                     f"{v['published_model_rel_error_pct']:.4g} % (status {v['status']})")
+    ident = report.get("identifiability") or {}
+    if "rank" in ident:
+        lines.append(f"identifiability: rank {ident['rank']}/{len(ident['param_order'])}, practical rank "
+                     f"{ident['practical_rank']}" + "".join(f"; not identifiable: {c}"
+                                                           for c in ident["null_combinations"]))
+    elif "error" in ident:
+        lines.append(f"identifiability: {ident['error']}")
+    lines.append(f"time {report['wall_seconds']:.1f} s")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------ MLflow
+def _log_children(tracker: Tracker, report: Mapping) -> None:
+    """One nested run per output-error fit: the nominal model, every candidate refit, the reference fit."""
+    nom = report["nominal"]
+    with tracker.run("nominal", tags={"fit": "nominal"}, nested=True):
+        tracker.log_params({"free": ",".join(nom["free"])})
+        tracker.log_metrics({"rel_error_pct": nom["rel_error_pct"],
+                             **{f"param.{k}": v for k, v in nom["identified"].items()}})
+    for c in report["candidates"]:
+        with tracker.run(f"round{c['round']}_{c['name']}", nested=True,
+                         tags={"fit": "candidate", "effect": c["name"], "round": c["round"],
+                               "accepted": c["accepted"]}):
+            tracker.log_params({"effect": c["name"], "round": c["round"]})
+            tracker.log_metrics({"delta_bic": c["score"], "p_value": c["p_value"], "max_corr": c["max_corr"],
+                                 "sse_ratio": c["sse_ratio"], "rel_error_pct": c["rel_error_pct"],
+                                 "seconds": c["seconds"], "accepted": float(c["accepted"]),
+                                 **{f"param.{k}": v for k, v in c["params"].items()}})
+    ref = report.get("reference")
+    if ref:
+        with tracker.run("reference", tags={"fit": "reference"}, nested=True):
+            tracker.log_params({"free": ",".join(ref["free"])})
+            tracker.log_metrics({"rel_error_pct": ref["rel_error_pct"],
+                                 **{f"param.{k}": v for k, v in ref["identified"].items()},
+                                 **{f"pct_diff.{k}": v for k, v in ref["pct_diff_vs_published"].items()
+                                    if v is not None}})
+
+
+def _parent_metrics(report: Mapping) -> dict:
+    m = {"position_rel_error_pct_before": report["position_rel_error_pct_before"],
+         "position_rel_error_pct_after": report["position_rel_error_pct_after"],
+         "published_model_rel_error_pct": report["published_model_rel_error_pct"],
+         "n_effects": len(report["effects_added"]), "wall_seconds": report["wall_seconds"],
+         **{f"param.{k}": report["identified"][k] for k in report["free"]},
+         **{f"pct_diff.{k}": v for k, v in report["pct_diff_vs_published"].items() if v is not None}}
+    if "validation" in report:
+        m["validation.position_rel_error_pct"] = report["validation"]["position_rel_error_pct"]
+        m["validation.published_model_rel_error_pct"] = report["validation"]["published_model_rel_error_pct"]
+    return m
+
+
+# ------------------------------------------------------------------------------------------ the job
+def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
+    """Identify the EMPS from its record (see the module docstring); return the path of ``result.json``.
+
+    ``cfg`` is the plain composed configuration (nodes ``emps``, ``validation``, ``identifiability``,
+    ``tracking``). Bad settings raise :class:`ConfigError`, a missing or malformed record :class:`DataError`,
+    both before any fitting or tracking starts.
+    """
+    from .workflow import make_tracker
+
+    t0 = time.perf_counter()
+    st = emps_settings(cfg, project_root)
+    record = load_record(st.path)
+    if st.samples is not None:
+        if st.samples > record.n:
+            raise ConfigError(f"emps.samples={st.samples} but {st.path.name} has only {record.n} samples")
+        record = record.slice(0, st.samples)
+    validation = None if st.validation_path is None else load_record(st.validation_path)
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tracker = make_tracker(cfg, project_root)
+    with tracker.run("emps", tags={"job": "emps", "plant": "emps"}) as run:
+        tracker.log_params({"emps": {**{k: v for k, v in (cfg.get("emps") or {}).items()},
+                                     "record": str(st.path), "n_samples": record.n},
+                            "validation.path": None if st.validation_path is None else str(st.validation_path)})
+        idim = idim_reference(record)
+        report = run_emps_loop(record, validation, candidates=st.candidates, alpha=st.alpha, max_nfev=st.max_nfev,
+                               max_effects=st.max_effects, max_corr=st.max_corr, solver=st.solver,
+                               reference_fit=st.reference_fit, sim_options=st.sim)
+        final = theta_from_dict(report["identified"])
+        nominal = theta_from_dict(report["nominal"]["identified"])
+        report["idim_ls"] = idim
+        report["comparison"] = comparison(report, idim)
+        report["identifiability"] = (identifiability_of(record, final, report["free"], st.sim, st.noise_std_m)
+                                     if st.identifiability else {"enabled": False})
+        _log_children(tracker, report)
+
+        # figures: nominal, final and published models in closed loop on the record (one batched call)
+        sims = simulate_emps(np.stack([nominal, final, PUBLISHED_THETA]), record, **st.sim).q
+        final_label = "final: " + (" + ".join(e["name"].removesuffix("_friction") for e in report["effects_added"])
+                                   or "nominal")
+        fig_paths = [figures.save(response_figure(
+            record, {"before (nominal M, Fv)": sims[0], final_label: sims[1], "published IDIM-LS": sims[2]},
+            f"EMPS {record.name}: measured and simulated position"), run_dir / "response.png")]
+        models = {"before (nominal M, Fv)": nominal, final_label: final, "published IDIM-LS": PUBLISHED_THETA}
+        if report.get("reference"):
+            models["OE fit of the published structure"] = theta_from_dict(report["reference"]["identified"])
+        fig_paths.append(figures.save(friction_figure(record, models, float(final[INDEX["M"]]), st.sim["eps"]),
+                                      run_dir / "friction.png"))
+        if validation is not None:
+            vs = simulate_emps(np.stack([final, PUBLISHED_THETA]), validation, **st.sim).q
+            fig_paths.append(figures.save(response_figure(
+                validation, {final_label: vs[0], "published IDIM-LS": vs[1]},
+                f"EMPS validation {validation.name}: measured and simulated position"), run_dir / "validation.png"))
+            report["validation"]["path"] = str(st.validation_path)
+        for p in fig_paths:
+            tracker.log_artifact(p, "figures")
+
+        report.update({"job": "emps", "plant": "emps", "path": str(st.path), "figures": fig_paths,
+                       "mlflow_run_id": run.run_id, "config": json.loads(json.dumps(dict(cfg), default=str)),
+                       "wall_seconds": time.perf_counter() - t0})
+        tracker.log_metrics(_parent_metrics(report))
+        text = console_text(report)
+        print(text, flush=True)
+        atomic_write_text(run_dir / "table.txt", text + "\n")
+        path = atomic_write_json(run_dir / "result.json", report)
+        tracker.log_artifact(path)
+        tracker.log_artifact(run_dir / "table.txt")
+    return Path(path).resolve()
