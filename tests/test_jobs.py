@@ -59,9 +59,9 @@ def test_identify_job_two_stage_end_to_end(tmp_path, job_env):
     assert report == (tmp_path / "run" / "result.json").resolve()
     res = json.loads(report.read_text())
     assert res["method"] == "two_stage" and set(res["params"]) >= {"K_t", "D", "K_l"}
-    assert [s["name"] for s in res["stages"]] == ["stage1", "stage2"]
+    assert [s["name"] for s in res["stages"]] == ["stage1", "stage2", "joint_polish"]
     assert res["stages"][0]["generations"] == 3 and len(res["stages"][0]["fitness_history"]) == 3
-    assert res["fitness"] > 0 and set(res["seconds_per_stage"]) == {"stage1", "stage2"}
+    assert res["fitness"] > 0 and set(res["seconds_per_stage"]) == {"stage1", "stage2", "joint_polish"}
     assert (tmp_path / "run" / "fitness_history.png").stat().st_size > 1000
     assert (tmp_path / "run" / "response.png").stat().st_size > 1000
     # MLflow: a parent run with one child per stage, fitness history as a stepped metric
@@ -72,8 +72,10 @@ def test_identify_job_two_stage_end_to_end(tmp_path, job_env):
     runs = client.search_runs([exp.experiment_id])
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
     children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
-    assert len(parents) == 1 and sorted(r.info.run_name for r in children) == ["stage1", "stage2"]
-    hist = client.get_metric_history(children[0].info.run_id, "best_fitness")
+    assert len(parents) == 1
+    assert sorted(r.info.run_name for r in children) == ["joint_polish", "stage1", "stage2"]
+    stage1 = next(r for r in children if r.info.run_name == "stage1")
+    hist = client.get_metric_history(stage1.info.run_id, "best_fitness")
     assert [m.step for m in hist] == [1, 2, 3]
 
 
