@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED, INDEX, read_params_file, to_vector
 from toggle_id.record import Record
 from toggle_id.simulate import (FAST, PRECISE, STATUS_INVALID, STATUS_OK, SolverSettings, simulate)
@@ -177,6 +178,8 @@ def test_precise_tier_is_smooth_in_the_parameters():
     assert np.max(np.abs(slopes[0] - slopes[1])) < 1e-4 * scale
 
 
-def test_settings_reject_unknown_method():
-    with pytest.raises(KeyError):
-        SolverSettings(method="euler").as_array()
+def test_settings_reject_bad_values():
+    with pytest.raises(ConfigError, match="method"):
+        SolverSettings(method="euler")
+    with pytest.raises(ConfigError, match="tolerances"):
+        SolverSettings(rtol=0.0)

@@ -272,37 +272,56 @@ def _forces(q, w, iq, contact, pc, geo, tab, head):
     return ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q
 
 
-@nb.njit(cache=True)
-def _rhs(t, q, w, iq, contact, pc, geo, tab, head, v):
-    """dy/dt of the plant with all effect terms; ``contact`` is the mode decided by event location.
-    Returns ok (False outside the assembly range), q̇, ẇ, i̇ and ∂ẇ/∂i_q (exact: ẇ is affine in i_q)."""
+@nb.njit(cache=True, inline="always")
+def _command(t, pc, v):
+    """Drive command u = K_i·v_in(t), clipped at ±1/S_SAT, and its slope du/dt (V, V/s)."""
+    vin, dvin = _input(t, pc, v)
+    u = pc[PC_KI] * vin
+    du = pc[PC_KI] * dvin
+    if abs(u) >= pc[PC_ULIM]:
+        u = math.copysign(pc[PC_ULIM], u)
+        du = 0.0
+    return u, du
+
+
+@nb.njit(cache=True, inline="always")
+def _rhs_u(q, w, iq, u, contact, pc, geo, tab, head):
+    """dy/dt of the plant with all effect terms for the drive command u (V); ``contact`` is the mode decided
+    by event location. Returns ok (False outside the assembly range), q̇, ẇ, i̇ and ∂ẇ/∂i_q (exact: ẇ is affine
+    in i_q)."""
     ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q = _forces(q, w, iq, contact, pc, geo, tab, head)
     if not ok:
         return False, 0.0, 0.0, 0.0, 0.0
     inv_m = 1.0 / M
     wdot = (Q - 0.5 * dM * w * w) * inv_m
-    u = pc[PC_KI] * _input(t, pc, v)[0]
-    u = min(max(u, -pc[PC_ULIM]), pc[PC_ULIM])
     idot = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * vC
     return True, w, wdot, idot, pc[PC_ZKT] * dxC * inv_m
 
 
 @nb.njit(cache=True)
+def _rhs(t, q, w, iq, contact, pc, geo, tab, head, v):
+    """dy/dt at time t (see :func:`_rhs_u`)."""
+    return _rhs_u(q, w, iq, _command(t, pc, v)[0], contact, pc, geo, tab, head)
+
+
+@nb.njit(cache=True)
 def _rhs_jac(t, q, w, iq, contact, pc, geo, tab, head, v):
-    """Right-hand side and its analytic Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] and ∂i̇/∂t.
-    Returns ok, q̇, ẇ, i̇, a, b, c, d, e, g, ft."""
+    """Right-hand side at time t and its Jacobian (see :func:`_rhs_jac_u`)."""
+    u, du = _command(t, pc, v)
+    return _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head)
+
+
+@nb.njit(cache=True)
+def _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head):
+    """Right-hand side for the command u and its analytic Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] and
+    ∂i̇/∂t (from du/dt). Returns ok, q̇, ẇ, i̇, a, b, c, d, e, g, ft."""
     ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q = _forces(q, w, iq, contact, pc, geo, tab, head)
     okd, ddxB, ddxC, ddb3, ddb5, ddgB, ddgC = _lookup_d(q, geo, tab, head)
     if not (ok and okd):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     inv_m = 1.0 / M
     wdot = (Q - 0.5 * dM * w * w) * inv_m
-    vin, dvin = _input(t, pc, v)
-    u = pc[PC_KI] * vin
-    ft = pc[PC_KI] * dvin * pc[PC_ILQ]
-    if abs(u) >= pc[PC_ULIM]:
-        u = math.copysign(pc[PC_ULIM], u)
-        ft = 0.0
+    ft = du * pc[PC_ILQ]
     idot = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * vC
     # partial derivatives of the forces w.r.t. the slider speeds and q (explicit)
     dFC_dvC = -pc[PC_Z2BM]
@@ -402,26 +421,29 @@ def _dense(th_, r1, r2, r3, r4, r5):
 @nb.njit(cache=True)
 def _dopri_step(h, t, q, w, iq, k1q, k1w, k1i, contact, pc, geo, tab, head, v):
     """One Dormand–Prince step of size h from (t, y) with k1 = f(t, y). Returns ok, y(t+h), k7 = f(t+h, y(t+h))
-    (first same as last), the error estimate and the dense-output coefficients (r3, r4, r5) of q and i_q."""
-    ok2, k2q, k2w, k2i, _ = _rhs(t + _C2 * h, q + h * _A21 * k1q, w + h * _A21 * k1w, iq + h * _A21 * k1i, contact,
-                                 pc, geo, tab, head, v)
-    ok3, k3q, k3w, k3i, _ = _rhs(t + _C3 * h, q + h * (_A31 * k1q + _A32 * k2q), w + h * (_A31 * k1w + _A32 * k2w),
-                                 iq + h * (_A31 * k1i + _A32 * k2i), contact, pc, geo, tab, head, v)
-    ok4, k4q, k4w, k4i, _ = _rhs(t + _C4 * h, q + h * (_A41 * k1q + _A42 * k2q + _A43 * k3q),
+    (first same as last), the error estimate, the dense-output coefficients (r3, r4, r5) of q and i_q, and the
+    command and its slope at t+h."""
+    u2 = _command(t + _C2 * h, pc, v)[0]
+    u3 = _command(t + _C3 * h, pc, v)[0]
+    u4 = _command(t + _C4 * h, pc, v)[0]
+    u5 = _command(t + _C5 * h, pc, v)[0]
+    uh, duh = _command(t + h, pc, v)  # stages 6 and 7
+    ok2, k2q, k2w, k2i, _ = _rhs_u(q + h * _A21 * k1q, w + h * _A21 * k1w, iq + h * _A21 * k1i, u2, contact, pc, geo, tab, head)
+    ok3, k3q, k3w, k3i, _ = _rhs_u(q + h * (_A31 * k1q + _A32 * k2q), w + h * (_A31 * k1w + _A32 * k2w),
+                                 iq + h * (_A31 * k1i + _A32 * k2i), u3, contact, pc, geo, tab, head)
+    ok4, k4q, k4w, k4i, _ = _rhs_u(q + h * (_A41 * k1q + _A42 * k2q + _A43 * k3q),
                                  w + h * (_A41 * k1w + _A42 * k2w + _A43 * k3w),
-                                 iq + h * (_A41 * k1i + _A42 * k2i + _A43 * k3i), contact, pc, geo, tab, head, v)
-    ok5, k5q, k5w, k5i, _ = _rhs(t + _C5 * h, q + h * (_A51 * k1q + _A52 * k2q + _A53 * k3q + _A54 * k4q),
+                                 iq + h * (_A41 * k1i + _A42 * k2i + _A43 * k3i), u4, contact, pc, geo, tab, head)
+    ok5, k5q, k5w, k5i, _ = _rhs_u(q + h * (_A51 * k1q + _A52 * k2q + _A53 * k3q + _A54 * k4q),
                                  w + h * (_A51 * k1w + _A52 * k2w + _A53 * k3w + _A54 * k4w),
-                                 iq + h * (_A51 * k1i + _A52 * k2i + _A53 * k3i + _A54 * k4i), contact,
-                                 pc, geo, tab, head, v)
-    ok6, k6q, k6w, k6i, _ = _rhs(t + h, q + h * (_A61 * k1q + _A62 * k2q + _A63 * k3q + _A64 * k4q + _A65 * k5q),
+                                 iq + h * (_A51 * k1i + _A52 * k2i + _A53 * k3i + _A54 * k4i), u5, contact, pc, geo, tab, head)
+    ok6, k6q, k6w, k6i, _ = _rhs_u(q + h * (_A61 * k1q + _A62 * k2q + _A63 * k3q + _A64 * k4q + _A65 * k5q),
                                  w + h * (_A61 * k1w + _A62 * k2w + _A63 * k3w + _A64 * k4w + _A65 * k5w),
-                                 iq + h * (_A61 * k1i + _A62 * k2i + _A63 * k3i + _A64 * k4i + _A65 * k5i), contact,
-                                 pc, geo, tab, head, v)
+                                 iq + h * (_A61 * k1i + _A62 * k2i + _A63 * k3i + _A64 * k4i + _A65 * k5i), uh, contact, pc, geo, tab, head)
     qn = q + h * (_A71 * k1q + _A73 * k3q + _A74 * k4q + _A75 * k5q + _A76 * k6q)
     wn = w + h * (_A71 * k1w + _A73 * k3w + _A74 * k4w + _A75 * k5w + _A76 * k6w)
     inn = iq + h * (_A71 * k1i + _A73 * k3i + _A74 * k4i + _A75 * k5i + _A76 * k6i)
-    ok7, k7q, k7w, k7i, k7c = _rhs(t + h, qn, wn, inn, contact, pc, geo, tab, head, v)
+    ok7, k7q, k7w, k7i, k7c = _rhs_u(qn, wn, inn, uh, contact, pc, geo, tab, head)
     ok = ok2 and ok3 and ok4 and ok5 and ok6 and ok7
     eq = h * (_E1 * k1q + _E3 * k3q + _E4 * k4q + _E5 * k5q + _E6 * k6q + _E7 * k7q)
     ew = h * (_E1 * k1w + _E3 * k3w + _E4 * k4w + _E5 * k5w + _E6 * k6w + _E7 * k7w)
@@ -434,7 +456,7 @@ def _dopri_step(h, t, q, w, iq, k1q, k1w, k1i, contact, pc, geo, tab, head, v):
     r3i = h * k1i - di
     r4i = di - h * k7i - r3i
     r5i = h * (_D1 * k1i + _D3 * k3i + _D4 * k4i + _D5 * k5i + _D6 * k6i + _D7 * k7i)
-    return ok, qn, wn, inn, k7q, k7w, k7i, k7c, eq, ew, ei, r3q, r4q, r5q, r3i, r4i, r5i
+    return ok, qn, wn, inn, k7q, k7w, k7i, k7c, eq, ew, ei, r3q, r4q, r5q, r3i, r4i, r5i, uh, duh
 
 
 @nb.njit(cache=True, inline="always")
@@ -451,7 +473,12 @@ def _wsolve(r0, r1, r2, hg, a, d, m11, m12, m21, m22, idet):
 @nb.njit(cache=True)
 def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, pc, geo, tab, head, v):
     """One Rodas4 step of size h from (t, y) with f(t, y) = (w, f0w, f0i), the Jacobian (a…g) and ∂i̇/∂t.
-    Returns ok, y(t+h), the error estimate and the dense-output coefficients (K1, K2) of q and i_q."""
+    Returns ok, y(t+h), the error estimate, the dense-output coefficients (K1, K2) of q and i_q, and the command
+    and its slope at t+h (stages 5 and 6 and the next step's Jacobian share them)."""
+    u2 = _command(t + _RCC2 * h, pc, v)[0]
+    u3 = _command(t + _RCC3 * h, pc, v)[0]
+    u4 = _command(t + _RCC4 * h, pc, v)[0]
+    uh, duh = _command(t + h, pc, v)
     hg = h * _RG
     s = 1.0 / hg
     m11 = s - jb - ja * hg
@@ -461,18 +488,17 @@ def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, pc
     idet = 1.0 / (m11 * m22 - m12 * m21)
     ih = 1.0 / h
     k1q, k1w, k1i = _wsolve(w, f0w, f0i + _RD1 * h * fti, hg, ja, jd, m11, m12, m21, m22, idet)
-    ok2, f2q, f2w, f2i, _ = _rhs(t + _RCC2 * h, q + _RA21 * k1q, w + _RA21 * k1w, iq + _RA21 * k1i, contact,
-                                 pc, geo, tab, head, v)
+    ok2, f2q, f2w, f2i, _ = _rhs_u(q + _RA21 * k1q, w + _RA21 * k1w, iq + _RA21 * k1i, u2, contact, pc, geo, tab, head)
     k2q, k2w, k2i = _wsolve(f2q + ih * _RC21 * k1q, f2w + ih * _RC21 * k1w, f2i + _RD2 * h * fti + ih * _RC21 * k1i,
                             hg, ja, jd, m11, m12, m21, m22, idet)
-    ok3, f3q, f3w, f3i, _ = _rhs(t + _RCC3 * h, q + _RA31 * k1q + _RA32 * k2q, w + _RA31 * k1w + _RA32 * k2w,
-                                 iq + _RA31 * k1i + _RA32 * k2i, contact, pc, geo, tab, head, v)
+    ok3, f3q, f3w, f3i, _ = _rhs_u(q + _RA31 * k1q + _RA32 * k2q, w + _RA31 * k1w + _RA32 * k2w,
+                                 iq + _RA31 * k1i + _RA32 * k2i, u3, contact, pc, geo, tab, head)
     k3q, k3w, k3i = _wsolve(f3q + ih * (_RC31 * k1q + _RC32 * k2q), f3w + ih * (_RC31 * k1w + _RC32 * k2w),
                             f3i + _RD3 * h * fti + ih * (_RC31 * k1i + _RC32 * k2i),
                             hg, ja, jd, m11, m12, m21, m22, idet)
-    ok4, f4q, f4w, f4i, _ = _rhs(t + _RCC4 * h, q + _RA41 * k1q + _RA42 * k2q + _RA43 * k3q,
+    ok4, f4q, f4w, f4i, _ = _rhs_u(q + _RA41 * k1q + _RA42 * k2q + _RA43 * k3q,
                                  w + _RA41 * k1w + _RA42 * k2w + _RA43 * k3w,
-                                 iq + _RA41 * k1i + _RA42 * k2i + _RA43 * k3i, contact, pc, geo, tab, head, v)
+                                 iq + _RA41 * k1i + _RA42 * k2i + _RA43 * k3i, u4, contact, pc, geo, tab, head)
     k4q, k4w, k4i = _wsolve(f4q + ih * (_RC41 * k1q + _RC42 * k2q + _RC43 * k3q),
                             f4w + ih * (_RC41 * k1w + _RC42 * k2w + _RC43 * k3w),
                             f4i + _RD4 * h * fti + ih * (_RC41 * k1i + _RC42 * k2i + _RC43 * k3i),
@@ -480,13 +506,13 @@ def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, pc
     y5q = q + _RA51 * k1q + _RA52 * k2q + _RA53 * k3q + _RA54 * k4q
     y5w = w + _RA51 * k1w + _RA52 * k2w + _RA53 * k3w + _RA54 * k4w
     y5i = iq + _RA51 * k1i + _RA52 * k2i + _RA53 * k3i + _RA54 * k4i
-    ok5, f5q, f5w, f5i, _ = _rhs(t + h, y5q, y5w, y5i, contact, pc, geo, tab, head, v)
+    ok5, f5q, f5w, f5i, _ = _rhs_u(y5q, y5w, y5i, uh, contact, pc, geo, tab, head)
     k5q, k5w, k5i = _wsolve(f5q + ih * (_RC51 * k1q + _RC52 * k2q + _RC53 * k3q + _RC54 * k4q),
                             f5w + ih * (_RC51 * k1w + _RC52 * k2w + _RC53 * k3w + _RC54 * k4w),
                             f5i + ih * (_RC51 * k1i + _RC52 * k2i + _RC53 * k3i + _RC54 * k4i),
                             hg, ja, jd, m11, m12, m21, m22, idet)
     y6q, y6w, y6i = y5q + k5q, y5w + k5w, y5i + k5i
-    ok6, f6q, f6w, f6i, _ = _rhs(t + h, y6q, y6w, y6i, contact, pc, geo, tab, head, v)
+    ok6, f6q, f6w, f6i, _ = _rhs_u(y6q, y6w, y6i, uh, contact, pc, geo, tab, head)
     k6q, k6w, k6i = _wsolve(f6q + ih * (_RC61 * k1q + _RC62 * k2q + _RC63 * k3q + _RC64 * k4q + _RC65 * k5q),
                             f6w + ih * (_RC61 * k1w + _RC62 * k2w + _RC63 * k3w + _RC64 * k4w + _RC65 * k5w),
                             f6i + ih * (_RC61 * k1i + _RC62 * k2i + _RC63 * k3i + _RC64 * k4i + _RC65 * k5i),
@@ -496,15 +522,16 @@ def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, pc
     d2q = _RH31 * k1q + _RH32 * k2q + _RH33 * k3q + _RH34 * k4q + _RH35 * k5q
     d1i = _RH21 * k1i + _RH22 * k2i + _RH23 * k3i + _RH24 * k4i + _RH25 * k5i
     d2i = _RH31 * k1i + _RH32 * k2i + _RH33 * k3i + _RH34 * k4i + _RH35 * k5i
-    return ok, y6q + k6q, y6w + k6w, y6i + k6i, k6q, k6w, k6i, d1q, d2q, d1i, d2i
+    return ok, y6q + k6q, y6w + k6w, y6i + k6i, k6q, k6w, k6i, d1q, d2q, d1i, d2i, uh, duh
 
 
 @nb.njit(cache=True, inline="always")
 def _x_of_q(q, geo):
-    """x_B(q) = r1 cos q + r3 cos θ2 (m)."""
+    """x_B(q) = r1 cos q + r3 cos θ2 (m), with r3 sin θ2 = −r1 sin q: one cosine and one square root."""
     r1, r3 = geo[G_R1], geo[G_R3]
-    sin2 = r1 * math.sin(q) / r3
-    return r1 * math.cos(q) + r3 * math.sqrt(max(0.0, 1.0 - sin2 * sin2))
+    c = math.cos(q)
+    ratio = r1 / r3
+    return r1 * c + r3 * math.sqrt(max(0.0, 1.0 - ratio * ratio * (1.0 - c * c)))
 
 
 @nb.njit(cache=True)
@@ -578,6 +605,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     have_f = False   # f(t, y) = (w, fw, fi) known
     have_j = False   # Jacobian at (t, y) known
     fw = fi = fc = ja = jb = jc = jd = je = jg = fti = 0.0
+    ut, dut = _command(t, pc, v)  # command and its slope at t
     while t < t_end - 1e-13:
         if n_steps >= max_steps:
             return SOLVER_FAILURE, n_steps, t_c, qc, wc, ic
@@ -587,24 +615,25 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             h = t_end - t
         use_ros = method == METHOD_RODAS4 or (method == METHOD_MIXED and contact == 1)
         if use_ros and not have_j:
-            ok, _, fw, fi, ja, jb, jc, jd, je, jg, fti = _rhs_jac(t, q, w, iq, contact, pc, geo, tab, head, v)
+            ok, _, fw, fi, ja, jb, jc, jd, je, jg, fti = _rhs_jac_u(q, w, iq, ut, dut, contact, pc, geo, tab, head)
             if not ok:
                 return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
             have_f = have_j = True
         elif not have_f:
-            ok, _, fw, fi, fc = _rhs(t, q, w, iq, contact, pc, geo, tab, head, v)
+            ok, _, fw, fi, fc = _rhs_u(q, w, iq, ut, contact, pc, geo, tab, head)
             if not ok:
                 return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
             have_f = True
         n_steps += 1
         if use_ros:
-            ok, qn, wn, inn, eq, ew, ei, r3q, r4q, r3i, r4i = _ros_step(h, t, q, w, iq, fw, fi, ja, jb, jc, jd, je, jg,
-                                                                       fti, contact, pc, geo, tab, head, v)
+            ok, qn, wn, inn, eq, ew, ei, r3q, r4q, r3i, r4i, un, dun = _ros_step(h, t, q, w, iq, fw, fi, ja, jb, jc,
+                                                                                jd, je, jg, fti, contact, pc, geo,
+                                                                                tab, head, v)
             r5q = r5i = 0.0
             k7w = k7i = 0.0
         else:
             (ok, qn, wn, inn, _, k7w, k7i, _, eq, ew, ei, r3q, r4q, r5q, r3i, r4i,
-             r5i) = _dopri_step(h, t, q, w, iq, w, fw, fi, contact, pc, geo, tab, head, v)
+             r5i, un, dun) = _dopri_step(h, t, q, w, iq, w, fw, fi, contact, pc, geo, tab, head, v)
         if not ok:  # a stage left the assembly range: shrink; if it persists the model has failed
             geom_fail = True
             h *= 0.25
@@ -648,11 +677,12 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
         if crossed:  # retake the step to the far side of the event, in the old mode
             h = max(_locate(q, q_L, h, g0, g1, qn - q, r3q, r4q, r5q) * h, 1e-15)
             if use_ros:
-                ok, qn, wn, inn, _, _, _, r3q, r4q, r3i, r4i = _ros_step(h, t, q, w, iq, fw, fi, ja, jb, jc, jd, je,
-                                                                         jg, fti, contact, pc, geo, tab, head, v)
+                ok, qn, wn, inn, _, _, _, r3q, r4q, r3i, r4i, un, dun = _ros_step(h, t, q, w, iq, fw, fi, ja, jb, jc,
+                                                                                  jd, je, jg, fti, contact, pc, geo,
+                                                                                  tab, head, v)
             else:
                 (ok, qn, wn, inn, _, k7w, k7i, _, _, _, _, r3q, r4q, r5q, r3i, r4i,
-                 r5i) = _dopri_step(h, t, q, w, iq, w, fw, fi, contact, pc, geo, tab, head, v)
+                 r5i, un, dun) = _dopri_step(h, t, q, w, iq, w, fw, fi, contact, pc, geo, tab, head, v)
             if not ok:
                 return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
         # --- dense output at the samples inside (t, t + h] ---
@@ -668,6 +698,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                 k += 1
         t = t_new
         q, w, iq = qn, wn, inn
+        ut, dut = un, dun
         if not (math.isfinite(q) and math.isfinite(w) and math.isfinite(iq)):
             return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
         have_j = False

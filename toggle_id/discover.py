@@ -62,7 +62,8 @@ class DiscoverSettings:
     max_effects: most effects added. candidates: effect names to consider (None: the whole library).
     alpha_diag: level of the residual diagnostics. acf_lags / ccf_lags / ccf_step: lags (samples) of the
     Ljung–Box and input tests. baseline_nfev / refit_nfev / null_nfev: polish budgets (residual evaluations)
-    of the baseline, of a refit and of the nominal re-polish that guards each acceptance. grid_points: magnitudes
+    of the baseline, of a refit and of the nominal re-polish that guards each acceptance; rounds: restarts of
+    the baseline and guard polishes while they still improve. grid_points: magnitudes
     per probe in the 1-D search. fd_rel_step: relative forward-difference step of the polish Jacobian.
     jac_rel_step: (log-)step of the sensitivity matrix J. rank_rtol: relative singular-value cut-off of J.
     absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts as absorbed by the free parameters.
@@ -81,6 +82,7 @@ class DiscoverSettings:
     baseline_nfev: int = 60
     refit_nfev: int = 40
     null_nfev: int = 30
+    rounds: int = 3
     grid_points: int = 14
     fd_rel_step: float = 1e-6
     jac_rel_step: float = 1e-5
@@ -99,7 +101,7 @@ class DiscoverSettings:
             raise ConfigError(f"discover.alpha_diag must lie in (0, 1), got {self.alpha_diag!r}")
         if not isinstance(self.max_effects, int) or self.max_effects < 0:
             raise ConfigError(f"discover.max_effects must be a non-negative integer, got {self.max_effects!r}")
-        for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "grid_points"):
+        for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "grid_points", "rounds"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ConfigError(f"discover.{name} must be a positive integer, got {v!r}")
@@ -359,9 +361,34 @@ class Fit:
 
 
 def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-6,
-             bounds: Mapping[str, Sequence[float]] | None = None) -> Fit:
+             bounds: Mapping[str, Sequence[float]] | None = None, rounds: int = 1, round_rtol: float = 1e-4) -> Fit:
     """Polish ``free`` parameters of ``theta`` on the whole record (PRECISE, bounded least squares in log
-    space for positive parameters). Keeps ``theta`` when nothing improves; never raises for a failed trial."""
+    space for positive parameters). Keeps ``theta`` when nothing improves; never raises for a failed trial.
+
+    ``rounds`` > 1 restarts the polish from its result (a fresh trust region) while a round still lowers the
+    SSE by more than ``round_rtol`` (relative): the nominal parameters lie in long curved valleys (scaling
+    symmetries), where one trust-region run often stops early.
+    """
+    fit = _fit_once(model, theta, free, max_nfev, fd_rel_step, bounds)
+    info = dict(fit.info)
+    for _ in range(max(int(rounds), 1) - 1):
+        more = _fit_once(model, fit.theta, free, max_nfev, fd_rel_step, bounds)
+        gain = (fit.sse - more.sse) / fit.sse if fit.sse > 0 else 0.0
+        if more.sse < fit.sse:
+            info["nfev"] += more.info["nfev"]
+            info["seconds"] += more.info["seconds"]
+            info["sse_after"] = more.sse
+            info["message"] = more.info["message"]
+            info["rounds"] = info.get("rounds", 1) + 1
+            fit = more
+        if gain <= round_rtol:
+            break
+    fit.info = info
+    return fit
+
+
+def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float,
+              bounds: Mapping[str, Sequence[float]] | None) -> Fit:
     free = tuple(free)
     idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
     lo, hi = stage_bounds(list(free), bounds)
@@ -561,7 +588,7 @@ def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: 
     """Re-polish the model without the effect from the refit's parameters; if it beats the baseline the
     refit is re-tested against it. Returns the better null fit (or None when it did not improve)."""
     start = _with(refit.fit.theta, _off_values(effect))
-    null = fit_free(model, start, base.free, settings.null_nfev, settings.fd_rel_step)
+    null = fit_free(model, start, base.free, settings.null_nfev, settings.fd_rel_step, rounds=settings.rounds)
     refit.null_sse = null.sse
     if null.sse < base.sse:
         F, p, dbic = f_test(null.sse, refit.sse1, refit.k, model.n, refit.p1)
@@ -691,7 +718,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     if not np.all(np.isfinite(y0)):
         raise DataError("the nominal model cannot be simulated on this record; fit it first (e.g. identify)")
     say(f"baseline polish of {len(free)} parameters on {n} samples")
-    current = fit_free(model, theta, free, settings.baseline_nfev, settings.fd_rel_step)
+    current = fit_free(model, theta, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
     baseline = current
     say(f"baseline rms {current.rmse(n) * 1e6:.4g} µm ({current.info['nfev']} evaluations, "
         f"{current.info['seconds']:.1f} s)")
@@ -746,15 +773,19 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         if chosen is None:
             break
         accepted_names.add(chosen.name)
-        current = chosen.fit
-        eff = EFFECTS_BY_NAME[chosen.name]
-        added.append({"name": chosen.name, "params": chosen.params, "std_errors": chosen.std_errors,
-                      "magnitude": {"name": eff.magnitude.name, "value": chosen.params[eff.magnitude.name],
-                                    "unit": eff.magnitude.unit},
-                      "iteration": it, "F": chosen.F, "p_value": chosen.p_value, "delta_bic": chosen.delta_bic,
-                      "rmse_after_m": chosen.fit.rmse(n)})
+        current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                           rounds=settings.rounds)
+        added.append({"name": chosen.name, "iteration": it, "F": chosen.F, "p_value": chosen.p_value,
+                      "delta_bic": chosen.delta_bic, "rmse_after_m": current.rmse(n),
+                      "params_at_acceptance": chosen.params})
         say(f"added {chosen.name} {chosen.params}; rms {current.rmse(n) * 1e6:.4g} µm")
 
+    for a in added:  # the values of the final model (later refits move earlier effects' parameters too)
+        eff = EFFECTS_BY_NAME[a["name"]]
+        a["params"] = {nm: float(current.theta[ALL_INDEX[nm]]) for nm in eff.names}
+        a["std_errors"] = _std_errors(current, eff.names, n)
+        a["magnitude"] = {"name": eff.magnitude.name, "value": a["params"][eff.magnitude.name],
+                          "unit": eff.magnitude.unit}
     diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
     cands = []
     for c in first_scores or []:

@@ -332,6 +332,8 @@ def console_text(report: Mapping) -> str:
              f"final {report['position_rel_error_pct_after']:.4g} %, published values "
              f"{report['published_model_rel_error_pct']:.4g} %"
              + (f", OE ref {report['reference']['rel_error_pct']:.4g} %" if report.get("reference") else "")]
+    if "error" in (report.get("idim_ls") or {}):
+        lines.append(f"IDIM-LS: {report['idim_ls']['error']}")
     if "validation" in report:
         v = report["validation"]
         lines.append(f"validation {v['record']}: final {v['position_rel_error_pct']:.4g} %, published "
@@ -395,8 +397,6 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") 
     ``tracking``). Bad settings raise :class:`ConfigError`, a missing or malformed record :class:`DataError`,
     both before any fitting or tracking starts.
     """
-    from .workflow import make_tracker
-
     t0 = time.perf_counter()
     st = emps_settings(cfg, project_root)
     record = load_record(st.path)
@@ -407,6 +407,8 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") 
     validation = None if st.validation_path is None else load_record(st.validation_path)
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
+    from .workflow import make_tracker
+
     tracker = make_tracker(cfg, project_root)
     with tracker.run("emps", tags={"job": "emps", "plant": "emps"}) as run:
         tracker.log_params({"emps": {**{k: v for k, v in (cfg.get("emps") or {}).items()},

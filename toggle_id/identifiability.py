@@ -276,7 +276,7 @@ def analyze(jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], x: 
     mask, s_scale = _coordinates(x, log_mask, scale)
 
     # SVD with a full set of n right singular vectors (also when m < n).
-    _, sv, vt = np.linalg.svd(jac, full_matrices=True)
+    _, sv, vt = np.linalg.svd(jac, full_matrices=m < n)
     s = np.zeros(n)
     s[: sv.shape[0]] = sv[:n]
     smax = float(s[0]) if n else 0.0

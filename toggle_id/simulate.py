@@ -16,6 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from . import _kernels as K
+from .errors import ConfigError
 from .params import N_PARAMS
 from .plant import GEOMETRY, Geometry
 from .record import Record
@@ -31,8 +32,12 @@ METHODS = {"rodas4": K.METHOD_RODAS4, "dopri5": K.METHOD_DOPRI5, "mixed": K.METH
 
 @dataclass(frozen=True)
 class SolverSettings:
-    """Adaptive Dormand–Prince 5(4) settings: relative tolerance, absolute tolerances on (q rad, q̇ rad/s,
-    i_q A), first step and largest step (s), and the step budget per simulation (beyond it: solver failure)."""
+    """Adaptive integrator settings: relative tolerance, absolute tolerances on (q rad, q̇ rad/s, i_q A), first
+    step and largest step (s), the step budget per simulation (accepted + rejected steps; beyond it: solver
+    failure) and the method (see :data:`METHODS`): ``rodas4`` (linearly implicit, stable in the stiff clamped
+    mode and in stiff corners of the domain such as L_q → 0; the fast tier), ``dopri5`` (explicit, cheapest
+    per step where accuracy keeps the steps small anyway; the precise tier) or ``mixed`` (DOPRI5 in free
+    motion, Rodas4 while clamped)."""
 
     rtol: float = 1e-5
     atol_q: float = 1e-8
@@ -43,12 +48,22 @@ class SolverSettings:
     max_steps: int = 50_000
     method: str = "rodas4"
 
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(f"unknown integration method {self.method!r}; known: {', '.join(METHODS)}")
+        if not (self.rtol > 0 and self.atol_q > 0 and self.atol_w > 0 and self.atol_i > 0):
+            raise ConfigError("solver tolerances must be positive")
+        if not (self.h0 > 0 and self.hmax > 0 and self.max_steps >= 1):
+            raise ConfigError("h0, hmax must be positive and max_steps at least 1")
+
     def as_array(self) -> np.ndarray:
         return np.array([self.rtol, self.atol_q, self.atol_w, self.atol_i, self.h0, self.hmax,
                          float(self.max_steps), float(METHODS[self.method])], dtype=float)
 
 
-#: Fast tier (the GA): x_B within 1 µm of the references. Precise tier (polish, sensitivities, residuals).
+#: Fast tier (the GA): Rodas4, x_B within 0.3 µm of the references (about 580 steps for a 5-s record).
+#: Precise tier (polish, finite-difference sensitivities, residuals): DOPRI5 at tight tolerances, x_B within
+#: 1e-5 µm of the references and smooth in the parameters (no step-count jitter above ~1e-11 m).
 FAST = SolverSettings()
 PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=500_000, method="dopri5")
 TIERS = {"fast": FAST, "precise": PRECISE}

@@ -71,7 +71,10 @@ def idim_ls(record: EmpsRecord, terms: Sequence[str] = TERMS_SYMMETRIC, cutoff_h
     if decimate_factor > 1:
         phi = np.column_stack([decimate(c, decimate_factor) for c in phi.T])
         y = decimate(y, decimate_factor)
-    theta, *_ = np.linalg.lstsq(phi, y, rcond=None)
+    theta, _, rank, _ = np.linalg.lstsq(phi, y, rcond=None)
+    if rank < phi.shape[1]:
+        raise DataError(f"IDIM-LS regressor {list(terms)} is rank deficient on record {record.name!r} "
+                        f"(rank {rank}; e.g. the motion never changes direction)")
     resid = y - phi @ theta
     dof = max(phi.shape[0] - phi.shape[1], 1)
     cov = (resid @ resid / dof) * np.linalg.inv(phi.T @ phi)
