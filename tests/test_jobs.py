@@ -125,3 +125,61 @@ def test_bad_csv_fails_fast_in_one_line(tmp_path, job_env):
     proc = run_job("jobs.run", "data=csv", f"data.path={tmp_path / 'bad.csv'}", f"hydra.run.dir={tmp_path / 'run'}",
                    *[a for a in QUICK if not a.startswith("data.")], cwd=tmp_path, env=job_env)
     assert "x_B" in _one_line_error(proc)
+
+
+def _good_rows(n: int = 400) -> list[str]:
+    t = np.arange(n) / 1000.0
+    x = 0.02 + 0.1 * t
+    return [f"{a:.6f},0.05,{b:.9f}" for a, b in zip(t, x)]
+
+
+BAD_CSVS = {
+    "malformed": "t,v_in,x_B\n0,0.05,0.02\n0.001,abc,0.02\n",
+    "empty": "",
+    "header_only": "t,v_in,x_B\n",
+    "missing_column": "t,v_in\n" + "\n".join(r.rsplit(",", 1)[0] for r in _good_rows()),
+    "misspelt_column": "t,v_in,xb\n" + "\n".join(_good_rows()),
+    "nan": "t,v_in,x_B\n" + "\n".join(_good_rows()[:50] + ["0.050000,nan,0.025"] + _good_rows()[51:]),
+    "inf": "t,v_in,x_B\n" + "\n".join(_good_rows()[:50] + ["0.050000,0.05,inf"] + _good_rows()[51:]),
+    "duplicated_time": "t,v_in,x_B\n" + "\n".join(_good_rows()[:10] + _good_rows()[9:]),
+    "unsorted_time": "t,v_in,x_B\n" + "\n".join(_good_rows()[:10] + _good_rows()[11:12] + _good_rows()[10:11]
+                                                + _good_rows()[12:]),
+    "non_uniform_time": "t,v_in,x_B\n" + "\n".join(_good_rows()[:10] + ["0.010500,0.05,0.02105"] + _good_rows()[11:]),
+    "millimetres": "t,v_in,x_B\n" + "\n".join(f"{r.split(',')[0]},0.05,{1000 * float(r.split(',')[2]):.6f}"
+                                              for r in _good_rows()),
+    "too_short_for_two_stage": "t,v_in,x_B\n" + "\n".join(_good_rows(100)),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_CSVS))
+def test_every_bad_record_is_rejected_in_one_line(tmp_path, job_env, kind):
+    path = tmp_path / f"{kind}.csv"
+    path.write_text(BAD_CSVS[kind])
+    proc = run_job("jobs.run", "+experiment=two_stage", "data=csv", f"data.path={path}",
+                   f"hydra.run.dir={tmp_path / 'run'}", *[a for a in QUICK if not a.startswith("data.")],
+                   cwd=tmp_path, env=job_env)
+    line = _one_line_error(proc)
+    assert proc.returncode == 2 and line.startswith("error:")
+    assert not (tmp_path / "run" / "result.json").exists()
+
+
+def test_unwritable_tracking_store_does_not_stop_the_job(tmp_path):
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("a file where the store's directory should be")
+    env = {"MLFLOW_TRACKING_URI": f"sqlite:///{blocker / 'sub' / 'mlflow.db'}"}
+    proc = run_job("jobs.run", "+experiment=one_stage", f"hydra.run.dir={tmp_path / 'run'}", *QUICK,
+                   cwd=tmp_path, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (tmp_path / "run" / "result.json").exists() and (tmp_path / "run" / "response.png").exists()
+    assert "not logged" in proc.stderr or "tracking" in proc.stderr.lower()
+
+
+def test_table1_job_writes_markdown_and_csv(tmp_path, job_env):
+    proc = run_job("jobs.run", "+experiment=table1", "table1.seeds=[0]", f"hydra.run.dir={tmp_path / 'run'}",
+                   *QUICK, cwd=tmp_path, env=job_env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    md = (tmp_path / "run" / "table1.md").read_text()
+    assert "one_stage" in md and "two_stage" in md and "K_l" in md
+    rows = (tmp_path / "run" / "table1_runs.csv").read_text().splitlines()
+    assert len(rows) == 3  # header + one run per method
+    assert _last_line(proc) == f"report: {(tmp_path / 'run' / 'result.json').resolve()}"

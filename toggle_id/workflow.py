@@ -23,7 +23,7 @@ from .data import read_csv, validate_record
 from .effects import ALL_INDEX, ALL_NAMES
 from .errors import ConfigError
 from .ga import GAConfig
-from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify
+from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify, make_problems
 from .plant import GEOMETRY, impulse_force
 from .record import SWEEPS, Record
 from .simulate import PRECISE, TIERS, extend, simulate
@@ -254,6 +254,7 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     record, truth = build_record(cfg.get("data") or {})
     method = cfg.get("method", "two_stage")
     kw = _identify_kwargs(cfg, run_dir, resume)
+    make_problems(record, method, extend(P.ASSIGNED)[0], fixed=tuple(kw["fixed"]))  # record fits the method?
     tracker = make_tracker(cfg, project_root)
     ev = cfg.get("evaluator") or {}
     show = bool(cfg.get("progress", True))
