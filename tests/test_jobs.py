@@ -183,3 +183,28 @@ def test_table1_job_writes_markdown_and_csv(tmp_path, job_env):
     rows = (tmp_path / "run" / "table1_runs.csv").read_text().splitlines()
     assert len(rows) == 3  # header + one run per method
     assert _last_line(proc) == f"report: {(tmp_path / 'run' / 'result.json').resolve()}"
+
+
+def test_interrupted_job_resumes_to_the_uninterrupted_result(tmp_path, job_env):
+    args = ["+experiment=two_stage", "checkpoint.every=1", "ga.generations=4", *QUICK[:1], *QUICK[2:]]
+    args = [a for a in args if not a.startswith("ga.generations=3")]
+    full = run_job("jobs.run", *args, f"hydra.run.dir={tmp_path / 'full'}", cwd=tmp_path, env=job_env)
+    assert full.returncode == 0, full.stderr[-2000:]
+    cut = run_job("jobs.run", *args, "debug.stop_after_generations=6", f"hydra.run.dir={tmp_path / 'cut'}",
+                  cwd=tmp_path, env=job_env)
+    assert cut.returncode != 0 and (tmp_path / "cut" / "checkpoint.json").exists()
+    assert not (tmp_path / "cut" / "result.json").exists()
+    resumed = run_job("jobs.run", *args, f"resume={tmp_path / 'cut'}", f"hydra.run.dir={tmp_path / 'other'}",
+                      cwd=tmp_path, env=job_env)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    a = json.loads((tmp_path / "full" / "result.json").read_text())
+    b = json.loads((tmp_path / "cut" / "result.json").read_text())
+    assert a["params"] == b["params"]
+    assert [s["fitness_history"] for s in a["stages"]] == [s["fitness_history"] for s in b["stages"]]
+    assert b["mlflow_run_id"] == json.loads((tmp_path / "cut" / "mlflow_run.json").read_text())["run_id"]
+    from mlflow import MlflowClient
+
+    client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
+    runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    assert len(parents) == 2  # the full run and the interrupted-then-continued run: not duplicated

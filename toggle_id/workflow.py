@@ -265,7 +265,8 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         tracker.log_params(_flat_config(cfg))
         result = identify(record, method=method, make_evaluator=evaluator_factory(ev),
                           progress=lambda total, desc: console.progress(total, desc, enabled=show),
-                          on_stage=lambda st: stage_child_run(tracker, st, truth), **kw)
+                          on_stage=lambda st: stage_child_run(tracker, st, truth),
+                          on_generation=_fault_injection(cfg), **kw)
         wall = time.perf_counter() - t0
         report = result.to_dict()
         report.update(_truth_report(result.theta, truth))
@@ -287,6 +288,22 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         tracker.log_artifact(path)
         tracker.log_artifact(run_dir / "table.txt")
     return Path(path).resolve()
+
+
+def _fault_injection(cfg: Mapping):
+    """``debug.stop_after_generations=N``: interrupt the run after N generations (as a kill would), to test
+    checkpoints and ``resume=``; off by default."""
+    n = _get(cfg, "debug.stop_after_generations")
+    if not n:
+        return None
+    count = {"n": 0}
+
+    def stop(stage: str, ga) -> None:
+        count["n"] += 1
+        if count["n"] >= int(n):
+            raise KeyboardInterrupt(f"debug.stop_after_generations={n} reached in {stage}")
+
+    return stop
 
 
 def validation_report(path: str, theta: np.ndarray) -> dict:
