@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from toggle_id import params as P
-from toggle_id.identify import PolishSettings, identifiability_report, polish_stage
+from toggle_id.identify import identifiability_report
 from toggle_id.polish import polish
 from toggle_id.problem import FitProblem
 from toggle_id.record import Record

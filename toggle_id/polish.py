@@ -258,7 +258,6 @@ def polish(residual_fn: ResidualFn, x0: Sequence[float], lower: Sequence[float],
     """
     scaling = make_scaling(x0, lower, upper, log_mask=log_mask, log_floor_rel=log_floor_rel)
     x0 = np.asarray(x0, dtype=float).copy()
-    n = x0.shape[0]
     if fd_method not in ("2-point", "3-point"):
         raise ConfigError(f"fd_method must be '2-point' or '3-point', got {fd_method!r}")
     if max_nfev < 1:

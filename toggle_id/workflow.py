@@ -19,12 +19,12 @@ import numpy as np
 from . import console, figures
 from . import params as P
 from .checkpoint import atomic_write_json, atomic_write_text
-from .data import read_csv, validate_record
+from .data import read_csv
 from .effects import ALL_INDEX, ALL_NAMES
 from .errors import ConfigError
 from .ga import GAConfig
 from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify, make_problems
-from .plant import GEOMETRY, impulse_force
+from .plant import impulse_force
 from .record import SWEEPS, Record
 from .simulate import PRECISE, TIERS, extend, simulate
 from .tracking import Tracker
@@ -202,7 +202,6 @@ def console_report(result: IdentificationResult, truth: np.ndarray | None) -> st
     """The paper's Table 1 for this run (assigned, identified, % error) and the identifiability tables."""
     assigned = None if truth is None else {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)}
     text = [console.param_table(list(P.PARAM_NAMES), {result.method: result.params}, assigned)]
-    from .identifiability import IdentifiabilityReport  # noqa: F401 (format below works on dicts)
     for st in result.stages:
         rep = st.identifiability
         if rep and "param_order" in rep:
