@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -41,14 +41,16 @@ def uniform_domain(n: int, seed: int = 2) -> np.ndarray:
     return LOWER + (UPPER - LOWER) * rng.uniform(0.0, 1.0, (n, ASSIGNED.size))
 
 
-def timed(fn: Callable[[], SimResult], repeat: int) -> tuple[float, list[float], SimResult]:
-    """Median wall time (s) of ``repeat`` calls, all times, and the last result."""
-    times, res = [], None
+def timed(fn: Callable[[], SimResult], repeat: int) -> tuple[float, list[float], SimResult, float]:
+    """Median wall time (s) of ``repeat`` calls, all wall times, the last result, and the median CPU time of this
+    process (s, summed over its threads: less sensitive than wall time to other jobs on the machine)."""
+    times, cpu, res = [], [], None
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         res = fn()
         times.append(time.perf_counter() - t0)
-    return float(np.median(times)), times, res
+        cpu.append(time.process_time() - c0)
+    return float(np.median(times)), times, res, float(np.median(cpu))
 
 
 def scipy_reference(theta: np.ndarray, record: Record, method: str, rtol: float, atol: float) -> np.ndarray:
@@ -63,7 +65,7 @@ def scipy_reference(theta: np.ndarray, record: Record, method: str, rtol: float,
     out = np.full(record.n, np.nan)
     t_end = float(record.t[-1])
     while t < t_end - 1e-12:
-        ev = lambda s, yy, *a: q_L - yy[0]  # noqa: E731  > 0 in contact
+        ev = lambda s, yy, *a: q_L - yy[0]
         ev.terminal = True
         sel = record.t[(record.t > t + 1e-12) | ((record.t >= t - 1e-12) & (t == record.t[0]))]
         sol = solve_ivp(rhs, (t, t_end), y, method=method, rtol=rtol, atol=atol, t_eval=sel, events=ev,
@@ -78,8 +80,10 @@ def scipy_reference(theta: np.ndarray, record: Record, method: str, rtol: float,
     return out
 
 
-def row(name: str, n: int, med: float, times: list[float], res: SimResult | None, extra: dict | None = None) -> dict:
-    d = {"case": name, "n": n, "median_s": med, "sims_per_s": n / med, "times_s": times}
+def row(name: str, n: int, med: float, times: list[float], res: SimResult | None, cpu: float = float("nan"),
+        extra: dict | None = None) -> dict:
+    d = {"case": name, "n": n, "median_s": med, "sims_per_s": n / med, "times_s": times, "cpu_s": cpu,
+         "sims_per_cpu_s": n / cpu if cpu > 0 else float("nan")}
     if res is not None:
         d["status"] = res.status_counts()
         d["mean_steps_ok"] = float(np.mean(res.n_steps[res.ok])) if res.ok.any() else float("nan")
@@ -120,22 +124,23 @@ def main(argv: list[str] | None = None) -> list[dict]:
                   ("domain FAST parallel", dom, FAST, True, {}),
                   ("near-assigned PRECISE parallel", near[: max(1, args.n // 4)], PRECISE, True, {})]
     for name, th, s, par, kw in cases:
-        med, times, res = timed(lambda: simulate(th, rec, s, parallel=par, **kw), args.repeat)
-        rows.append(row(name, th.shape[0], med, times, res))
+        med, times, res, cpu = timed(lambda th=th, s=s, par=par, kw=kw: simulate(th, rec, s, parallel=par, **kw),
+                                     args.repeat)
+        rows.append(row(name, th.shape[0], med, times, res, cpu))
 
     if not args.quick:
         ref = simulate(ASSIGNED[None], rec, PRECISE)
         n_clamp = int(np.argmax(ref.x_B[0] >= GEOMETRY.x_B_L))
-        med, times, res = timed(lambda: simulate(near, rec, FAST, n_samples=n_clamp, parallel=True), args.repeat)
-        rows.append(row(f"stage 1 (n_samples={n_clamp}) FAST parallel", args.n, med, times, res))
+        med, times, res, cpu = timed(lambda: simulate(near, rec, FAST, n_samples=n_clamp, parallel=True), args.repeat)
+        rows.append(row(f"stage 1 (n_samples={n_clamp}) FAST parallel", args.n, med, times, res, cpu))
         tc, qc, wc, ic = ref.contact[0]
         st2 = np.repeat(ASSIGNED[None], args.n, axis=0)
         rng = np.random.default_rng(3)
         for j in (1, 4):  # D, K_l
             st2[:, j] *= 1.0 + 0.1 * rng.uniform(-1.0, 1.0, args.n)
         start = (float(tc), (float(qc), float(wc), float(ic)), 1)
-        med, times, res = timed(lambda: simulate(st2, rec, FAST, start=start, parallel=True), args.repeat)
-        rows.append(row(f"stage 2 restart at t={tc:.4f} s FAST parallel", args.n, med, times, res))
+        med, times, res, cpu = timed(lambda: simulate(st2, rec, FAST, start=start, parallel=True), args.repeat)
+        rows.append(row(f"stage 2 restart at t={tc:.4f} s FAST parallel", args.n, med, times, res, cpu))
 
         if args.n_scipy > 0:
             few = near[: args.n_scipy]
@@ -154,7 +159,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                              "max_err_um_vs_precise": max(errs) * 1e6,
                              "speedup_ours_serial": fast_row["sims_per_s"] * med})
 
-    print(f"{'case':58s} {'n':>5s} {'median s':>10s} {'sims/s':>10s}  notes")
+    print(f"{'case':52s} {'n':>5s} {'median s':>9s} {'sims/s':>9s} {'sims/CPU-s':>10s}  notes")
     for r in rows:
         notes = []
         if "status" in r:
@@ -162,7 +167,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
             notes.append(f"steps {r['mean_steps_ok']:.0f}")
         if "max_err_um_vs_precise" in r:
             notes.append(f"err {r['max_err_um_vs_precise']:.3f} um, ours x{r['speedup_ours_serial']:.0f} faster")
-        print(f"{r['case']:58s} {r['n']:5d} {r['median_s']:10.4f} {r['sims_per_s']:10.1f}  {'; '.join(notes)}")
+        cps = r.get("sims_per_cpu_s", float("nan"))
+        print(f"{r['case']:52s} {r['n']:5d} {r['median_s']:9.4f} {r['sims_per_s']:9.1f} {cps:10.1f}  {'; '.join(notes)}")
+    print("wall-clock figures depend on other jobs on the machine; sims/CPU-s is per core (this process's CPU time)")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(rows, fh, indent=1)

@@ -36,7 +36,7 @@ def test_two_stage_fit_reaches_the_noise_level():
                    bounds=_near_truth_bounds(0.3), polish=PolishSettings(max_nfev=40), identifiability=False)
     assert [s.name for s in res.stages] == ["stage1", "stage2", "joint_polish"]
     assert res.rmse_m < 1.5e-6, res.rmse_m
-    assert all(s.fitness >= s.fitness_ga * 0.999 for s in res.stages)  # the polish never makes it worse
+    assert all(s.fitness >= s.fitness_ga * 0.999 for s in res.stages if s.generations)  # polish never worsens
 
 
 def test_two_stage_needs_the_clamping_instant():

@@ -129,3 +129,18 @@ def test_sampled_input_interpolates_linearly_and_dead_time_shifts():
     assert val == pytest.approx(2.0)
     assert slope == pytest.approx(2000.0)
     assert K._input(1.0, pc, v)[0] == 3.0  # held after the last sample
+
+
+def test_output_position_from_taylor_series_matches_closed_form():
+    rng = np.random.default_rng(11)
+    for q0 in np.linspace(0.25, 1.45, 25):
+        c0, s0 = np.cos(q0), np.sin(q0)
+        for dl in np.concatenate([rng.uniform(-0.1, 0.1, 20), [0.0, 0.1, -0.1, 0.3]]):
+            x = K._x_near(q0 + dl, q0, c0, s0, GEO)
+            assert x == pytest.approx(plant.kinematics(q0 + dl)["x_B"], abs=5e-14)  # δ⁸/8! truncation
+    other = GEO.copy()
+    other[K.G_R3] = 0.08  # r1 ≠ r3: the general formula
+    q = 0.7
+    assert K._x_near(q + 0.05, q, np.cos(q), np.sin(q), other) == pytest.approx(K._x_of_q(q + 0.05, other), abs=1e-14)
+    k = plant.kinematics(q + 0.05, plant.Geometry(r3=0.08))
+    assert K._x_of_q(q + 0.05, other) == pytest.approx(float(k["x_B"]), abs=1e-14)

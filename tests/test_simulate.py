@@ -12,7 +12,14 @@ import pytest
 from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED, INDEX, read_params_file, to_vector
 from toggle_id.record import Record
-from toggle_id.simulate import (FAST, PRECISE, STATUS_INVALID, STATUS_OK, SolverSettings, simulate)
+from toggle_id.simulate import (
+    FAST,
+    PRECISE,
+    STATUS_INVALID,
+    STATUS_OK,
+    SolverSettings,
+    simulate,
+)
 
 
 def _reference_dir() -> Path | None:
@@ -78,7 +85,7 @@ def test_measured_record_agrees_with_sweep_within_interpolation_effect(tier):
 
 
 def test_degenerate_corners_are_flagged_and_do_not_disturb_the_batch():
-    tiny = dict(m_2=1e-6, m_3=1e-6, m_5=1e-6, m_B=1e-6, m_C=1e-6)
+    tiny = {"m_2": 1e-6, "m_3": 1e-6, "m_5": 1e-6, "m_B": 1e-6, "m_C": 1e-6}
     rows = {
         "assigned": ASSIGNED,
         "L_q = 0": _mod(L_q=0.0),

@@ -132,7 +132,7 @@ class DiscoverSettings:
         """Settings from a config node; unknown keys are a ConfigError."""
         node = dict(node or {})
         known = {f for f in cls.__dataclass_fields__}
-        extra = sorted(set(node) - known - {"nominal"})
+        extra = sorted(set(node) - known - {"nominal", "base"})
         if extra:
             raise ConfigError(f"discover: unknown setting(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
         kw = {k: v for k, v in node.items() if k in known}
@@ -687,7 +687,7 @@ def _nominal_theta(nominal: IdentificationResult | np.ndarray | Mapping[str, flo
 def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Mapping[str, float] | None = None,
              effects: Sequence[Effect] = EFFECTS, settings: DiscoverSettings | None = None,
              free: Sequence[str] | None = None, fixed: Mapping[str, float] | None = None,
-             on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
+             starts: Sequence[np.ndarray | Mapping[str, float]] = (), on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
              ) -> DiscoveryResult:
     """Run the discovery loop on ``record`` (see the module docstring).
 
@@ -695,7 +695,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         mapping; None: the assigned values) — the loop starts by polishing it on the whole record.
     effects: the candidate library (default all of :data:`toggle_id.effects.EFFECTS`), filtered by
         ``settings.candidates``. free: nominal parameters fitted (default the 15 physical ones minus
-        ``fixed``); fixed: parameters held at given values.
+        ``fixed``); fixed: parameters held at given values. starts: further starting points of the baseline
+        polish (e.g. the assigned values beside a GA result); the best polished one is the baseline.
     on_refit: called with every :class:`Refit` (e.g. to log an MLflow child run); progress: one-line messages.
     """
     settings = (settings or DiscoverSettings()).validate()
@@ -707,7 +708,6 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         if k not in ALL_INDEX:
             raise ConfigError(f"fixed: unknown parameter {k!r}")
     theta = _with(_nominal_theta(nominal), fixed)
-    anchor = theta.copy()
     free = tuple(free) if free is not None else tuple(n for n in P.PARAM_NAMES if n not in fixed)
     for k in free:
         if k not in ALL_INDEX:
@@ -718,15 +718,23 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     split = split if 0 < split < record.n else None
     n = record.n
 
-    # 1. baseline: the nominal model polished on the whole record
-    y0 = model.residuals(theta[None, :])[0]
-    if not np.all(np.isfinite(y0)):
-        raise DataError("the nominal model cannot be simulated on this record; fit it first (e.g. identify)")
-    say(f"baseline polish of {len(free)} parameters on {n} samples")
-    current = fit_free(model, theta, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+    # 1. baseline: the nominal model polished on the whole record (from every start; the best is kept)
+    anchors = [theta] + [_with(_nominal_theta(st), fixed) for st in starts]
+    current, anchor, start_report = None, theta, []
+    for k, th0 in enumerate(anchors):
+        if not np.all(np.isfinite(model.residuals(th0[None, :])[0])):
+            start_report.append({"start": k, "error": "cannot be simulated on this record"})
+            continue
+        say(f"baseline polish of {len(free)} parameters on {n} samples (start {k + 1} of {len(anchors)})")
+        fit = fit_free(model, th0, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+        start_report.append({"start": k, "rmse_m": fit.rmse(n), "nfev": fit.info["nfev"]})
+        say(f"  rms {fit.rmse(n) * 1e6:.4g} µm ({fit.info['nfev']} evaluations, {fit.info['seconds']:.1f} s)")
+        if current is None or fit.sse < current.sse:
+            current, anchor = fit, th0
+    if current is None:
+        raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
+    current.info["starts"] = start_report
     baseline = current
-    say(f"baseline rms {current.rmse(n) * 1e6:.4g} µm ({current.info['nfev']} evaluations, "
-        f"{current.info['seconds']:.1f} s)")
     diag_before, r_before, _ = residual_report(model, current.theta, settings, split)
 
     iterations: list[dict] = []
@@ -900,7 +908,9 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                           on_stage=lambda st: workflow.stage_child_run(tracker, st, truth))
                 tracker.log_metrics({"fitness": nominal_result.fitness, "rmse_m": nominal_result.rmse_m,
                                      "seconds": nominal_result.seconds})
-        nominal = nominal_result if nominal_result is not None else _base_vector(cfg)
+        base_start = _base_vector(cfg)
+        nominal = nominal_result if nominal_result is not None else base_start
+        starts = [base_start] if nominal_result is not None else []
 
         def on_refit(rf: Refit) -> None:
             with tracker.run(f"refit_{rf.iteration}_{rf.name}", tags={"effect": rf.name,
@@ -913,7 +923,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                      float("nan"), "seconds": rf.seconds,
                                      **{f"param.{k}": v for k, v in rf.params.items()}})
 
-        res = discover(record, nominal=nominal, settings=settings, fixed=fixed, on_refit=on_refit,
+        res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, on_refit=on_refit,
                        progress=(lambda msg: print(msg, flush=True)) if show else None)
         wall = time.perf_counter() - t0
         report = res.to_dict()

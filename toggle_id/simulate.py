@@ -10,8 +10,8 @@ x_B and i_q for all of them, and a per-individual status.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -92,7 +92,9 @@ class SimResult:
 def extend(theta: np.ndarray, extra: np.ndarray | None = None) -> np.ndarray:
     """(P, 15) physical parameters → (P, N_THETA) kernel vectors with the effect parameters at their 'off'
     defaults (see :mod:`toggle_id.effects`), or taken from ``extra`` (P or 1, N_THETA − 15)."""
-    from .effects import EXTRA_DEFAULTS  # late import: effects imports this module's constants
+    from .effects import (
+        EXTRA_DEFAULTS,  # late import: effects imports this module's constants
+    )
 
     theta = np.atleast_2d(np.asarray(theta, dtype=float))
     if theta.shape[1] == N_THETA:
