@@ -31,13 +31,17 @@ def run(cfg: dict, run_dir: str, project_root: str) -> str:
         from toggle_id.discover import run_discover
 
         return str(run_discover(cfg, run_dir, project_root))
+    if job == "identifiability":
+        from toggle_id.study import run_study
+
+        return str(run_study(cfg, run_dir, project_root))
     if job == "emps":
         from toggle_id.emps_job import run_emps
 
         return str(run_emps(cfg, run_dir, project_root))
     from toggle_id.errors import ConfigError
 
-    raise ConfigError(f"unknown job {job!r}; known: identify, table1, discover, emps")
+    raise ConfigError(f"unknown job {job!r}; known: identify, table1, discover, emps, identifiability")
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")

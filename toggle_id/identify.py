@@ -213,7 +213,7 @@ def _batched_jacobian(problem: FitProblem, x: np.ndarray, rel_step: float, setti
     h = rel_step * np.maximum(np.abs(x), 1e-12)
     X = np.repeat(x[None, :], n + 1, axis=0)
     X[1:] += np.diag(h)
-    R = problem.residuals(X, settings)
+    R = problem.residuals(X, settings, parallel=True)
     return (R[1:] - R[0]).T / h
 
 
@@ -235,7 +235,7 @@ def log_jacobian_model(problem: FitProblem, x: np.ndarray, rel_step: float = 1e-
     for j in range(n):
         for i, m in enumerate(mults):
             X[k * j + i, j] = x[j] * np.exp(m * rel_step) if pos[j] else x[j] + m * steps[j]
-    R = problem.residuals(X, settings)  # residual = measured − model: the model's derivative is −dR
+    R = problem.residuals(X, settings, parallel=True)  # residual = measured − model: model's derivative is −dR
     d4 = (-R[0::k] + 8.0 * R[1::k] - 8.0 * R[2::k] + R[3::k]).T / (12.0 * steps)
     if not return_error:
         return -d4

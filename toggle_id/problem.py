@@ -73,9 +73,10 @@ class FitProblem:
         """The free parameters' values in ``base``."""
         return self.base[self._idx].copy()
 
-    def simulate(self, X: np.ndarray, settings: SolverSettings | None = None) -> SimResult:
+    def simulate(self, X: np.ndarray, settings: SolverSettings | None = None, parallel: bool = False) -> SimResult:
+        """Simulate rows of X; ``parallel`` uses the kernel's threads (not inside Ray actors)."""
         res = simulate(self.thetas(X), self.record, settings or self.settings, n_samples=self.window[1],
-                       start=self.start)
+                       start=self.start, parallel=parallel)
         if self.start is not None and self.prefix_x is not None:
             t0 = self.start[0]
             before = self.record.t < t0 - 1e-12
@@ -85,9 +86,10 @@ class FitProblem:
             res.i_q[res.status != STATUS_OK] = np.nan
         return res
 
-    def residuals(self, X: np.ndarray, settings: SolverSettings | None = None) -> np.ndarray:
+    def residuals(self, X: np.ndarray, settings: SolverSettings | None = None, parallel: bool = False
+                  ) -> np.ndarray:
         """(P, m) measured − model on the window (x_B in m, then weighted i_q); NaN rows for failures."""
-        res = self.simulate(X, settings)
+        res = self.simulate(X, settings, parallel)
         k0, k1 = self.window
         r = self.record.x_B[k0:k1] - res.x_B[:, k0:k1]
         if self.i_q_weight:
@@ -135,8 +137,9 @@ class JointProblem:
     def x0(self) -> np.ndarray:
         return self.problems[0].x0()
 
-    def residuals(self, X: np.ndarray, settings: SolverSettings | None = None) -> np.ndarray:
-        return np.hstack([p.residuals(X, settings) for p in self.problems])
+    def residuals(self, X: np.ndarray, settings: SolverSettings | None = None, parallel: bool = False
+                  ) -> np.ndarray:
+        return np.hstack([p.residuals(X, settings, parallel) for p in self.problems])
 
     def sse(self, X: np.ndarray, settings: SolverSettings | None = None) -> np.ndarray:
         return np.sum([p.sse(X, settings) for p in self.problems], axis=0)

@@ -30,6 +30,7 @@ from .simulate import PRECISE, TIERS, extend, simulate
 from .tracking import Tracker
 
 log = logging.getLogger("toggle_id")
+JOBS = ("identify", "table1", "discover", "emps", "identifiability")
 
 
 # ------------------------------------------------------------------------------------------ configuration
@@ -231,8 +232,8 @@ def _identify_kwargs(cfg: Mapping, run_dir: Path, resume: bool) -> dict:
 
 def validate_config(cfg: Mapping) -> None:
     """Check everything a job needs before it starts (one-line ConfigError naming the problem)."""
-    if cfg.get("job", "identify") not in ("identify", "table1", "discover", "emps"):
-        raise ConfigError(f"unknown job {cfg.get('job')!r}; known: identify, table1, discover, emps")
+    if cfg.get("job", "identify") not in JOBS:
+        raise ConfigError(f"unknown job {cfg.get('job')!r}; known: {', '.join(JOBS)}")
     if cfg.get("method", "two_stage") not in METHODS:
         raise ConfigError(f"unknown method {cfg.get('method')!r}; known: {', '.join(METHODS)}")
     ga_config(cfg)
