@@ -66,12 +66,12 @@ class SolverSettings:
 #: Fast tier (the GA): Rodas4, x_B within 0.3 µm of the references (about 580 steps for a 5-s record).
 #: Precise tier (polish, finite-difference sensitivities, residuals): DOPRI5 at tight tolerances, x_B within
 #: 1e-5 µm of the references and smooth in the parameters (no step-count jitter above ~1e-11 m). A stiff
-#: candidate (large D or K_l, small L_q) makes DOPRI5 crawl at its stability limit: past 40 000 steps
+#: candidate (large D or K_l, small L_q) makes DOPRI5 crawl at its stability limit: past 20 000 steps
 #: (a normal 5-s record takes ~10 000) the row is redone by Rodas4 at rtol 1e-9 (as exact, less smooth).
 FAST = SolverSettings()
 PRECISE_STIFF = SolverSettings(rtol=1e-9, atol_q=1e-11, atol_w=1e-8, atol_i=1e-5, hmax=2e-3, max_steps=500_000,
                                method="rodas4")
-PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=40_000,
+PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=20_000,
                          method="dopri5", fallback=PRECISE_STIFF)
 TIERS = {"fast": FAST, "precise": PRECISE}
 
