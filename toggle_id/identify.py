@@ -224,7 +224,8 @@ def log_jacobian_model(problem: FitProblem, x: np.ndarray, rel_step: float = 1e-
     Fourth-order central differences (steps ±h, ±2h). With ``return_error`` the same stencil at 2h (one more
     pair of points per parameter, ±4h) gives a second estimate; the spectral norm of their difference
     measures the Jacobian's numerical error (integrator jitter and truncation), below which singular values
-    carry no information — exact symmetries of the model (e.g. K_i·c, λ_d·c, K_t/c) fall there.
+    carry no information — exact symmetries of the model (e.g. K_i·c, λ_d·c, K_t/c) fall there. It returns
+    the difference matrix E; ‖E v‖ bounds the error of the output's sensitivity along a direction v.
     """
     n = x.size
     pos = x > 0
@@ -241,8 +242,7 @@ def log_jacobian_model(problem: FitProblem, x: np.ndarray, rel_step: float = 1e-
         return -d4
     d4_2h = (-R[4::k] + 8.0 * R[0::k] - 8.0 * R[3::k] + R[5::k]).T / (24.0 * steps)
     bad = ~np.isfinite(d4_2h)
-    err = float(np.linalg.norm(np.where(bad, 0.0, d4 - d4_2h), 2))
-    return -d4, err
+    return -d4, np.where(bad, 0.0, d4 - d4_2h)
 
 
 def polish_stage(problem: FitProblem, ga: RGA, lower: np.ndarray, upper: np.ndarray, cfg: PolishSettings,
@@ -267,16 +267,34 @@ def polish_stage(problem: FitProblem, ga: RGA, lower: np.ndarray, upper: np.ndar
 
 def identifiability_report(problem: FitProblem, x: np.ndarray, noise_var: float | None = None) -> dict:
     """Sensitivity/uncertainty report of ``problem`` at ``x`` (see :mod:`toggle_id.identifiability`)."""
-    J, err = log_jacobian_model(problem, x, return_error=True)
+    J, E = log_jacobian_model(problem, x, return_error=True)
     r = problem.residuals(x[None, :], PRECISE)[0]
     if not np.all(np.isfinite(J)) or not np.all(np.isfinite(r)):
         return {"error": "simulation failed near the optimum; no sensitivity report"}
-    smax = float(np.linalg.norm(J, 2))
-    rtol = min(0.5, max(1e-9, 3.0 * err / smax)) if smax > 0 else None
+    rtol = numerical_rank_rtol(J, E)
     rep = analyze(J, r, list(problem.free), x, log_mask=x > 0, noise_var=noise_var, rank_rtol=rtol)
     out = rep.to_dict()
-    out["jacobian_error_norm"] = err
+    out["jacobian_error_norm"] = float(np.linalg.norm(E, 2))
     return out
+
+
+def numerical_rank_rtol(J: np.ndarray, E: np.ndarray, safety: float = 3.0) -> float:
+    """Relative singular-value tolerance that keeps the directions the Jacobian resolves.
+
+    Singular direction v_j is resolved while s_j > safety·‖E v_j‖ (E: the Jacobian's error estimate along
+    that direction); the tolerance is put halfway (geometrically) between the last resolved singular value
+    and the next one.
+    """
+    _, s, vt = np.linalg.svd(J, full_matrices=False)
+    if s.size == 0 or s[0] <= 0:
+        return 1e-9
+    ok = s > safety * np.linalg.norm(E @ vt.T, axis=0)
+    rank = int(np.argmin(ok)) if not ok.all() else s.size
+    if rank == s.size:
+        return max(1e-12, 0.5 * s[-1] / s[0])
+    if rank == 0:
+        return 0.5
+    return float(np.sqrt(s[rank - 1] * max(s[rank], 1e-300)) / s[0])
 
 
 def make_problems(record: Record, method: str, base: np.ndarray, *, fixed: Sequence[str] = (),
