@@ -28,6 +28,7 @@ from .emps.idim import filtered_derivatives
 from .emps.model import INDEX, LOWER, PARAMS, PUBLISHED_THETA, UPPER, friction_force, theta_from_dict
 from .errors import ConfigError, DataError
 from .tracking import Tracker
+from .workflow import _get
 
 #: Repository root (the checkout holding the ``toggle_id`` package).
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -64,15 +65,6 @@ class EmpsJobSettings:
     validation_path: Path | None = None
     identifiability: bool = True
     noise_std_m: float | None = None
-
-
-def _get(cfg: Mapping, path: str, default: Any = None) -> Any:
-    node: Any = cfg
-    for key in path.split("."):
-        if not isinstance(node, Mapping) or key not in node:
-            return default
-        node = node[key]
-    return node
 
 
 def _number(name: str, value: Any, *, integer: bool = False) -> float | int:
