@@ -2,27 +2,38 @@
 
 The loop (:func:`discover`) works on one record and the extended parameter vector of
 :mod:`toggle_id.effects`; it never names an effect — it only reads the library (``EFFECTS``), so adding an
-effect is adding a term and an :class:`~toggle_id.effects.Effect` entry there.
+effect is adding a term to the kernel and an :class:`~toggle_id.effects.Effect` entry there.
 
-1. *Baseline*: the nominal fit (e.g. the two-stage RGA + polish of :func:`toggle_id.identify.identify`) is
-   polished on the whole record with all its free parameters together (PRECISE tier, log space). Every
-   later comparison is against a model fitted to the same samples with the same machinery.
-2. *Diagnostics* of the residual (:mod:`toggle_id.residuals`): whiteness, input and state correlation.
-3. *Score* each candidate effect not yet in the model by the Lagrange-multiplier (score) test at "effect
-   off": s = y(θ with the effect at a probe setting) − y(θ) (PRECISE, finite difference), projected off
-   the sensitivities J of the free parameters (log-space Jacobian, SVD basis of its range),
-   s⊥ = (I − U Uᵀ) s; score = (s⊥·r)² / (σ² s⊥·s⊥) with σ² = r·r/(N − rank J), the best probe per effect.
-   Under "the effect is absent" it is χ²(1) (the best of several probes is somewhat larger: the probes
-   of an effect with nuisance parameters are a small grid). An effect whose s⊥ vanishes is either silent
-   on this record (‖s‖ = 0) or absorbed by the nominal parameters (‖s⊥‖ ≪ ‖s‖): no test possible.
-4. *Refit* the ``top_k`` highest-scoring candidates: a 1-D search on the effect's magnitude (each probe's
-   nuisance setting × a geometric grid up to the feasible bound, ranked by the residual left after the
-   linearised re-adjustment of the free parameters), then a polish of the free parameters + the effect's
-   parameters from the best grid point.
+1. *Baseline*: the nominal fit (e.g. the two-stage RGA + polish of :func:`toggle_id.identify.identify`, and
+   any further start such as the assigned values) is polished on the whole record with all its free
+   parameters together (PRECISE tier, log space, restarted while it improves); the best is the baseline.
+   Every later comparison is against a model fitted to the same samples with the same machinery.
+2. *Diagnostics* of the residual (:mod:`toggle_id.residuals`): whiteness (Ljung–Box), input cross-correlation,
+   correlation with the states, spectrum.
+3. *Score* each candidate not yet in the model, at "effect off":
+   - the Lagrange-multiplier (score) test: s = y(θ with the effect at a probe setting) − y(θ) (PRECISE finite
+     difference), projected off the sensitivities J of the free parameters (log-space Jacobian, SVD basis U of
+     its range), s⊥ = (I − UUᵀ)s; score = (s⊥·r)²/(σ² s⊥·s⊥), σ² = ‖(I − UUᵀ)r‖²/(N − rank J), the best probe
+     per effect. Under "the effect is absent" it is χ²(1) (a little more for the best of several probes). An
+     effect whose s is zero is silent on this record; one whose s⊥ vanishes is absorbed by the free parameters.
+   - the *profile*: each probe's nuisance setting × a geometric grid of magnitudes up to the feasible bound,
+     ranked by ‖(I − UUᵀ)(y_meas − y(θ_m))‖² (the residual after the linearised re-adjustment of the free
+     parameters) — the nonlinear counterpart of the score test, which also gives a start for the refit.
+   Both are computed at the polished fit and, as a second linearisation point, at the nominal start with the
+   effects added so far: a large effect can bend the polished nominal parameters far from physical values
+   (masses → 0, friction × 50), where the local picture of the right candidate is distorted.
+4. *Scout and refit*: every candidate whose score or profile at the polished fit passes ``screen_alpha`` is
+   polished briefly (``scout_nfev``) from the best grid start of each point with its parameters freed: how much
+   of the residual it can explain. The ``top_k`` best scouts are refitted in full.
 5. *Accept* a refit only if the F-test on the SSE (k added parameters) has p < ``alpha`` AND BIC improves.
-   Before accepting, the nominal model is re-polished from the refit's nominal parameters (effect off):
-   a refit that only found a better nominal optimum is not evidence for the effect. The best accepted
-   candidate joins the model; repeat from 2 until nothing is accepted or ``max_effects`` is reached.
+   Before accepting, the nominal model is re-polished from the refit's nominal parameters (effect off): a refit
+   that only found a better nominal optimum is not evidence for the effect. The accepted candidate with the
+   lowest SSE joins the model (re-polished, also from the nominal start); repeat from 2 until nothing is
+   accepted or ``max_effects`` is reached.
+6. *Report* the final parameters at the representative nearest the reference values along the exact
+   symmetries of x_B(t) (:func:`gauge_fix`): every force of the mechanism scales with its masses, the current
+   scale trades K_i, λ_d against K_t, and m_C trades against J_m·Z². The magnitude of a force-type effect is
+   therefore determined only relative to the mechanism's scale, i.e. at the reference's scale.
 
 When nothing in the library is accepted while the residual still fails the whiteness or input-correlation
 test, the result says so (``unexplained``) instead of forcing an effect in.
@@ -58,18 +69,21 @@ log = logging.getLogger("toggle_id")
 class DiscoverSettings:
     """Numbers of the discovery loop a user may change (conf/experiment/discover.yaml, node ``discover``).
 
-    top_k: candidates refitted per iteration (highest scores). alpha: level of the F-test an effect must pass.
-    max_effects: most effects added. screen_alpha: a candidate is refitted only if its score test has
-    p < screen_alpha (1: refit the top_k whatever their scores). candidates: effect names to consider (None: the whole library).
-    alpha_diag: level of the residual diagnostics. acf_lags / ccf_lags / ccf_step: lags (samples) of the
-    Ljung–Box and input tests. baseline_nfev / refit_nfev / null_nfev: polish budgets (residual evaluations)
-    of the baseline, of a refit and of the nominal re-polish that guards each acceptance; rounds: restarts of
-    the baseline and guard polishes while they still improve. grid_points: magnitudes
-    per probe in the 1-D search. fd_rel_step: relative forward-difference step of the polish Jacobian.
-    jac_rel_step: (log-)step of the sensitivity matrix J. rank_rtol: relative singular-value cut-off of J.
-    absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts as absorbed by the free parameters.
-    noise_std: known measurement noise (m), reported as rms/noise (None: unknown). parallel: threaded
-    batches of simulations.
+    - top_k: candidates refitted per iteration (best scouts); alpha: level of the F-test an effect must pass
+      (BIC must improve too); max_effects: most effects added; candidates: effect names to consider (None: all).
+    - screen_alpha: a candidate is scouted only if its score or profile statistic at the polished fit exceeds
+      the χ²(1) quantile of this level (1: always).
+    - alpha_diag: level of the residual tests; acf_lags, ccf_lags, ccf_step: their lags (samples).
+    - baseline_nfev, refit_nfev, null_nfev, scout_nfev: polish budgets (residual evaluations) of the
+      baseline, a refit, the nominal re-polish guarding an acceptance, and a scout; rounds / refit_rounds:
+      restarts of the baseline and guard / refit polishes while they still improve.
+    - second_point: also linearise at the nominal start (see the module docstring); gauge: report the
+      representatives nearest the reference along the exact symmetries; grid_points: magnitudes per probe.
+    - fd_rel_step: relative forward-difference step of the polish Jacobian (1e-4: smaller steps drown in the
+      adaptive integrator's step-selection noise); jac_rel_step: (log-)step of the sensitivities J;
+      rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
+      as absorbed by the free parameters.
+    - noise_std: known measurement noise (m), only reported as rms/noise; parallel: threaded simulation batches.
     """
 
     top_k: int = 3
@@ -84,10 +98,14 @@ class DiscoverSettings:
     baseline_nfev: int = 60
     refit_nfev: int = 40
     null_nfev: int = 30
+    scout_nfev: int = 8
+    refit_rounds: int = 2
     rounds: int = 3
-    grid_points: int = 14
-    fd_rel_step: float = 1e-6
-    jac_rel_step: float = 1e-5
+    second_point: bool = True
+    gauge: bool = True
+    grid_points: int = 10
+    fd_rel_step: float = 1e-4
+    jac_rel_step: float = 1e-4
     rank_rtol: float = 1e-7
     absorbed_ratio: float = 1e-4
     noise_std: float | None = None
@@ -95,6 +113,11 @@ class DiscoverSettings:
 
     def validate(self) -> "DiscoverSettings":
         """Raise ConfigError naming the first bad value; normalise ``candidates``."""
+        for name in ("alpha", "screen_alpha", "alpha_diag", "fd_rel_step", "jac_rel_step", "rank_rtol",
+                     "absorbed_ratio", "noise_std"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+                raise ConfigError(f"discover.{name} must be a number, got {v!r}")
         if not isinstance(self.top_k, int) or self.top_k < 1:
             raise ConfigError(f"discover.top_k must be a positive integer, got {self.top_k!r}")
         if not 0.0 < float(self.alpha) < 1.0:
@@ -105,7 +128,8 @@ class DiscoverSettings:
             raise ConfigError(f"discover.alpha_diag must lie in (0, 1), got {self.alpha_diag!r}")
         if not isinstance(self.max_effects, int) or self.max_effects < 0:
             raise ConfigError(f"discover.max_effects must be a non-negative integer, got {self.max_effects!r}")
-        for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "grid_points", "rounds"):
+        for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "scout_nfev",
+                     "grid_points", "rounds", "refit_rounds"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ConfigError(f"discover.{name} must be a positive integer, got {v!r}")
@@ -279,10 +303,16 @@ class CandidateScore:
     perp_ratio: float
     note: str = ""
     probes: list = field(default_factory=list)
+    profile_score: float = 0.0
+    profile_best: dict = field(default_factory=dict)
+    scout_rmse_m: float | None = None
+    profile_score_alt: float | None = None
 
     def to_dict(self) -> dict:
         return {"name": self.name, "score": self.score, "p_value": self.p_value, "probe": self.probe,
-                "magnitude_linear": self.magnitude_linear, "sensitivity_norm_m": self.sensitivity_norm_m,
+                "magnitude_linear": self.magnitude_linear, "profile_score": self.profile_score,
+                "profile_best": self.profile_best, "scout_rmse_m": self.scout_rmse_m,
+                "profile_score_at_nominal_start": self.profile_score_alt, "sensitivity_norm_m": self.sensitivity_norm_m,
                 "perp_ratio": self.perp_ratio, "note": self.note}
 
 
@@ -305,7 +335,8 @@ def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Proje
     ``proj``: range of the free parameters' sensitivities. One batched simulation for all probes.
     """
     n = r.size
-    sigma2 = float(r @ r) / max(n - proj.rank, 1)
+    rp = proj.perp(r)
+    sigma2 = float(rp @ rp) / max(n - proj.rank, 1)  # = r·r/(N − rank) at a fitted point
     y0 = model.outputs(theta[None, :])[0]
     rows, owners = [], []
     for e in effects:
@@ -336,8 +367,11 @@ def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Proje
                 c = float(sp @ r) / (sp_norm ** 2)
                 score = float(sp @ r) ** 2 / (sigma2 * sp_norm ** 2) if sigma2 > 0 else 0.0
                 step = float(pr.get(mag.name, mag.off)) - mag.off
-                cand = CandidateScore(e.name, score, float(stats.chi2.sf(score, 1)), dict(pr),
-                                      mag.off + c * step, s_norm, ratio)
+                est = mag.off + c * step
+                note = "" if mag.lower <= est <= mag.upper else \
+                    "the score points outside the feasible domain (e.g. a negative friction)"
+                cand = CandidateScore(e.name, score, float(stats.chi2.sf(score, 1)), dict(pr), est, s_norm, ratio,
+                                      note)
         per_effect.setdefault(e.name, []).append(cand)
     best: dict[str, CandidateScore] = {}
     for name, cands in per_effect.items():
@@ -364,7 +398,7 @@ class Fit:
         return float(np.sqrt(self.sse / n))
 
 
-def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-6,
+def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-4,
              bounds: Mapping[str, Sequence[float]] | None = None, rounds: int = 1, round_rtol: float = 1e-4) -> Fit:
     """Polish ``free`` parameters of ``theta`` on the whole record (PRECISE, bounded least squares in log
     space for positive parameters). Keeps ``theta`` when nothing improves; never raises for a failed trial.
@@ -426,6 +460,29 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
     return Fit(out, free, float(res.sse), info, res.jac, res.scaling)
 
 
+def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, held: Sequence[str] = ()) -> dict:
+    """Identifiability report (:func:`toggle_id.identifiability.analyze`) of the free parameters at ``fit``:
+    standard errors, 95 % intervals and whether each parameter is determined by the record (a parameter
+    with a component along a null direction of the sensitivities is not, whatever its local curvature).
+
+    ``held``: parameters treated as known — one per exact symmetry fixed by :func:`gauge_fix` (the
+    symmetry's scale is then the reference's, and e.g. a friction torque is determined relative to it)."""
+    from .identifiability import analyze
+
+    names = [nm for nm in fit.free if nm not in set(held)]
+    try:
+        J = sensitivities(model, fit.theta, names, settings.jac_rel_step)
+        r = model.residuals(fit.theta[None, :])[0]
+        mask, scale = _coords(names, fit.theta)
+        x = np.array([fit.theta[ALL_INDEX[nm]] for nm in names])
+        noise = settings.noise_std ** 2 if settings.noise_std else None
+        out = analyze(J, r, names, x, log_mask=mask, scale=scale, noise_var=noise).to_dict()
+        out["held_for_symmetries"] = list(held)
+        return out
+    except (ConfigError, DataError, np.linalg.LinAlgError, ValueError) as err:
+        return {"error": str(err)}
+
+
 def _std_errors(fit: Fit, names: Sequence[str], n: int) -> dict[str, float | None]:
     """Gauss–Newton standard errors (physical units) of ``names`` from the polish's Jacobian (pseudo-inverse:
     directions the data do not see are left out, so read them as lower bounds there)."""
@@ -466,12 +523,32 @@ def _magnitude_grid(effect: Effect, probe: Mapping[str, float], linear: float | 
     return v[(v != mag.off) & (v >= mag.lower) & (v <= mag.upper)]
 
 
-def line_search(model: Model, theta: np.ndarray, free: Sequence[str], proj: Projector, effect: Effect,
-                cand: CandidateScore, points: int = 14) -> tuple[np.ndarray, dict]:
-    """Start of a refit: every probe's nuisance setting × magnitude grid, ranked by the residual left after the
-    linearised re-adjustment of the free parameters, ‖(I − UUᵀ)(y_meas − y(θ_m))‖²; the best two grid points
-    are tried with the free parameters as they are and with the linear (minimum-norm) correction, and the
-    lowest actual SSE wins. Returns (start vector, info)."""
+@dataclass
+class Profile:
+    """The 1-D search of one effect: every probe's nuisance setting × a magnitude grid, each ranked by the
+    residual left after the linearised re-adjustment of the free parameters, ‖(I − UUᵀ)(y_meas − y(θ_m))‖².
+
+    ``score`` = (‖(I − UUᵀ) r‖² − min over the grid)/σ²: the nonlinear counterpart of the score test (equal to
+    it for a small effect that is linear in its magnitude, larger when the effect acts nonlinearly or the fit
+    absorbs it in a curved way). ``rows``/``residuals``: the best two grid vectors and their residuals."""
+
+    name: str
+    score: float
+    best: dict
+    rows: list
+    residuals: np.ndarray
+    perp_sse: list
+    n_grid: int
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return {"score": self.score, "best": self.best, "n_grid": self.n_grid, "perp_sse_m2": self.perp_sse,
+                "note": self.note}
+
+
+def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effect: Effect,
+                   cand: CandidateScore, points: int = 14) -> Profile:
+    """Grid search of ``effect`` at the current fit ``theta`` (residual ``r``) — see :class:`Profile`."""
     base = _with(theta, _off_values(effect))
     mag = effect.magnitude
     rows, labels = [], []
@@ -482,26 +559,40 @@ def line_search(model: Model, theta: np.ndarray, free: Sequence[str], proj: Proj
             setting[mag.name] = float(m)
             rows.append(_with(base, setting))
             labels.append(setting)
+    n = r.size
+    rp = proj.perp(r)
+    ref = float(rp @ rp)
+    sigma2 = ref / max(n - proj.rank, 1)
     if not rows:
-        return _with(base, effect.probe[0]), {"grid": 0}
+        return Profile(effect.name, 0.0, {}, [], np.zeros((0, n)), [], 0, "no grid")
     Rr = model.residuals(np.array(rows))
     ok = np.all(np.isfinite(Rr), axis=1)
     perp = np.full(len(rows), np.inf)
     if ok.any():
         Pp = proj.perp(Rr[ok])
         perp[ok] = np.einsum("ij,ij->i", Pp, Pp)
-    order = np.argsort(perp)[:2]
-    order = [int(i) for i in order if np.isfinite(perp[i])]
+    order = [int(i) for i in np.argsort(perp)[:2] if np.isfinite(perp[i])]
     if not order:
-        return _with(base, effect.probe[0]), {"grid": len(rows), "note": "every grid simulation failed"}
+        return Profile(effect.name, 0.0, {}, [], np.zeros((0, n)), [], len(rows), "every grid simulation failed")
+    score = max(0.0, (ref - perp[order[0]]) / sigma2) if sigma2 > 0 else 0.0
+    return Profile(effect.name, float(score), {k: float(v) for k, v in labels[order[0]].items()},
+                   [rows[i] for i in order], Rr[order], [float(perp[i]) for i in order], len(rows))
+
+
+def refit_start(model: Model, theta: np.ndarray, free: Sequence[str], proj: Projector, prof: Profile
+                ) -> tuple[np.ndarray | None, dict]:
+    """Start of a refit from the profile's best two grid points, each with the free parameters as they are
+    and with the linear (minimum-norm) correction; the lowest actual SSE wins. Returns (start, info)."""
+    if not prof.rows:
+        return None, {"grid": prof.n_grid, "note": prof.note}
     mask, scale = _coords(free, theta)
     idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
     lo, hi = stage_bounds(list(free))
     starts = []
-    for i in order:
-        starts.append(rows[i])
-        du = np.clip(proj.solve(Rr[i]), -0.5, 0.5)
-        corrected = rows[i].copy()
+    for row, res in zip(prof.rows, prof.residuals):
+        starts.append(row)
+        du = np.clip(proj.solve(res), -0.5, 0.5)
+        corrected = row.copy()
         x = corrected[idx]
         x = np.where(mask, x * np.exp(du), x + du * scale)
         corrected[idx] = np.clip(x, lo, hi)
@@ -509,11 +600,9 @@ def line_search(model: Model, theta: np.ndarray, free: Sequence[str], proj: Proj
     S = np.array(starts)
     sse = _sse(model.residuals(S))
     j = int(np.argmin(sse))
-    pick = labels[order[j // 2]]
-    info = {"grid": len(rows), "best_grid": {k: float(v) for k, v in pick.items()},
-            "grid_perp_sse_m2": float(perp[order[j // 2]]), "start_sse_m2": float(sse[j]),
-            "start_corrected": bool(j % 2)}
-    return S[j], info
+    info = {"grid": prof.n_grid, "best_grid": prof.best, "grid_perp_sse_m2": prof.perp_sse[j // 2],
+            "start_sse_m2": float(sse[j]), "start_corrected": bool(j % 2)}
+    return (S[j] if np.isfinite(sse[j]) else None), info
 
 
 def json_key(d: Mapping[str, float]) -> tuple:
@@ -564,27 +653,96 @@ def f_test(sse0: float, sse1: float, k: int, n: int, p1: int) -> tuple[float, fl
     return float(F), p, dbic
 
 
-def refit_candidate(model: Model, base: Fit, proj: Projector, effect: Effect, cand: CandidateScore,
-                    settings: DiscoverSettings, iteration: int) -> Refit:
-    """Line search + polish with the effect's parameters freed, then the F-test/BIC against ``base``."""
+@dataclass
+class Point:
+    """A linearisation point of one iteration: a parameter vector, its residual, the range of its
+    sensitivities, and the candidates' score tests and profiles there."""
+
+    label: str
+    theta: np.ndarray
+    proj: Projector
+    scores: dict
+    profiles: dict
+
+
+def assess(model: Model, label: str, theta: np.ndarray, free: Sequence[str], effects: Sequence[Effect],
+           settings: DiscoverSettings) -> Point:
+    """Score test and profile of every effect in ``effects`` at ``theta`` (free parameters ``free``)."""
+    r = model.residuals(theta[None, :])[0]
+    J = sensitivities(model, theta, free, settings.jac_rel_step)
+    proj = Projector.of(J, settings.rank_rtol)
+    scores = score_candidates(model, theta, r, proj, effects, settings.absorbed_ratio)
+    profiles = {c.name: profile_effect(model, theta, r, proj, EFFECTS_BY_NAME[c.name], c, settings.grid_points)
+                for c in scores if c.score > 0.0}
+    for c in scores:
+        if c.name in profiles:
+            c.profile_score = profiles[c.name].score
+            c.profile_best = profiles[c.name].best
+    return Point(label, theta, proj, {c.name: c for c in scores}, profiles)
+
+
+@dataclass
+class Scout:
+    """A short polish of one candidate from each linearisation point's best grid start: how much of the
+    residual the effect can explain with the free parameters re-adjusted (the ranking of the refits)."""
+
+    name: str
+    sse: float
+    theta: np.ndarray | None
+    search: dict
+    seconds: float = 0.0
+
+
+def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Effect, settings: DiscoverSettings
+                    ) -> Scout:
+    """From each point's profile: the best grid start (:func:`refit_start`), polished for ``scout_nfev``
+    evaluations with the effect's parameters freed; the lowest SSE is the candidate's scout result."""
+    t0 = time.perf_counter()
+    names = effect.names
+    results, infos = [], []
+    for pt in points:
+        prof = pt.profiles.get(effect.name)
+        if prof is None or not prof.rows:
+            continue
+        st, info = refit_start(model, pt.theta, base.free, pt.proj, prof)
+        info["point"] = pt.label
+        infos.append(info)
+        if st is None:
+            continue
+        fit = fit_free(model, st, base.free + names, settings.scout_nfev, settings.fd_rel_step)
+        info["scout_sse_m2"] = fit.sse
+        results.append((fit.sse, fit.theta, info))
+    if not results:
+        return Scout(effect.name, float("inf"), None, {"starts": infos, "note": "no simulable start"},
+                     time.perf_counter() - t0)
+    sse, theta, info = min(results, key=lambda r_: r_[0])
+    search = dict(info)
+    search["scouts"] = {i["point"]: i.get("scout_sse_m2") for i in infos}
+    return Scout(effect.name, float(sse), theta, search, time.perf_counter() - t0)
+
+
+def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, settings: DiscoverSettings,
+                    iteration: int) -> Refit:
+    """Polish with the effect's parameters freed, continuing from the scout, then the F-test/BIC against
+    ``base``."""
     t0 = time.perf_counter()
     n = model.n
-    start, search = line_search(model, base.theta, base.free, proj, effect, cand, settings.grid_points)
     names = effect.names
     k = len(names)
     p1 = len(base.free) + k
-    if not np.isfinite(search.get("start_sse_m2", np.inf)):
+    if scout.theta is None:
         return Refit(effect.name, iteration, None, {}, base.sse, float("inf"), k, p1, 0.0, 1.0, float("inf"),
-                     False, "no simulable start for the effect", search, seconds=time.perf_counter() - t0)
-    fit = fit_free(model, start, base.free + names, settings.refit_nfev, settings.fd_rel_step)
+                     False, "no simulable start for the effect", scout.search, seconds=time.perf_counter() - t0)
+    fit = fit_free(model, scout.theta, base.free + names, settings.refit_nfev, settings.fd_rel_step,
+                   rounds=settings.refit_rounds)
     params = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in names}
     F, p, dbic = f_test(base.sse, fit.sse, k, n, p1)
     passed = p < settings.alpha and dbic < 0
     reason = "significant (F-test and BIC)" if passed else \
         ("F-test not significant" if p >= settings.alpha else "BIC does not improve")
-    out = Refit(effect.name, iteration, fit, params, base.sse, fit.sse, k, p1, F, p, dbic, passed, reason, search,
-                std_errors=_std_errors(fit, names, n))
-    out.seconds = time.perf_counter() - t0
+    out = Refit(effect.name, iteration, fit, params, base.sse, fit.sse, k, p1, F, p, dbic, passed, reason,
+                scout.search, std_errors=_std_errors(fit, names, n))
+    out.seconds = time.perf_counter() - t0 + scout.seconds
     return out
 
 
@@ -603,6 +761,99 @@ def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: 
                             ("F-test not significant" if p >= settings.alpha else "BIC does not improve"))
         return null
     return None
+
+
+# ------------------------------------------------------------------------------------------ symmetries
+#: Parameters that scale together with every force of the mechanism: multiplying all of them (and every effect
+#: parameter whose unit is a force, torque, damping or stiffness) by c leaves x_B(t) and i_q(t) unchanged.
+MECHANICAL = ("m_2", "m_3", "m_5", "m_B", "m_C", "J_m", "B_m", "K_t", "K_l", "D")
+#: The current scale: i_q → i_q/c with K_i → K_i/c, λ_d → λ_d/c, K_t → c·K_t leaves x_B(t) unchanged.
+ELECTRICAL = {"K_t": 1.0, "K_i": -1.0, "lambda_d": -1.0}
+
+
+#: The parameter held at its value to fix each symmetry in the uncertainty analysis (one per symmetry).
+GAUGE_HELD = {"mechanical": "K_l", "current": "K_i", "inertia_split": "m_C"}
+
+
+def _force_like(name: str) -> bool:
+    """An effect parameter in newtons (force, torque, damping, stiffness) scales with the mechanism."""
+    for e in EFFECTS:
+        for p in e.params:
+            if p.name == name:
+                return p.unit.startswith("N")
+    return False
+
+
+def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,
+              tol_m: float = 2e-8) -> tuple[np.ndarray, dict]:
+    """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
+
+    The symmetries (see :data:`MECHANICAL`, :data:`ELECTRICAL`, and m_C + J_m·Z² of MODEL.md §3) leave the output
+    unchanged, so the fit is the same; the representative nearest the reference values makes the parameters —
+    and the magnitudes of force-type effects, which scale with the mechanism — comparable with the reference. A
+    symmetry is used only if all its parameters are free, the move stays within the feasible domains, and the
+    output is verified unchanged (``tol_m``). Returns (theta, {"mechanical_scale", "current_scale", ...}).
+    """
+    from .plant import GEOMETRY as G
+
+    out = theta.copy()
+    info: dict = {"mechanical_scale": 1.0, "current_scale": 1.0, "applied": False}
+    free = set(free)
+    mech = [n for n in MECHANICAL]
+    use_m = all(n in free for n in mech)
+    use_e = all(n in free for n in ELECTRICAL)
+    if not (use_m or use_e):
+        return out, info
+    names = sorted(set(mech if use_m else []) | set(ELECTRICAL if use_e else []))
+    x = np.array([out[ALL_INDEX[n]] for n in names])
+    ref = np.array([reference[ALL_INDEX[n]] for n in names])
+    if np.any(x <= 0) or np.any(ref <= 0):
+        return out, info
+    cols = []
+    if use_m:
+        cols.append([1.0 if n in mech else 0.0 for n in names])
+    if use_e:
+        cols.append([ELECTRICAL.get(n, 0.0) for n in names])
+    A = np.array(cols).T
+    logc = np.linalg.lstsq(A, np.log(ref) - np.log(x), rcond=None)[0]
+    c_m = float(np.exp(logc[0])) if use_m else 1.0
+    c_e = float(np.exp(logc[-1])) if use_e else 1.0
+    if use_m:
+        for n in mech:
+            out[ALL_INDEX[n]] *= c_m
+        for n in ALL_NAMES[P.N_PARAMS:]:
+            if _force_like(n):
+                out[ALL_INDEX[n]] *= c_m
+    if use_e:
+        for n, k in ELECTRICAL.items():
+            out[ALL_INDEX[n]] *= c_e ** k
+        for e in EFFECTS:  # a limit on the drive voltage K_i·v (unit 1/V) follows the current scale
+            for p in e.params:
+                if p.unit == "1/V":
+                    out[ALL_INDEX[p.name]] *= c_e
+    if "m_C" in free and "J_m" in free and reference[ALL_INDEX["m_C"]] > 0 and reference[ALL_INDEX["J_m"]] > 0:
+        Z2 = G.Z ** 2
+        total = out[ALL_INDEX["m_C"]] + out[ALL_INDEX["J_m"]] * Z2
+        rc, rj = reference[ALL_INDEX["m_C"]], reference[ALL_INDEX["J_m"]]
+        fr = np.linspace(1e-3, 1 - 1e-3, 2001)
+        cost = (np.log(fr * total / rc)) ** 2 + (np.log((1 - fr) * total / Z2 / rj)) ** 2
+        f = fr[int(np.argmin(cost))]
+        out[ALL_INDEX["m_C"]], out[ALL_INDEX["J_m"]] = f * total, (1 - f) * total / Z2
+    lo, hi = stage_bounds(list(ALL_NAMES))
+    if np.any(out < lo) or np.any(out > hi):
+        info["note"] = "the symmetric representative nearest the reference leaves the feasible domain; not applied"
+        return theta.copy(), info
+    y = model.outputs(np.array([theta, out]))
+    diff = float(np.nanmax(np.abs(y[0] - y[1]))) if np.all(np.isfinite(y)) else np.inf
+    if not diff <= tol_m:
+        info["note"] = f"output changed by {diff:.3g} m along the symmetry; not applied"
+        return theta.copy(), info
+    held = ([GAUGE_HELD["mechanical"]] if use_m else []) + ([GAUGE_HELD["current"]] if use_e else [])
+    if "m_C" in free and "J_m" in free:
+        held.append(GAUGE_HELD["inertia_split"])
+    info.update({"mechanical_scale": c_m, "current_scale": c_e, "applied": True, "output_change_m": diff,
+                 "held": held})
+    return out, info
 
 
 # ------------------------------------------------------------------------------------------ result
@@ -627,6 +878,7 @@ class DiscoveryResult:
     seconds: float
     n_simulations: int
     refits: list[Refit] = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
 
     @property
     def rmse_before_m(self) -> float:
@@ -654,7 +906,7 @@ class DiscoveryResult:
                 "residual_tests_before": self.diagnostics_before, "residual_tests_after": self.diagnostics_after,
                 "conclusion": self.conclusion, "unexplained": self.unexplained, "iterations": self.iterations,
                 "baseline_polish": self.baseline.info, "nominal": self.nominal, "seconds": self.seconds,
-                "n_simulations": self.n_simulations}
+                "n_simulations": self.n_simulations, **self.extra}
 
 
 # ------------------------------------------------------------------------------------------ the loop
@@ -687,7 +939,8 @@ def _nominal_theta(nominal: IdentificationResult | np.ndarray | Mapping[str, flo
 def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Mapping[str, float] | None = None,
              effects: Sequence[Effect] = EFFECTS, settings: DiscoverSettings | None = None,
              free: Sequence[str] | None = None, fixed: Mapping[str, float] | None = None,
-             starts: Sequence[np.ndarray | Mapping[str, float]] = (), on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
+             starts: Sequence[np.ndarray | Mapping[str, float]] = (),
+             reference: np.ndarray | Mapping[str, float] | None = None, on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
              ) -> DiscoveryResult:
     """Run the discovery loop on ``record`` (see the module docstring).
 
@@ -697,6 +950,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         ``settings.candidates``. free: nominal parameters fitted (default the 15 physical ones minus
         ``fixed``); fixed: parameters held at given values. starts: further starting points of the baseline
         polish (e.g. the assigned values beside a GA result); the best polished one is the baseline.
+    reference: the values the reported parameters are brought closest to along the exact symmetries of the
+        output (:func:`gauge_fix`; default the assigned values) — it fixes the otherwise arbitrary scale of the
+        mechanism, and with it the magnitude of force-type effects.
     on_refit: called with every :class:`Refit` (e.g. to log an MLflow child run); progress: one-line messages.
     """
     settings = (settings or DiscoverSettings()).validate()
@@ -735,7 +991,6 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
     current.info["starts"] = start_report
     baseline = current
-    diag_before, r_before, _ = residual_report(model, current.theta, settings, split)
 
     iterations: list[dict] = []
     added: list[dict] = []
@@ -746,24 +1001,47 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         remaining = [e for e in pool if e.name not in accepted_names]
         if not remaining:
             break
-        r = model.residuals(current.theta[None, :])[0]
-        J = sensitivities(model, current.theta, current.free, settings.jac_rel_step)
-        proj = Projector.of(J, settings.rank_rtol)
-        scores = score_candidates(model, current.theta, r, proj, remaining, settings.absorbed_ratio)
+        points = [assess(model, "current fit", current.theta, current.free, remaining, settings)]
+        # second linearisation point: the nominal fit as given, with the effects added so far — the polished
+        # fit may have bent the nominal parameters far towards the missing effect (masses → 0, friction × 50),
+        # where the local picture of the remaining candidates is distorted
+        alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
+        if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
+            if np.all(np.isfinite(model.residuals(alt[None, :])[0])):
+                points.append(assess(model, "nominal start", alt, current.free, remaining, settings))
+        scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
+        for c in scores:
+            for pt in points[1:]:
+                c.profile_score_alt = pt.scores[c.name].profile_score
+        say("scores (profile | LM): " + ", ".join(f"{c.name} {c.profile_score:.3g} | {c.score:.3g}"
+                                                  for c in sorted(scores, key=lambda c: -c.profile_score)))
+        # screened at the fitted point (where the statistics mean what they say); every screened candidate is
+        # scouted (short polish with the effect freed, from each point) and the refits follow the scouts
+        screen = float(stats.chi2.isf(settings.screen_alpha, 1))
+        here = points[0].scores
+        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
+                    and max(here[c.name].profile_score, here[c.name].score) > screen]
+        scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings)
+                  for c in screened}
+        for c in scores:
+            c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
+        order = sorted(scouts.values(), key=lambda sc: sc.sse)
+        scores.sort(key=lambda c: (scouts[c.name].sse if c.name in scouts else np.inf, -c.profile_score))
         if first_scores is None:
             first_scores = scores
-        say("scores: " + ", ".join(f"{c.name} {c.score:.3g}" for c in scores))
-        testable = [c for c in scores if c.score > 0.0 and c.p_value < settings.screen_alpha][:settings.top_k]
+        say("scouts: " + (", ".join(f"{sc.name} {np.sqrt(sc.sse / n) * 1e6:.4g} µm" for sc in order) or "none"))
         refits: list[Refit] = []
-        for cand in testable:
-            eff = EFFECTS_BY_NAME[cand.name]
-            rf = refit_candidate(model, current, proj, eff, cand, settings, it)
+        for sc in order[:settings.top_k]:
+            eff = EFFECTS_BY_NAME[sc.name]
+            rf = refit_candidate(model, current, eff, sc, settings, it)
             if rf.accepted:
                 better_null = guard_null(model, current, rf, eff, settings)
                 if better_null is not None and better_null.sse < current.sse:
                     say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
                         f"{better_null.rmse(n) * 1e6:.4g} µm")
                     current = better_null
+                    if not added:  # still the nominal model: the error "before" is this better fit's
+                        baseline = current
                     for other in refits:  # earlier refits are compared with the better baseline too
                         if other.accepted:
                             F, p, dbic = f_test(current.sse, other.sse1, other.k, n, other.p1)
@@ -779,7 +1057,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                 on_refit(rf)
         winners = [rf for rf in refits if rf.accepted]
         chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
-        iterations.append({"iteration": it, "rmse_m": current.rmse(n), "rank_J": proj.rank,
+        iterations.append({"iteration": it, "rmse_m": current.rmse(n), "rank_J": points[0].proj.rank,
+                           "points": [pt.label for pt in points],
                            "scores": [c.to_dict() for c in scores],
                            "refits": [rf.to_dict(n) for rf in refits],
                            "accepted": chosen.name if chosen else None})
@@ -802,12 +1081,25 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                       "params_at_acceptance": chosen.params})
         say(f"added {chosen.name} {chosen.params}; rms {current.rmse(n) * 1e6:.4g} µm")
 
+    # the representatives of the fits nearest the reference along the exact symmetries (same output)
+    ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
+    gauge_before = gauge_after = {"applied": False}
+    if settings.gauge:
+        baseline.theta, gauge_before = gauge_fix(model, baseline.theta, baseline.free, ref)
+        current.theta, gauge_after = gauge_fix(model, current.theta, current.free, ref)
+    uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ())) if added else {}
     for a in added:  # the values of the final model (later refits move earlier effects' parameters too)
         eff = EFFECTS_BY_NAME[a["name"]]
         a["params"] = {nm: float(current.theta[ALL_INDEX[nm]]) for nm in eff.names}
-        a["std_errors"] = _std_errors(current, eff.names, n)
+        a["std_errors"] = {nm: (uncertainty.get("std_errors") or {}).get(nm) for nm in eff.names}
+        a["ci95"] = {nm: (uncertainty.get("ci95") or {}).get(nm) for nm in eff.names}
+        a["identifiable"] = {nm: (uncertainty.get("identifiable") or {}).get(nm) for nm in eff.names}
         a["magnitude"] = {"name": eff.magnitude.name, "value": a["params"][eff.magnitude.name],
-                          "unit": eff.magnitude.unit}
+                          "unit": eff.magnitude.unit, "std_error": a["std_errors"][eff.magnitude.name],
+                          "identifiable": a["identifiable"][eff.magnitude.name],
+                          "scales_with_mechanism": _force_like(eff.magnitude.name),
+                          "at_reference_scale": bool(gauge_after.get("applied")) and _force_like(eff.magnitude.name)}
+    diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split)
     diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
     cands = []
     for c in first_scores or []:
@@ -822,7 +1114,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                            diagnostics_after=diag_after, residual_before=r_before, residual_after=r_after,
                            nominal=nominal.to_dict() if isinstance(nominal, IdentificationResult) else None,
                            conclusion=conclusion, unexplained=unexplained, seconds=time.perf_counter() - t_start,
-                           n_simulations=model.n_sims, refits=all_refits)
+                           n_simulations=model.n_sims, refits=all_refits,
+                           extra={"symmetry_gauge": {"before": gauge_before, "after": gauge_after},
+                                  "identifiability_after": uncertainty})
 
 
 def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings) -> str:
@@ -923,7 +1217,8 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                      float("nan"), "seconds": rf.seconds,
                                      **{f"param.{k}": v for k, v in rf.params.items()}})
 
-        res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, on_refit=on_refit,
+        res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, reference=base_start,
+                       on_refit=on_refit,
                        progress=(lambda msg: print(msg, flush=True)) if show else None)
         wall = time.perf_counter() - t0
         report = res.to_dict()
