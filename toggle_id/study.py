@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-import numpy as np
 
 from . import params as P
 from .checkpoint import atomic_write_json, atomic_write_text
