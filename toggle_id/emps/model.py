@@ -8,8 +8,9 @@ Plant (load side, SI units), between samples continuous:
 so that for v > 0 the friction is (Fv+Fv_asym)·v + (Fc+Fc_asym) and for v < 0 it is (Fv−Fv_asym)·v − (Fc−Fc_asym),
 i.e. Fv± = Fv ± Fv_asym and Fc± = Fc ± Fc_asym in the notation of the benchmark's eq. (12). ``Fs`` is the Stribeck
 *excess* over Coulomb (friction at standstill = Fc + Fs), so every effect parameter is zero when its effect is off.
-``Fs`` is signed: Fs > 0 is the classical Stribeck dip, Fs < 0 friction that rises to Fc over a few vs (the EMPS
-data choose Fs ≈ −6 N, vs ≈ 17 mm/s). The
+``Fs`` ≥ 0: the Stribeck effect is static friction in excess of Coulomb friction. (Left signed, the EMPS data
+choose Fs ≈ −6 N, vs ≈ 17 mm/s — friction that rises to Fc over a few vs — which is not a Stribeck effect and
+blurs the meaning of Fv and Fc; we keep the physical definition.) The
 sign function is smoothed as tanh(v/eps) with eps = 1e-4 m/s by default (two velocity quanta of the encoder,
 5e-8 m per 1 ms sample); with eps → 0 the published parameters give 0.00120 % instead of 0.00107 %.
 
@@ -54,7 +55,7 @@ PARAMS: tuple[EmpsParam, ...] = (
     EmpsParam("Fv", "N·s/m", 200.0, 0.0, 2000.0, "viscous friction coefficient (mean of both directions)"),
     EmpsParam("Fc", "N", 0.0, 0.0, 200.0, "Coulomb friction (mean of both directions)"),
     EmpsParam("offset", "N", 0.0, -100.0, 100.0, "constant force opposing the drive (IDM offset term)"),
-    EmpsParam("Fs", "N", 0.0, -50.0, 100.0, "Stribeck excess: low-velocity friction minus Coulomb friction (signed)"),
+    EmpsParam("Fs", "N", 0.0, 0.0, 100.0, "Stribeck excess: static friction minus Coulomb friction (≥ 0)"),
     EmpsParam("vs", "m/s", 0.0, 1e-4, 0.02, "Stribeck velocity"),
     EmpsParam("Fc_asym", "N", 0.0, -50.0, 50.0, "Coulomb asymmetry: Fc± = Fc ± Fc_asym"),
     EmpsParam("Fv_asym", "N·s/m", 0.0, -500.0, 500.0, "viscous asymmetry: Fv± = Fv ± Fv_asym"),
