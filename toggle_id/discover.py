@@ -1161,7 +1161,6 @@ def discover_settings(cfg: Mapping) -> DiscoverSettings:
 def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
     """The discover job: nominal two-stage fit, the discovery loop, figures, MLflow, ``discovery.json``."""
     from . import console, workflow
-    from .checkpoint import atomic_write_json, atomic_write_text
     from .identify import identify
 
     workflow.validate_config(cfg)
@@ -1236,13 +1235,8 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         tracker.set_tags({"effects_added": ",".join(a["name"] for a in res.effects_added) or "none"})
         for path in write_figures(run_dir, record, res, settings):
             tracker.log_artifact(path, "figures")
-        text = summary_text(res)
-        print(text, flush=True)
-        atomic_write_text(run_dir / "discovery.txt", text + "\n")
-        path = atomic_write_json(run_dir / "discovery.json", report)
-        tracker.log_artifact(path)
-        tracker.log_artifact(run_dir / "discovery.txt")
-    return Path(path).resolve()
+        path = workflow.publish_report(tracker, run_dir, summary_text(res), report, "discovery.json", "discovery.txt")
+    return path
 
 
 def _base_vector(cfg: Mapping) -> np.ndarray:

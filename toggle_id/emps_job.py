@@ -21,14 +21,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from . import console, figures
-from .checkpoint import atomic_write_json, atomic_write_text
 from .emps import EFFECTS, PUBLISHED, EmpsRecord, idim_ls, load_emps_csv, load_emps_mat, run_emps_loop, simulate_emps
 from .emps.fit import SOLVERS, make_jacobian, make_residual
 from .emps.idim import filtered_derivatives
 from .emps.model import INDEX, LOWER, PARAMS, PUBLISHED_THETA, UPPER, friction_force, theta_from_dict
 from .errors import ConfigError, DataError
 from .tracking import Tracker
-from .workflow import _get
+from .workflow import _get, publish_report
 
 #: Repository root (the checkout holding the ``toggle_id`` package).
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -443,10 +442,5 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") 
                        "mlflow_run_id": run.run_id, "config": json.loads(json.dumps(dict(cfg), default=str)),
                        "wall_seconds": time.perf_counter() - t0})
         tracker.log_metrics(_parent_metrics(report))
-        text = console_text(report)
-        print(text, flush=True)
-        atomic_write_text(run_dir / "table.txt", text + "\n")
-        path = atomic_write_json(run_dir / "result.json", report)
-        tracker.log_artifact(path)
-        tracker.log_artifact(run_dir / "table.txt")
-    return Path(path).resolve()
+        path = publish_report(tracker, run_dir, console_text(report), report)
+    return path

@@ -281,12 +281,19 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                              **{f"param.{k}": v for k, v in result.params.items()},
                              **{f"pct_error.{k}": v for k, v in (report.get("pct_error") or {}).items()}})
         write_figures(run_dir, record, result, tracker, method)
-        text = console_report(result, truth)
-        print(text)
-        atomic_write_text(run_dir / "table.txt", text + "\n")
-        path = atomic_write_json(run_dir / "result.json", report)
-        tracker.log_artifact(path)
-        tracker.log_artifact(run_dir / "table.txt")
+        path = publish_report(tracker, run_dir, console_report(result, truth), report)
+    return path
+
+
+def publish_report(tracker: Tracker, run_dir: Path, text: str, report: dict, json_name: str = "result.json",
+                   text_name: str = "table.txt") -> Path:
+    """Print the summary, write it and the JSON report atomically into the run dir, log both to MLflow;
+    return the report's absolute path."""
+    print(text, flush=True)
+    atomic_write_text(run_dir / text_name, text + "\n")
+    path = atomic_write_json(run_dir / json_name, report)
+    tracker.log_artifact(path)
+    tracker.log_artifact(run_dir / text_name)
     return Path(path).resolve()
 
 
