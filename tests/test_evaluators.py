@@ -136,6 +136,8 @@ def test_ray_replaces_actor_killed_between_evaluations(ray_session, population):
         np.testing.assert_array_equal(ev.evaluate(population), expected)
         killed = ev.actors[1]
         ray.kill(killed)
+        with pytest.raises(ray.exceptions.RayActorError):  # ray.kill is asynchronous: wait until it is dead
+            ray.get(killed.ready.remote(), timeout=60)
         np.testing.assert_array_equal(ev.evaluate(population), expected)
         assert ev.stats["restarts"] == 1
         assert ev.actors[1] is not killed

@@ -82,7 +82,10 @@ def test_killed_actor_mid_run_gives_the_fault_free_result(ray_session):
 
     def kill(stage, ga):
         if ga.generation in (2, 4):
-            ray.kill(made[-1].actors[0], no_restart=True)
+            actor = made[-1].actors[0]
+            ray.kill(actor, no_restart=True)
+            with pytest.raises(ray.exceptions.RayActorError):  # asynchronous: wait until it is dead
+                ray.get(actor.ready.remote(), timeout=60)
 
     faulty = identify(rec, make_evaluator=make, on_generation=kill, **kw)
     np.testing.assert_array_equal(faulty.theta, clean.theta)
