@@ -1173,6 +1173,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
             raise ConfigError(f"fixed: unknown parameter {nm!r}")
     if cfg.get("extra_free"):
         raise ConfigError("extra_free is not used by the discover job: the loop frees effect parameters itself")
+    base_start = _base_vector(cfg)
     ga = workflow.ga_config(cfg)
     polish_cfg = workflow.polish_settings(cfg)
     tier = workflow.solver_tier(cfg)
@@ -1201,7 +1202,6 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                           on_stage=lambda st: workflow.stage_child_run(tracker, st, truth))
                 tracker.log_metrics({"fitness": nominal_result.fitness, "rmse_m": nominal_result.rmse_m,
                                      "seconds": nominal_result.seconds})
-        base_start = _base_vector(cfg)
         nominal = nominal_result if nominal_result is not None else base_start
         starts = [base_start] if nominal_result is not None else []
 
