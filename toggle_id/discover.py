@@ -1006,9 +1006,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         # fit may have bent the nominal parameters far towards the missing effect (masses → 0, friction × 50),
         # where the local picture of the remaining candidates is distorted
         alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
-        if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
-            if np.all(np.isfinite(model.residuals(alt[None, :])[0])):
-                points.append(assess(model, "nominal start", alt, current.free, remaining, settings))
+        if (settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0)
+                and np.all(np.isfinite(model.residuals(alt[None, :])[0]))):
+            points.append(assess(model, "nominal start", alt, current.free, remaining, settings))
         scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
         for c in scores:
             for pt in points[1:]:
@@ -1019,8 +1019,12 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         # scouted (short polish with the effect freed, from each point) and the refits follow the scouts
         screen = float(stats.chi2.isf(settings.screen_alpha, 1))
         here = points[0].scores
+        # (a candidate the fitted point cannot see at all — silent there, e.g. a voltage limit above the fit's
+        # drive voltage — is judged by the scout from the other point instead)
         screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
-                    and max(here[c.name].profile_score, here[c.name].score) > screen]
+                    and (max(here[c.name].profile_score, here[c.name].score) > screen
+                         or (c.name not in points[0].profiles
+                             and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
         scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings)
                   for c in screened}
         for c in scores:

@@ -179,7 +179,7 @@ def input_correlation_test(r: Sequence[float], u: Sequence[float], max_lag: int 
     rows = np.arange(K, n)
     Phi = np.column_stack([v[rows - tau] for tau in taus])
     y = e[rows]
-    coef, _, rank, sv = np.linalg.lstsq(Phi, y, rcond=1e-10)
+    coef, _, rank, _ = np.linalg.lstsq(Phi, y, rcond=1e-10)
     fitted = Phi @ coef
     yy = float(y @ y)
     R2 = float(fitted @ fitted) / yy if yy > 0 else 0.0
