@@ -777,6 +777,9 @@ def _build_table(geo, q_lo, dq, n):
     return tab
 
 
+from ._backlash import simulate_lash as _simulate_lash  # noqa: E402  (it uses the kernels above)
+
+
 @nb.njit(cache=True)
 def _simulate_row(thetas, r, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
                   out_x, out_i, status, n_steps, events):
@@ -784,8 +787,12 @@ def _simulate_row(thetas, r, geo, tab, head, t_out, n_out, v, sweep, use_sweep, 
     ``n_out`` on, or all of them when the simulation failed) are NaN."""
     xr = out_x[r]
     ir = out_i[r]
-    st, ns, tc, qc, wc, ic = _simulate_one(thetas[r], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start,
-                                           y0, contact0, settings, xr, ir)
+    if thetas[r, B_L] > 0.0:  # backlash: a second mechanical degree of freedom while the lash is open
+        st, ns, tc, qc, wc, ic = _simulate_lash(thetas[r], geo, tab, head, t_out, n_out, v, sweep, use_sweep,
+                                                t_start, y0, contact0, settings, xr, ir)
+    else:
+        st, ns, tc, qc, wc, ic = _simulate_one(thetas[r], geo, tab, head, t_out, n_out, v, sweep, use_sweep,
+                                               t_start, y0, contact0, settings, xr, ir)
     n = t_out.shape[0]
     if st != OK:
         for k in range(n):
