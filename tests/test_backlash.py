@@ -30,7 +30,7 @@ class Reference:
 
     def parts(self, t, y, contact):
         p, Z = self.p, G.Z
-        q, w, iq, d, vr = y
+        q, w, iq = y[:3]
         k = kinematics(q)
         M = float(mass_matrix(q, self.theta))
         dM = float(_d(lambda x: mass_matrix(x, self.theta), q))
@@ -40,8 +40,8 @@ class Reference:
         F_f = -p["mu"] * p["m_B"] * G.g * np.tanh(vB / G.eps_friction)
         z = k["x_B"] - G.x_B_L
         F_i = p["K_l"] * z + p["D"] * vB if contact else 0.0
-        motor = lambda v: Z * p["K_t"] * iq - Z ** 2 * p["B_m"] * v  # noqa: E731
-        didt = lambda v: (p["K_i"] * self.v_in(t) - p["R_s"] * iq - G.pole_pairs * p["lambda_d"] * Z * v) / p["L_q"]  # noqa: E731
+        motor = lambda v: Z * p["K_t"] * iq - Z ** 2 * p["B_m"] * v
+        didt = lambda v: (p["K_i"] * self.v_in(t) - p["R_s"] * iq - G.pole_pairs * p["lambda_d"] * Z * v) / p["L_q"]
         return k, M, dM, ddxC, dgC, vC, F_f, F_i, motor, didt
 
     def engaged(self, t, y, contact):
@@ -58,34 +58,32 @@ class Reference:
         wdot = ((F_f - F_i) * k["dx_B"] - 0.5 * (dM - self.jz2 * dgC) * w * w) / ML
         return np.array([w, wdot, didt(vr), vr - vC, motor(vr) / self.jz2])
 
+    def system(self, mode: int, contact: int, q_L: float):
+        """Right-hand side and terminal events of one mode."""
+        def contact_ev(tt, yy):
+            return q_L - yy[0]
+        contact_ev.terminal, contact_ev.direction = True, (1 if contact == 0 else -1)
+        if mode:
+            def flank(tt, yy):
+                return self.engaged(tt, yy, contact)[1]
+            flank.terminal, flank.direction = True, -mode
+            return (lambda tt, yy: self.engaged(tt, yy, contact)[0]), [contact_ev, flank]
+
+        def fwd(tt, yy):
+            return yy[3]
+
+        def bwd(tt, yy):
+            return yy[3] + self.b
+        fwd.terminal, fwd.direction, bwd.terminal, bwd.direction = True, 1, True, -1
+        return (lambda tt, yy: self.lash(tt, yy, contact)), [contact_ev, fwd, bwd]
+
     def run(self, t_out: np.ndarray) -> tuple[np.ndarray, int]:
         q_L = float(np.arccos(G.x_B_L / (G.r1 + G.r3)))
         y = np.array([G.q_of_xB(0.020), 0.0, 0.0, 0.0, 0.0])
         t, mode, contact, switches = float(t_out[0]), 1, 0, 0
         x = np.full(t_out.shape, np.nan)
         while t < t_out[-1] - 1e-12:
-            def contact_ev(tt, yy):
-                return q_L - yy[0]
-            contact_ev.terminal, contact_ev.direction = True, (1 if contact == 0 else -1)
-            if mode:
-                def f(tt, yy):
-                    return self.engaged(tt, yy, contact)[0]
-
-                def flank(tt, yy):
-                    return self.engaged(tt, yy, contact)[1]
-                flank.terminal, flank.direction = True, -mode
-                events = [contact_ev, flank]
-            else:
-                def f(tt, yy):
-                    return self.lash(tt, yy, contact)
-
-                def fwd(tt, yy):
-                    return yy[3]
-
-                def bwd(tt, yy):
-                    return yy[3] + self.b
-                fwd.terminal, fwd.direction, bwd.terminal, bwd.direction = True, 1, True, -1
-                events = [contact_ev, fwd, bwd]
+            f, events = self.system(mode, contact, q_L)
             sel = t_out >= t - 1e-12
             sol = solve_ivp(f, (t, t_out[-1]), y, method="DOP853", rtol=1e-11, atol=1e-13, events=events,
                             dense_output=True, max_step=1e-3)
@@ -96,7 +94,7 @@ class Reference:
             if sol.status != 1:
                 break
             switches += 1
-            fired = [i for i, te in enumerate(sol.t_events) if len(te)][0]
+            fired = next(i for i, te in enumerate(sol.t_events) if len(te))
             if fired == 0:
                 contact = 1 - contact
             elif mode:  # the flank opens

@@ -777,7 +777,7 @@ def _build_table(geo, q_lo, dq, n):
     return tab
 
 
-from ._backlash import simulate_lash as _simulate_lash  # noqa: E402  (it uses the kernels above)
+from ._backlash import simulate_lash as _simulate_lash  # (it uses the kernels above)
 
 
 @nb.njit(cache=True)
