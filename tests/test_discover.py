@@ -141,6 +141,16 @@ def test_loop_names_the_undeclared_effect(name, effects, magnitude):
     assert res.diagnostics_before["verdict"]["structure_left"] and not res.diagnostics_after["verdict"]["structure_left"]
 
 
+
+def test_loop_names_backlash():
+    """The lash opens at every reversal of the flank force: a second degree of freedom the rigid model lacks."""
+    res, _ = run({"b_l": 5e-4}, candidates=(*SUBSET, "backlash"))
+    assert res.rmse_before_m > 20.0 * NOISE
+    assert [a["name"] for a in res.effects_added] == ["backlash"]
+    assert res.effects_added[0]["params"]["b_l"] == pytest.approx(5e-4, rel=0.05)
+    assert res.rmse_after_m < 1.05 * NOISE
+
+
 # ---------------------------------------------------------------------------------------------- the job
 @pytest.mark.integration
 def test_discover_job_end_to_end(tmp_path, job_env):
@@ -178,6 +188,20 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     assert "refit_1_sensor_offset" in children
     assert "figures" in [a.path for a in client.list_artifacts(parent[0].info.run_id)]
 
+
+
+@pytest.mark.integration
+def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, job_env):
+    from conftest import run_job
+
+    proc = run_job("jobs.bench_discover", "--json", str(tmp_path / "bench.json"), "evaluator=serial",
+                   "data.duration=1.0", "data.effects.x_off=5e-5", "discover.nominal=base", "discover.max_effects=1",
+                   "discover.candidates=[sensor_offset]", cwd=tmp_path, env=job_env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "median wall" in proc.stdout
+    rows = json.loads((tmp_path / "bench.json").read_text())
+    assert len(rows) == 1 and rows[0]["effects_added"] == ["sensor_offset"] and rows[0]["wall_s"] > 0
+    assert rows[0]["rmse_after_um"] < 1.1 and rows[0]["rmse_before_um"] > 5.0
 
 @pytest.mark.integration
 def test_discover_job_rejects_a_bad_setting_in_one_line(tmp_path, job_env):
