@@ -8,7 +8,8 @@ for
 - 1000 individuals near the assigned values (uniform ±10 %),
 
 at the FAST tier, serial (one core) and parallel (numba threads); the same for PRECISE near the assigned values;
-stage-1 only (the samples before the clamp) and stage-2 restarts (from the contact state, D and K_l varied);
+near the assigned values with a 0.5-mm screw backlash (the two-body kernel); stage-1 only (the samples before
+the clamp) and stage-2 restarts (from the contact state, D and K_l varied);
 and the cost of ``scipy.integrate.solve_ivp`` (Radau and LSODA on :func:`toggle_id.plant.rhs` with a contact
 event) per simulation on a few near-assigned individuals, at about the same accuracy.
 
@@ -23,10 +24,18 @@ from collections.abc import Callable
 
 import numpy as np
 
+from toggle_id.effects import ALL_INDEX
 from toggle_id.params import ASSIGNED, LOWER, UPPER
 from toggle_id.plant import GEOMETRY, rhs
 from toggle_id.record import Record
-from toggle_id.simulate import FAST, PRECISE, SimResult, SolverSettings, simulate
+from toggle_id.simulate import (
+    FAST,
+    PRECISE,
+    SimResult,
+    SolverSettings,
+    extend,
+    simulate,
+)
 
 
 def near_assigned(n: int, rel: float = 0.1, seed: int = 1) -> np.ndarray:
@@ -39,6 +48,13 @@ def uniform_domain(n: int, seed: int = 2) -> np.ndarray:
     """(n, 15) parameter vectors uniform in the feasible domain of MODEL.md §6."""
     rng = np.random.default_rng(seed)
     return LOWER + (UPPER - LOWER) * rng.uniform(0.0, 1.0, (n, ASSIGNED.size))
+
+
+def with_backlash(theta: np.ndarray, b_l: float) -> np.ndarray:
+    """Extended parameter vectors with a screw backlash of ``b_l`` (m): the two-body kernel of the lash."""
+    out = extend(theta)
+    out[:, ALL_INDEX["b_l"]] = b_l
+    return out
 
 
 def timed(fn: Callable[[], SimResult], repeat: int) -> tuple[float, list[float], SimResult, float]:
@@ -122,7 +138,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     if not args.quick:
         cases += [("domain FAST serial", dom, FAST, False, {}),
                   ("domain FAST parallel", dom, FAST, True, {}),
-                  ("near-assigned PRECISE parallel", near[: max(1, args.n // 4)], PRECISE, True, {})]
+                  ("near-assigned PRECISE parallel", near[: max(1, args.n // 4)], PRECISE, True, {}),
+                  ("near-assigned + backlash 0.5 mm FAST parallel", with_backlash(near, 5e-4), FAST, True, {})]
     for name, th, s, par, kw in cases:
         med, times, res, cpu = timed(lambda th=th, s=s, par=par, kw=kw: simulate(th, rec, s, parallel=par, **kw),
                                      args.repeat)
