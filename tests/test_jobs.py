@@ -208,3 +208,55 @@ def test_interrupted_job_resumes_to_the_uninterrupted_result(tmp_path, job_env):
     runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
     assert len(parents) == 2  # the full run and the interrupted-then-continued run: not duplicated
+
+
+def test_joint_job_fits_both_sweeps_and_reports_identifiability(tmp_path, job_env):
+    proc = run_job("jobs.run", "+experiment=joint", f"hydra.run.dir={tmp_path / 'run'}", *QUICK, cwd=tmp_path,
+                   env=job_env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = Path(_last_line(proc).removeprefix("report: "))
+    assert _last_line(proc).startswith("report: ") and report == (tmp_path / "run" / "result.json").resolve()
+    res = json.loads(report.read_text())
+    assert [r["name"] for r in res["records"]] == ["simulated_simulation", "simulated_experiment"]
+    assert [r["n_samples"] for r in res["records"]] == [1001, 1001] and res["n_samples"] == 2002
+    assert all(r["rmse_m"] > 0 and r["solver_status"] == 0 for r in res["records"])
+    ident = res["identifiability"]
+    assert ident["stage"] == "joint_polish" and ident["m"] == 2002
+    assert set(ident) >= {"param_order", "singular_values", "rank", "null_directions", "std_errors", "ci95"}
+    assert len(ident["param_order"]) == 15 and 0 < ident["rank"] <= 15
+    assert [s["name"] for s in res["stages"]] == ["stage1", "stage2", "joint_polish"]
+    assert len(res["stages"][0]["windows"]) == 2 and all(s["identifiability"] for s in res["stages"])
+    assert "pct_error" in res  # both records are simulated from the same truth
+    assert (tmp_path / "run" / "response.png").stat().st_size > 1000
+    assert (tmp_path / "run" / "response_1_simulated_experiment.png").stat().st_size > 1000
+    assert "joint fit of 2 records" in proc.stdout
+
+
+@pytest.mark.parametrize("records,needle", [
+    ("[]", "records"),
+    ("[{source:tape}]", "tape"),
+    ("[{sweep:simulation},{source:csv}]", "path"),
+    ("[{sweep:simulation},{source:csv,path:'BAD'}]", "x_B"),
+])
+def test_joint_job_rejects_bad_records_in_one_line(tmp_path, job_env, records, needle):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,v_in,xB\n0,0.05,0.02\n0.001,0.05,0.02\n")
+    proc = run_job("jobs.run", "+experiment=joint", f"data.records={records.replace('BAD', str(bad))}",
+                   f"hydra.run.dir={tmp_path / 'run'}", *QUICK, cwd=tmp_path, env=job_env)
+    line = _one_line_error(proc)
+    assert proc.returncode == 2 and line.startswith("error:") and needle in line, line
+    assert not (tmp_path / "run" / "result.json").exists()
+
+
+def test_identifiability_study_with_a_joint_scenario(tmp_path, job_env):
+    scenarios = ("[{name:sim,fixed:[]},{name:both,fixed:[],records:[simulation,experiment]},"
+                 "{name:both_stage1,window:stage1,fixed:[],records:[simulation,experiment]}]")
+    proc = run_job("jobs.run", "+experiment=identifiability", f"study.scenarios={scenarios}", "data.duration=1.0",
+                   f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, env=job_env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(Path(_last_line(proc).removeprefix("report: ")).read_text())
+    sim, both, stage1 = res["scenarios"]
+    assert sim["report"]["m"] == 1001 and both["report"]["m"] == 2002
+    assert [r["name"] for r in both["records"]] == ["simulated_simulation", "simulated_experiment"]
+    assert [r["window"] for r in stage1["records"]] == [[0, 362], [0, 79]] and stage1["report"]["m"] == 441
+    assert "x_B (simulation + experiment)" in (tmp_path / "run" / "identifiability.md").read_text()

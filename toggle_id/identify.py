@@ -8,6 +8,11 @@ Two-stage, as the paper: stage 1 fits the 13 free-motion parameters on the sampl
 clamping instant, with D and K_l at the centres of their domains; stage 2 fits D and K_l on the samples from
 that instant on, the 13 held at their stage-1 values. Stage 2 does not re-simulate the shared free motion: one
 simulation finds the model's first contact, and every individual restarts from that state.
+
+Several records (multi-experiment): one parameter vector for all of them. Each stage's problem is then a
+:class:`toggle_id.problem.JointProblem` of the records' stage problems — every record with its own clamping
+instant, windows and stage-2 restart — whose fitness is 1/(sum of the records' ΣE²); the polish, the final
+joint polish and the identifiability report work on the stacked residuals.
 """
 from __future__ import annotations
 
@@ -26,7 +31,7 @@ from .ga import RGA, GAConfig, join_state, split_state
 from .identifiability import analyze
 from .plant import GEOMETRY
 from .polish import polish_many
-from .problem import FitProblem, free_indices
+from .problem import FitProblem, JointProblem, free_indices, joint
 from .record import Record
 from .simulate import FAST, PRECISE, STATUS_OK, SolverSettings, extend, simulate
 
@@ -64,15 +69,20 @@ class StageResult:
     seconds_polish: float = 0.0
     polish: dict | None = None
     identifiability: dict | None = None
+    windows: tuple[tuple[int, int], ...] | None = None  # joint fits: every record's window (``window``: the first's)
+
+    @property
+    def n_samples(self) -> int:
+        return sum(k1 - k0 for k0, k1 in (self.windows or (self.window,)))
 
     @property
     def rmse_m(self) -> float:
-        k0, k1 = self.window
-        return float(np.sqrt(self.sse / max(1, k1 - k0)))
+        return float(np.sqrt(self.sse / max(1, self.n_samples)))
 
     def to_dict(self) -> dict:
+        windows = {} if self.windows is None else {"windows": [list(w) for w in self.windows]}
         return {"name": self.name, "free": list(self.free), "params": dict(zip(self.free, map(float, self.x))),
-                "window": list(self.window), "fitness_ga": self.fitness_ga, "fitness": self.fitness,
+                "window": list(self.window), **windows, "fitness_ga": self.fitness_ga, "fitness": self.fitness,
                 "sse_m2": self.sse, "rmse_m": self.rmse_m, "generations": self.generations,
                 "converged_generation": self.converged_generation, "n_evaluations": self.n_evaluations,
                 "seconds_ga": self.seconds_ga, "seconds_polish": self.seconds_polish,
@@ -176,7 +186,7 @@ def _noop_progress(total: int, desc: str):
     return _P()
 
 
-def run_ga_stage(name: str, problem: FitProblem, ga_config: GAConfig, seed: int,
+def run_ga_stage(name: str, problem: FitProblem | JointProblem, ga_config: GAConfig, seed: int,
                  make_evaluator: Callable[[Any], Any], *, bounds: Mapping[str, Sequence[float]] | None = None,
                  progress: Callable[[int, str], Any] = _noop_progress, checkpointer: Checkpointer | None = None,
                  resume_state: dict | None = None, done: list[dict] | None = None,
@@ -206,7 +216,7 @@ def run_ga_stage(name: str, problem: FitProblem, ga_config: GAConfig, seed: int,
     return ga, time.perf_counter() - t0, X
 
 
-def _batched_jacobian(problem: FitProblem, x: np.ndarray, rel_step: float, settings: SolverSettings
+def _batched_jacobian(problem: FitProblem | JointProblem, x: np.ndarray, rel_step: float, settings: SolverSettings
                       ) -> np.ndarray:
     """Forward-difference Jacobian of the residual in physical units, all columns in one batched simulation."""
     n = x.size
@@ -217,7 +227,7 @@ def _batched_jacobian(problem: FitProblem, x: np.ndarray, rel_step: float, setti
     return (R[1:] - R[0]).T / h
 
 
-def log_jacobian_model(problem: FitProblem, x: np.ndarray, rel_step: float = 1e-4,
+def log_jacobian_model(problem: FitProblem | JointProblem, x: np.ndarray, rel_step: float = 1e-4,
                        settings: SolverSettings = PRECISE, return_error: bool = False):
     """Jacobian of the model output w.r.t. log-parameters (affine steps for x ≤ 0), batched in one simulation.
 
@@ -245,8 +255,8 @@ def log_jacobian_model(problem: FitProblem, x: np.ndarray, rel_step: float = 1e-
     return -d4, np.where(bad, 0.0, d4 - d4_2h)
 
 
-def polish_stage(problem: FitProblem, ga: RGA, lower: np.ndarray, upper: np.ndarray, cfg: PolishSettings,
-                 last: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+def polish_stage(problem: FitProblem | JointProblem, ga: RGA, lower: np.ndarray, upper: np.ndarray,
+                 cfg: PolishSettings, last: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Bounded least squares (PRECISE tier) from the GA's best and the best distinct individuals of its last
     population ``last``; keeps the GA best unless a start improves the SSE."""
     starts = [np.asarray(ga.best_x, float)]
@@ -265,7 +275,8 @@ def polish_stage(problem: FitProblem, ga: RGA, lower: np.ndarray, upper: np.ndar
     return (res.x if res.improved else np.asarray(ga.best_x, float)), info
 
 
-def identifiability_report(problem: FitProblem, x: np.ndarray, noise_var: float | None = None) -> dict:
+def identifiability_report(problem: FitProblem | JointProblem, x: np.ndarray, noise_var: float | None = None
+                           ) -> dict:
     """Sensitivity/uncertainty report of ``problem`` at ``x`` (see :mod:`toggle_id.identifiability`)."""
     J, E = log_jacobian_model(problem, x, return_error=True)
     r = problem.residuals(x[None, :], PRECISE)[0]
@@ -324,8 +335,37 @@ def make_problems(record: Record, method: str, base: np.ndarray, *, fixed: Seque
     return k_c, [("stage1", s1, (0, k_c)), ("stage2", s2, (k_c, n))]
 
 
-def identify(record: Record, *, method: str = "two_stage", ga: GAConfig | None = None, seed: int = 0,
-             make_evaluator: Callable[[Any], Any] | None = None, base: Mapping[str, float] | np.ndarray | None = None,
+def as_records(record: Record | Sequence[Record]) -> list[Record]:
+    """One record or several as a non-empty list (ConfigError for an empty one)."""
+    records = [record] if isinstance(record, Record) else list(record)
+    if not records:
+        raise ConfigError("no record to identify from")
+    if not all(isinstance(r, Record) for r in records):
+        raise ConfigError("identify() takes a Record or a sequence of Records")
+    return records
+
+
+def joint_plan(records: Sequence[Record], method: str, base: np.ndarray, *, fixed: Sequence[str] = (),
+               extra_free: Sequence[str] = ()
+               ) -> tuple[list[int], list[tuple[str, tuple[str, ...], tuple[tuple[int, int], ...]]]]:
+    """:func:`make_problems` for every record: (clamp indices, [(stage name, free names, windows per record)])."""
+    k_cs, plans = [], []
+    for r in records:
+        try:
+            k_c, plan = make_problems(r, method, base, fixed=fixed, extra_free=extra_free)
+        except ConfigError as err:
+            if len(records) == 1:
+                raise
+            raise ConfigError(f"record {r.name}: {err}") from err
+        k_cs.append(k_c)
+        plans.append(plan)
+    stages = [(name, free, tuple(p[i][2] for p in plans)) for i, (name, free, _) in enumerate(plans[0])]
+    return k_cs, stages
+
+
+def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga: GAConfig | None = None,
+             seed: int = 0, make_evaluator: Callable[[Any], Any] | None = None,
+             base: Mapping[str, float] | np.ndarray | None = None,
              fixed: Mapping[str, float] | None = None, bounds: Mapping[str, Sequence[float]] | None = None,
              extra_free: Sequence[str] = (), settings: SolverSettings = FAST, i_q_weight: float = 0.0,
              polish: PolishSettings | None = None, identifiability: bool = True,
@@ -335,13 +375,16 @@ def identify(record: Record, *, method: str = "two_stage", ga: GAConfig | None =
              on_stage: Callable[[StageResult], None] | None = None) -> IdentificationResult:
     """Identify the plant's parameters from ``record`` by the paper's RGA, one- or two-stage.
 
-    ``base``: starting extended vector (names → values; default the assigned values, effects off) — it sets
-    the values of parameters that are not free. ``fixed``: parameters held at given values (e.g. from a
-    datasheet). ``extra_free``: effect parameters to fit along (discovery). The same ``seed`` gives the same
-    result whatever the evaluator and its number of workers.
+    ``record``: one record, or several fitted jointly with one parameter vector (multi-experiment; fitness
+    1/ΣE² over all of them). ``base``: starting extended vector (names → values; default the assigned values,
+    effects off) — it sets the values of parameters that are not free. ``fixed``: parameters held at given
+    values (e.g. from a datasheet). ``extra_free``: effect parameters to fit along (discovery). The same
+    ``seed`` gives the same result whatever the evaluator and its number of workers.
     """
     from .evaluators import SerialEvaluator
 
+    records = as_records(record)
+    many = len(records) > 1
     ga = (ga or GAConfig()).validate()
     polish = polish or PolishSettings()
     make_evaluator = make_evaluator or SerialEvaluator
@@ -353,8 +396,7 @@ def identify(record: Record, *, method: str = "two_stage", ga: GAConfig | None =
         theta = extend(np.asarray(base, float))[0]
     for k, v in (fixed or {}).items():
         theta[free_indices([k])[0]] = float(v)
-    k_c, plan = make_problems(record, method, theta, fixed=tuple(fixed or {}), extra_free=extra_free,
-                              settings=settings, i_q_weight=i_q_weight)
+    k_cs, plan = joint_plan(records, method, theta, fixed=tuple(fixed or {}), extra_free=extra_free)
     if method == "two_stage":  # D and K_l at the centres of their domains during stage 1 (MODEL.md §7)
         for nm in P.CLAMP_NAMES:
             if nm not in (fixed or {}):
@@ -370,9 +412,10 @@ def identify(record: Record, *, method: str = "two_stage", ga: GAConfig | None =
         resume_stage, resume_state, done = ckpt.load()
     stages: list[StageResult] = []
     t_start = time.perf_counter()
-    for (name, free, window), stage_seed in zip(plan, seeds):
+    for (name, free, windows), stage_seed in zip(plan, seeds):
         prior = next((d for d in done if d["name"] == name), None)
-        problem = _stage_problem(record, name, free, window, theta, settings, i_q_weight)
+        problem = joint([_stage_problem(r, name, free, w, theta, settings, i_q_weight)
+                         for r, w in zip(records, windows)])
         if prior is not None:  # finished before the interruption: take its result as it was
             st = _stage_from_dict(prior, theta)
         else:
@@ -387,11 +430,11 @@ def identify(record: Record, *, method: str = "two_stage", ga: GAConfig | None =
                 x, pinfo = polish_stage(problem, g, lo, hi, polish, last)
                 secs_p = time.perf_counter() - t0
             sse = float(problem.sse(x[None, :], PRECISE)[0])
-            st = StageResult(name=name, free=free, x=x, theta=problem.thetas(x[None, :])[0], window=window,
+            st = StageResult(name=name, free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],
                              fitness_ga=float(g.best_fitness), fitness=1.0 / sse if sse > 0 else float("inf"),
                              sse=sse, history=list(g.history), generations=g.generation,
                              converged_generation=converged_generation(g.history), n_evaluations=g.n_evaluations,
-                             seconds_ga=secs, seconds_polish=secs_p)
+                             seconds_ga=secs, seconds_polish=secs_p, windows=windows if many else None)
             if identifiability:
                 st.identifiability = identifiability_report(problem, x, noise_var)
             st.polish = pinfo
@@ -401,28 +444,37 @@ def identify(record: Record, *, method: str = "two_stage", ga: GAConfig | None =
         if on_stage is not None:
             on_stage(st)
     if method == "two_stage" and polish.enabled and polish.final_joint:
-        st = _joint_polish(record, plan, theta, settings, i_q_weight, bounds, polish, identifiability, noise_var)
+        st = _joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish, identifiability, noise_var)
         theta = st.theta.copy()
         stages.append(st)
         if on_stage is not None:
             on_stage(st)
-    full = FitProblem(record, ("D",), theta, (0, record.n), PRECISE)
-    sse = float(full.sse(theta[None, ALL_INDEX["D"]][:, None])[0])
+    per_record = []
+    for r in records:
+        full = FitProblem(r, ("D",), theta, (0, r.n), PRECISE)
+        per_record.append(float(full.sse(theta[None, ALL_INDEX["D"]][:, None])[0]))
+    sse = sum(per_record)
+    extra = {}
+    if many:
+        extra["records"] = [{"name": r.name, "n_samples": r.n, "clamp_index": k, "sse_m2": e,
+                             "rmse_m": float(np.sqrt(e / r.n))} for r, k, e in zip(records, k_cs, per_record)]
     return IdentificationResult(method=method, theta=theta, stages=stages,
-                                fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse, n_samples=record.n,
-                                seconds=time.perf_counter() - t_start, clamp_index=k_c)
+                                fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse,
+                                n_samples=sum(r.n for r in records), seconds=time.perf_counter() - t_start,
+                                clamp_index=k_cs[0], extra=extra)
 
 
-def _joint_polish(record: Record, plan: list, theta: np.ndarray, settings: SolverSettings, i_q_weight: float,
-                  bounds: Mapping[str, Sequence[float]] | None, polish: PolishSettings, identifiability: bool,
-                  noise_var: float | None) -> StageResult:
-    """After the two GA stages: all their free parameters polished together on the whole record.
+def _joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, settings: SolverSettings,
+                  i_q_weight: float, bounds: Mapping[str, Sequence[float]] | None, polish: PolishSettings,
+                  identifiability: bool, noise_var: float | None) -> StageResult:
+    """After the two GA stages: all their free parameters polished together on the whole record(s).
 
     Stage 1 sees only the free motion, where several parameter combinations are not determined; the clamped
     phase then exposes them (e.g. the stall current K_i·v/R_s). The paper's stage values stay in the report.
     """
     free = tuple(dict.fromkeys(n for _, names, _ in plan for n in names))
-    problem = FitProblem(record, free, theta, (0, record.n), settings, i_q_weight=i_q_weight)
+    problem = joint([FitProblem(r, free, theta, (0, r.n), settings, i_q_weight=i_q_weight) for r in records])
+    windows = tuple((0, r.n) for r in records)
     lo, hi = stage_bounds(list(free), bounds)
     x0 = problem.x0()
     t0 = time.perf_counter()
@@ -431,12 +483,13 @@ def _joint_polish(record: Record, plan: list, theta: np.ndarray, settings: Solve
     res = polish_many(resid, x0[None, :], lo, hi, jac_fn=jac, max_nfev=polish.max_nfev)
     x = res.x if res.improved else x0
     sse = float(problem.sse(x[None, :], PRECISE)[0])
-    st = StageResult(name="joint_polish", free=free, x=x, theta=problem.thetas(x[None, :])[0], window=(0, record.n),
+    st = StageResult(name="joint_polish", free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],
                      fitness_ga=float("nan"), fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse, history=[],
                      generations=0, converged_generation=0, n_evaluations=0, seconds_ga=0.0,
                      seconds_polish=time.perf_counter() - t0,
                      polish={"improved": bool(res.improved), "sse_before": float(res.sse0),
-                             "sse_after": float(res.sse), "nfev": int(res.nfev), "message": str(res.message)})
+                             "sse_after": float(res.sse), "nfev": int(res.nfev), "message": str(res.message)},
+                     windows=windows if len(records) > 1 else None)
     if identifiability:
         st.identifiability = identifiability_report(problem, x, noise_var)
     return st
@@ -469,4 +522,5 @@ def _stage_from_dict(d: dict, theta: np.ndarray) -> StageResult:
                        history=list(d["fitness_history"]), generations=d["generations"],
                        converged_generation=d["converged_generation"], n_evaluations=d["n_evaluations"],
                        seconds_ga=d["seconds_ga"], seconds_polish=d["seconds_polish"], polish=d.get("polish"),
-                       identifiability=d.get("identifiability"))
+                       identifiability=d.get("identifiability"),
+                       windows=None if d.get("windows") is None else tuple(tuple(w) for w in d["windows"]))

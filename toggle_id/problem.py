@@ -118,37 +118,73 @@ class FitProblem:
 
 @dataclass
 class JointProblem:
-    """Several records fitted with one parameter vector (multi-experiment): SSE is the sum over records."""
+    """Several records fitted with one parameter vector (multi-experiment): residuals stack the records'
+    residual vectors, SSE is the sum over records, fitness 1/ΣE² of that sum.
+
+    Every member frees the same parameters and shares the same base vector; each keeps its own record, sample
+    window and (stage 2) restart state. It is a *problem* of :mod:`toggle_id.evaluators` like a
+    :class:`FitProblem` and goes wherever one goes in the pipeline (GA, polish, sensitivities).
+    """
 
     problems: list[FitProblem]
 
     def __post_init__(self) -> None:
+        self.problems = list(self.problems)
         if not self.problems:
             raise ConfigError("a joint fit needs at least one record")
         frees = {p.free for p in self.problems}
         if len(frees) != 1:
             raise ConfigError("all records of a joint fit must free the same parameters")
+        base = self.problems[0].base
+        if any(not np.array_equal(p.base, base) for p in self.problems[1:]):
+            raise ConfigError("all records of a joint fit must share one parameter vector")
         self.free = self.problems[0].free
+
+    @property
+    def base(self) -> np.ndarray:
+        return self.problems[0].base
+
+    @property
+    def records(self) -> list[Record]:
+        return [p.record for p in self.problems]
+
+    @property
+    def windows(self) -> list[tuple[int, int]]:
+        return [tuple(p.window) for p in self.problems]
 
     @property
     def n_residuals(self) -> int:
         return sum(p.n_residuals for p in self.problems)
+
+    def thetas(self, X: np.ndarray) -> np.ndarray:
+        return self.problems[0].thetas(X)
 
     def x0(self) -> np.ndarray:
         return self.problems[0].x0()
 
     def residuals(self, X: np.ndarray, settings: SolverSettings | None = None, parallel: bool = False
                   ) -> np.ndarray:
+        """(P, Σm) the records' residual vectors side by side, in the order of ``problems``."""
         return np.hstack([p.residuals(X, settings, parallel) for p in self.problems])
 
     def sse(self, X: np.ndarray, settings: SolverSettings | None = None) -> np.ndarray:
+        """(P,) ΣE² over all records (m²); inf where any record's simulation failed."""
         return np.sum([p.sse(X, settings) for p in self.problems], axis=0)
 
     def evaluate(self, X: np.ndarray) -> np.ndarray:
+        """Fitness 1/ΣE² of the summed SSE per row; 0 for failed simulations."""
         s = self.sse(X)
         with np.errstate(divide="ignore"):
-            return np.where(np.isfinite(s) & (s > 0), 1.0 / s, 0.0)
+            f = np.where(np.isfinite(s) & (s > 0), 1.0 / s, 0.0)
+        f[s == 0] = np.finfo(float).max
+        return f
 
     def setup(self) -> None:
         for p in self.problems:
             p.setup()
+
+
+def joint(problems: Sequence[FitProblem]) -> FitProblem | JointProblem:
+    """One record's problem as it is; several as a :class:`JointProblem`."""
+    problems = list(problems)
+    return problems[0] if len(problems) == 1 else JointProblem(problems)

@@ -2,9 +2,11 @@
 
 At the true parameters of a simulated record (no fit needed), the sensitivity analysis of
 :mod:`toggle_id.identifiability` is run for each scenario of the configuration: which parameters are free,
-which are fixed at known values, which samples count (the whole record, or stage 1's free motion), and
-whether the measured current i_q is a second output. The result is a table of numerical/practical ranks,
-identifiable parameters and null combinations (markdown + JSON), the measured basis of the project's claims.
+which are fixed at known values, which samples count (the whole record, or stage 1's free motion),
+whether the measured current i_q is a second output, and which excitations are recorded (``records:
+[simulation, experiment]``: the data's record simulated with each sweep, all fitted jointly — multi-experiment).
+The result is a table of numerical/practical ranks, identifiable parameters and null combinations (markdown +
+JSON), the measured basis of the project's claims.
 """
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ from .console import markdown_table
 from .errors import ConfigError
 from .identify import identifiability_report
 from .plant import GEOMETRY
-from .problem import FitProblem
+from .problem import FitProblem, joint
+from .record import SWEEPS
 from .simulate import PRECISE
 from .workflow import _flat_config, _jsonable_cfg, build_record, make_tracker
 
@@ -36,6 +39,7 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
         raise ConfigError("the identifiability study needs a simulated record with known parameters")
     noise = float((cfg.get("data") or {}).get("noise_m") or 1e-6)
     k_c = record.clamp_index(GEOMETRY.x_B_L)
+    by_sweep = {(cfg.get("data") or {}).get("sweep", "simulation"): record}
     rows, out = [], []
     tracker = make_tracker(cfg, project_root)
     t0 = time.perf_counter()
@@ -49,15 +53,24 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
                 raise ConfigError(f"study scenario {name}: unknown fixed parameter(s) {sorted(unknown)}")
             names = P.FREE_NAMES if sc.get("window") == "stage1" else P.PARAM_NAMES
             free = tuple(n for n in names if n not in fixed)
-            window = (0, k_c) if sc.get("window") == "stage1" else (0, record.n)
+            sweeps = sc.get("records") or []
+            sweeps = [sweeps] if isinstance(sweeps, str) else list(sweeps)
+            recs = [_sweep_record(cfg, by_sweep, s, name) for s in sweeps] or [record]
+            windows = [(0, r.clamp_index(GEOMETRY.x_B_L)) if sc.get("window") == "stage1" else (0, r.n)
+                       for r in recs]
+            window = windows[0]
             w = float(sc.get("i_q_weight") or 0.0)
-            prob = FitProblem(record, free, truth, window, PRECISE, i_q_weight=w)
+            prob = joint([FitProblem(r, free, truth, wd, PRECISE, i_q_weight=w) for r, wd in zip(recs, windows)])
             rep = identifiability_report(prob, prob.x0(), noise_var=noise ** 2)
             ident = [n for n, ok in rep["identifiable"].items() if ok]
-            rows.append([name, len(free), window[1] - window[0], "x_B + i_q" if w else "x_B", rep["rank"],
+            n_samples = sum(b - a for a, b in windows)
+            output = ("x_B + i_q" if w else "x_B") + (f" ({' + '.join(sweeps)})" if sweeps else "")
+            rows.append([name, len(free), n_samples, output, rep["rank"],
                          rep["practical_rank"], ", ".join(ident) or "none",
                          "; ".join(rep["null_combinations"][:3]) + (" …" if len(rep["null_combinations"]) > 3 else "")])
-            out.append({"scenario": sc, "free": list(free), "window": list(window), "report": rep})
+            out.append({"scenario": sc, "free": list(free), "window": list(window),
+                        "records": [{"name": r.name, "window": list(wd)} for r, wd in zip(recs, windows)],
+                        "report": rep})
             tracker.log_metrics({f"{name}.rank": rep["rank"], f"{name}.practical_rank": rep["practical_rank"]})
         header = ["scenario", "free", "samples", "output", "numerical rank", "practical rank", "identifiable",
                   "null combinations (first 3; log-space directions that leave the output unchanged)"]
@@ -71,3 +84,12 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
         tracker.log_artifact(run_dir / "identifiability.md")
         tracker.log_artifact(path)
     return Path(path).resolve()
+
+
+def _sweep_record(cfg: Mapping, cache: dict, sweep: str, scenario: str):
+    """The study's simulated record with the excitation ``sweep`` (same truth, noise and duration)."""
+    if sweep not in SWEEPS:
+        raise ConfigError(f"study scenario {scenario}: unknown sweep {sweep!r} in records; known: {', '.join(SWEEPS)}")
+    if sweep not in cache:
+        cache[sweep] = build_record({**(cfg.get("data") or {}), "sweep": sweep})[0]
+    return cache[sweep]

@@ -23,7 +23,7 @@ from .data import read_csv
 from .effects import ALL_INDEX, ALL_NAMES
 from .errors import ConfigError
 from .ga import GAConfig
-from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify, make_problems
+from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify, joint_plan
 from .plant import impulse_force
 from .record import SWEEPS, Record
 from .simulate import PRECISE, TIERS, extend, simulate
@@ -59,6 +59,9 @@ def truth_vector(data: Mapping) -> np.ndarray:
 def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
     """The record a job works on and, for simulated records, the true extended parameter vector."""
     source = data.get("source")
+    if source == "joint":
+        raise ConfigError("data=joint (several records) is for the identify job (python -m jobs.run "
+                          "+experiment=joint); this job works on one record")
     if source == "csv":
         path = data.get("path")
         if not path or path == "???":
@@ -86,6 +89,56 @@ def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
     rec.i_q = sim.i_q[0].copy()
     rec.meta.update({"truth": {n: float(v) for n, v in zip(ALL_NAMES, theta)}, "noise_m": noise})
     return rec, theta
+
+
+#: Keys of a joint data node that are not defaults of its records.
+_JOINT_OWN_KEYS = ("source", "records")
+
+
+def build_records(data: Mapping) -> tuple[list[Record], np.ndarray | None]:
+    """The records a job fits and their shared truth (None unless all are simulated from the same vector).
+
+    ``data.source: joint`` (conf/data/joint.yaml) lists the records under ``records:``; each item is a
+    simulated-record spec (keys of conf/data/simulated.yaml) or a CSV spec (``source: csv``, ``path``). The
+    joint node's other keys (``duration``, ``noise_m``, ``params``, …) are defaults for every item; an item's
+    ``params``/``effects`` update the shared ones. Any other source gives a one-record list.
+    """
+    if data.get("source") != "joint":
+        record, truth = build_record(data)
+        return [record], truth
+    items = data.get("records")
+    if not isinstance(items, (list, tuple)) or not items:
+        raise ConfigError("data.records must list at least one record (data=joint), e.g. "
+                          "[{sweep: simulation}, {sweep: experiment}]")
+    shared = {k: v for k, v in data.items() if k not in _JOINT_OWN_KEYS}
+    records, truths = [], []
+    for i, item in enumerate(items):
+        if not isinstance(item, Mapping):
+            raise ConfigError(f"data.records[{i}] must be a mapping of record settings, got {item!r}")
+        spec = {"source": "simulated", **shared}
+        for key, value in item.items():
+            if key in ("params", "effects") and isinstance(value, Mapping):
+                spec[key] = {**(shared.get(key) or {}), **value}
+            else:
+                spec[key] = value
+        if spec.get("source") not in ("simulated", "csv"):
+            raise ConfigError(f"data.records[{i}]: unknown source {spec.get('source')!r}; known: simulated, csv")
+        try:
+            record, truth = build_record(spec)
+        except ConfigError as err:
+            raise ConfigError(f"data.records[{i}]: {err}") from err
+        if item.get("name"):
+            record.name = str(item["name"])
+        records.append(record)
+        truths.append(truth)
+    names = [r.name for r in records]
+    for i, r in enumerate(records):  # distinct names for the report and the figures
+        if names.count(r.name) > 1:
+            r.name = f"{r.name}_{i}"
+    shared_truth = truths[0]
+    if any(t is None for t in truths) or any(not np.array_equal(t, shared_truth) for t in truths[1:]):
+        shared_truth = None
+    return records, shared_truth
 
 
 def ga_config(cfg: Mapping) -> GAConfig:
@@ -183,17 +236,25 @@ def stage_child_run(tracker: Tracker, st: StageResult, truth: np.ndarray | None)
             tracker.log_dict(st.identifiability, f"identifiability_{st.name}.json")
 
 
-def write_figures(run_dir: Path, record: Record, result: IdentificationResult, tracker: Tracker,
+def write_figures(run_dir: Path, record: Record | list[Record], result: IdentificationResult, tracker: Tracker,
                   label: str) -> list[str]:
-    """Fitness history and the paper's Fig. 7 panels (x_B, difference, impulse force, v_in) as PNGs."""
+    """Fitness history and the paper's Fig. 7 panels (x_B, difference, impulse force, v_in) as PNGs.
+
+    Several records (a joint fit): ``response.png`` for the first, ``response_<k>_<name>.png`` for the others.
+    """
+    records = record if isinstance(record, list) else [record]
+    clamp = [r["clamp_index"] for r in result.extra.get("records") or []] or [result.clamp_index]
     out = []
     fig = figures.fitness_history({s.name: s.history for s in result.stages})
     out.append(figures.save(fig, run_dir / "fitness_history.png"))
-    resp = model_response(record, result.theta)
-    t_c = record.t[result.clamp_index] if result.clamp_index < record.n else None
-    fig = figures.response_comparison(record.t, record.x_B, {label: resp["x_B"]}, stage_boundary=t_c,
-                                      forces={label: resp["F_i"]}, v_in=record.v_in)
-    out.append(figures.save(fig, run_dir / "response.png"))
+    for k, (rec, k_c) in enumerate(zip(records, clamp)):
+        resp = model_response(rec, result.theta)
+        t_c = rec.t[k_c] if k_c < rec.n else None
+        title = "Measured and model responses" + (f" — {rec.name}" if len(records) > 1 else "")
+        fig = figures.response_comparison(rec.t, rec.x_B, {label: resp["x_B"]}, stage_boundary=t_c,
+                                          forces={label: resp["F_i"]}, v_in=rec.v_in, title=title)
+        name = "response.png" if k == 0 else f"response_{k}_{rec.name}.png"
+        out.append(figures.save(fig, run_dir / name))
     for path in out:
         tracker.log_artifact(path, "figures")
     return out
@@ -203,13 +264,18 @@ def console_report(result: IdentificationResult, truth: np.ndarray | None) -> st
     """The paper's Table 1 for this run (assigned, identified, % error) and the identifiability tables."""
     assigned = None if truth is None else {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)}
     text = [console.param_table(list(P.PARAM_NAMES), {result.method: result.params}, assigned)]
+    recs = result.extra.get("records") or []
+    if recs:
+        text.append(f"\njoint fit of {len(recs)} records:")
+        text.extend(f"  {r['name']}: {r['n_samples']} samples, clamping at sample {r['clamp_index']}, "
+                    f"RMS error {r['rmse_m'] * 1e6:.4g} µm" for r in recs)
     for st in result.stages:
         rep = st.identifiability
         if rep and "param_order" in rep:
             text.append(f"\nidentifiability ({st.name}): rank {rep.get('rank')} of {len(rep['param_order'])}, "
                         f"practical rank {rep.get('practical_rank')}")
             for combo in rep.get("null_combinations") or []:
-                text.append(f"  not identifiable from this record: {combo}")
+                text.append(f"  not identifiable from {'these records' if recs else 'this record'}: {combo}")
     text.append(f"\nfitness {result.fitness:.6g}  SSE {result.sse:.4g} m²  RMS error {result.rmse_m * 1e6:.4g} µm  "
                 f"time {result.seconds:.1f} s")
     return "\n".join(text)
@@ -248,13 +314,15 @@ def validate_config(cfg: Mapping) -> None:
 
 
 def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
-    """The main job: identify the parameters of one record (one- or two-stage), log and report."""
+    """The main job: identify the parameters of one record — or of several jointly (data=joint) — one- or
+    two-stage, log and report."""
     validate_config(cfg)
     run_dir, resume = _run_dir(cfg, run_dir)
-    record, truth = build_record(cfg.get("data") or {})
+    records, truth = build_records(cfg.get("data") or {})
+    record = records[0]
     method = cfg.get("method", "two_stage")
     kw = _identify_kwargs(cfg, run_dir, resume)
-    make_problems(record, method, extend(P.ASSIGNED)[0], fixed=tuple(kw["fixed"]))  # record fits the method?
+    joint_plan(records, method, extend(P.ASSIGNED)[0], fixed=tuple(kw["fixed"]))  # records fit the method?
     tracker = make_tracker(cfg, project_root)
     ev = cfg.get("evaluator") or {}
     show = bool(cfg.get("progress", True))
@@ -263,24 +331,31 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                      run_id=_mlflow_run_id(run_dir) if resume else None) as run:
         _remember_mlflow_run(run_dir, run.run_id)
         tracker.log_params(_flat_config(cfg))
-        result = identify(record, method=method, make_evaluator=evaluator_factory(ev),
+        result = identify(records if len(records) > 1 else record, method=method, make_evaluator=evaluator_factory(ev),
                           progress=lambda total, desc: console.progress(total, desc, enabled=show),
                           on_stage=lambda st: stage_child_run(tracker, st, truth),
                           on_generation=_fault_injection(cfg), **kw)
         wall = time.perf_counter() - t0
         report = result.to_dict()
         report.update(_truth_report(result.theta, truth))
-        report.update({"job": "identify", "record": record.name, "wall_seconds": wall,
+        status = [int(model_response(r, result.theta)["status"]) for r in records]
+        report.update({"job": "identify", "record": "+".join(r.name for r in records), "wall_seconds": wall,
                        "config": _jsonable_cfg(cfg), "mlflow_run_id": run.run_id,
-                       "solver_status": int(model_response(record, result.theta)["status"])})
+                       "solver_status": max(status, key=abs)})
+        for entry, st in zip(report.get("records") or [], status):
+            entry["solver_status"] = st
+        final = result.stages[-1] if result.stages else None
+        if final is not None and final.identifiability:  # the final fit's (the joint polish's, two-stage)
+            report["identifiability"] = {"stage": final.name, **final.identifiability}
         validation = _get(cfg, "validation.path")
         if validation:
             report["validation"] = validation_report(validation, result.theta)
         tracker.log_metrics({"fitness": result.fitness, "sse_m2": result.sse, "rmse_m": result.rmse_m,
                              "seconds_total": result.seconds, "wall_seconds": wall,
+                             **{f"rmse_m.{r['name']}": r["rmse_m"] for r in report.get("records") or []},
                              **{f"param.{k}": v for k, v in result.params.items()},
                              **{f"pct_error.{k}": v for k, v in (report.get("pct_error") or {}).items()}})
-        write_figures(run_dir, record, result, tracker, method)
+        write_figures(run_dir, records, result, tracker, method)
         path = publish_report(tracker, run_dir, console_report(result, truth), report)
     return path
 
