@@ -95,7 +95,8 @@ def test_magnitude_grid_spans_the_domain_on_the_allowed_sides():
 
 def test_score_test_at_the_truth_names_an_offset_and_estimates_it():
     """At the true nominal parameters the residual of an offset is the offset: the score test puts
-    sensor_offset far ahead with its first-order magnitude, and leaves the silent backlash term at 0."""
+    sensor_offset far ahead with its first-order magnitude; an effect that is not there (backlash) is not
+    significant."""
     rec, truth, _ = make_record({"x_off": 3e-5}, duration=1.0)
     theta = truth.copy()
     theta[ALL_INDEX["x_off"]] = 0.0
@@ -107,7 +108,7 @@ def test_score_test_at_the_truth_names_an_offset_and_estimates_it():
     assert scores[0].magnitude_linear == pytest.approx(3e-5, rel=0.05)
     assert scores[0].p_value < 1e-100 and scores[0].score > scores[1].score
     backlash = next(c for c in scores if c.name == "backlash")
-    assert backlash.score == 0.0 and "no output sensitivity" in backlash.note
+    assert backlash.p_value > 0.01
     json.dumps([c.to_dict() for c in scores])
 
 
@@ -245,9 +246,12 @@ def test_every_effect_on_the_five_second_record(name):
     if np.max(np.abs(rec.x_B - silent.x_B)) < 1e-9:
         pytest.xfail(f"{name}: the compiled model has no term for it yet (switching it on changes nothing)")
     res = D.discover(rec, nominal=start, settings=D.DiscoverSettings(noise_std=NOISE, max_effects=2))
+    mag = eff.magnitude.name
+    added = [(a["name"], a["params"].get(mag)) for a in res.effects_added]
+    print(f"\n[every-effect] {name}: true {mag}={effects[mag]:g}, added {added}, rms {res.rmse_before_m * 1e6:.3g} -> "
+          f"{res.rmse_after_m * 1e6:.3g} um, {res.seconds:.0f} s, unexplained={res.unexplained}")
     assert res.rmse_before_m > 1.1 * NOISE
     assert res.effects_added and res.effects_added[0]["name"] == name
-    mag = eff.magnitude.name
     assert res.effects_added[0]["params"][mag] == pytest.approx(effects[mag], rel=0.2)
     assert res.rmse_after_m < 1.02 * NOISE
     assert not res.unexplained
@@ -257,4 +261,6 @@ def test_every_effect_on_the_five_second_record(name):
 def test_no_false_positive_on_the_five_second_record():
     rec, _, start = make_record({}, duration=5.0, seed=3)
     res = D.discover(rec, nominal=start, settings=D.DiscoverSettings(noise_std=NOISE))
+    print(f"\n[every-effect] none: added {[a['name'] for a in res.effects_added]}, rms {res.rmse_before_m * 1e6:.3g} -> "
+          f"{res.rmse_after_m * 1e6:.3g} um, {res.seconds:.0f} s")
     assert res.effects_added == [] and not res.unexplained

@@ -44,9 +44,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -79,6 +80,9 @@ class DiscoverSettings:
       restarts of the baseline and guard / refit polishes while they still improve.
     - second_point: also linearise at the nominal start (see the module docstring); gauge: report the
       representatives nearest the reference along the exact symmetries; grid_points: magnitudes per probe.
+    - hold_gauge: during the loop's polishes, hold one parameter per exact symmetry of x_B (K_l, K_i, m_C; see
+      :data:`GAUGE_HELD`) at its value — the same fits without the flat directions that stall the trust region
+      in long valleys; an effect that breaks a symmetry (``Effect.breaks``) frees its parameter again.
     - fd_rel_step: relative forward-difference step of the polish Jacobian (1e-4: smaller steps drown in the
       adaptive integrator's step-selection noise); jac_rel_step: (log-)step of the sensitivities J;
       rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
@@ -103,6 +107,7 @@ class DiscoverSettings:
     rounds: int = 3
     second_point: bool = True
     gauge: bool = True
+    hold_gauge: bool = True
     grid_points: int = 10
     fd_rel_step: float = 1e-4
     jac_rel_step: float = 1e-4
@@ -111,7 +116,7 @@ class DiscoverSettings:
     noise_std: float | None = None
     parallel: bool = True
 
-    def validate(self) -> "DiscoverSettings":
+    def validate(self) -> DiscoverSettings:
         """Raise ConfigError naming the first bad value; normalise ``candidates``."""
         for name in ("alpha", "screen_alpha", "alpha_diag", "fd_rel_step", "jac_rel_step", "rank_rtol",
                      "absorbed_ratio", "noise_std"):
@@ -152,7 +157,7 @@ class DiscoverSettings:
         return self
 
     @classmethod
-    def from_dict(cls, node: Mapping[str, Any] | None) -> "DiscoverSettings":
+    def from_dict(cls, node: Mapping[str, Any] | None) -> DiscoverSettings:
         """Settings from a config node; unknown keys are a ConfigError."""
         node = dict(node or {})
         known = {f for f in cls.__dataclass_fields__}
@@ -263,7 +268,7 @@ class Projector:
     Vt: np.ndarray
 
     @classmethod
-    def of(cls, J: np.ndarray, rank_rtol: float = 1e-7) -> "Projector":
+    def of(cls, J: np.ndarray, rank_rtol: float = 1e-7) -> Projector:
         if J.size == 0:
             return cls(np.zeros((J.shape[0], 0)), np.zeros(0), np.zeros((0, J.shape[1])))
         U, s, Vt = np.linalg.svd(J, full_matrices=False)
@@ -693,12 +698,12 @@ class Scout:
     seconds: float = 0.0
 
 
-def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Effect, settings: DiscoverSettings
-                    ) -> Scout:
+def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Effect, settings: DiscoverSettings,
+                    held: Collection[str] = ()) -> Scout:
     """From each point's profile: the best grid start (:func:`refit_start`), polished for ``scout_nfev``
-    evaluations with the effect's parameters freed; the lowest SSE is the candidate's scout result."""
+    evaluations with the effect's parameters freed (and the gauge parameters of ``held`` it makes determined);
+    the lowest SSE is the candidate's scout result."""
     t0 = time.perf_counter()
-    names = effect.names
     results, infos = [], []
     for pt in points:
         prof = pt.profiles.get(effect.name)
@@ -709,7 +714,7 @@ def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Ef
         infos.append(info)
         if st is None:
             continue
-        fit = fit_free(model, st, base.free + names, settings.scout_nfev, settings.fd_rel_step)
+        fit = fit_free(model, st, freed_with(base.free, effect, held), settings.scout_nfev, settings.fd_rel_step)
         info["scout_sse_m2"] = fit.sse
         results.append((fit.sse, fit.theta, info))
     if not results:
@@ -722,18 +727,19 @@ def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Ef
 
 
 def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, settings: DiscoverSettings,
-                    iteration: int) -> Refit:
+                    iteration: int, held: Collection[str] = ()) -> Refit:
     """Polish with the effect's parameters freed, continuing from the scout, then the F-test/BIC against
     ``base``."""
     t0 = time.perf_counter()
     n = model.n
     names = effect.names
-    k = len(names)
-    p1 = len(base.free) + k
+    free = freed_with(base.free, effect, held)
+    k = len(free) - len(base.free)  # the effect's parameters and any gauge parameter it frees
+    p1 = len(free)
     if scout.theta is None:
         return Refit(effect.name, iteration, None, {}, base.sse, float("inf"), k, p1, 0.0, 1.0, float("inf"),
                      False, "no simulable start for the effect", scout.search, seconds=time.perf_counter() - t0)
-    fit = fit_free(model, scout.theta, base.free + names, settings.refit_nfev, settings.fd_rel_step,
+    fit = fit_free(model, scout.theta, free, settings.refit_nfev, settings.fd_rel_step,
                    rounds=settings.refit_rounds)
     params = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in names}
     F, p, dbic = f_test(base.sse, fit.sse, k, n, p1)
@@ -775,6 +781,20 @@ ELECTRICAL = {"K_t": 1.0, "K_i": -1.0, "lambda_d": -1.0}
 GAUGE_HELD = {"mechanical": "K_l", "current": "K_i", "inertia_split": "m_C"}
 
 
+def gauge_symmetries(free: Collection[str], broken: Collection[str] = ()) -> list[str]:
+    """The exact symmetries of x_B whose parameters are all in ``free`` and that no effect in the model breaks."""
+    f = set(free)
+    members = {"mechanical": MECHANICAL, "current": tuple(ELECTRICAL), "inertia_split": ("m_C", "J_m")}
+    return [s for s, names in members.items() if s not in broken and set(names) <= f]
+
+
+def freed_with(base_free: Sequence[str], effect: Effect, held: Collection[str]) -> tuple[str, ...]:
+    """The parameters of a refit with ``effect`` on: the base fit's, the gauge parameters ``effect`` makes
+    determined again (held so far), and the effect's own."""
+    back = tuple(GAUGE_HELD[s] for s in effect.breaks if GAUGE_HELD[s] in held and GAUGE_HELD[s] not in base_free)
+    return tuple(base_free) + back + effect.names
+
+
 def _force_like(name: str) -> bool:
     """An effect parameter in newtons (force, torque, damping, stiffness) scales with the mechanism."""
     for e in EFFECTS:
@@ -785,14 +805,15 @@ def _force_like(name: str) -> bool:
 
 
 def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,
-              tol_m: float = 2e-8) -> tuple[np.ndarray, dict]:
+              tol_m: float = 2e-8, broken: Collection[str] = ()) -> tuple[np.ndarray, dict]:
     """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
 
     The symmetries (see :data:`MECHANICAL`, :data:`ELECTRICAL`, and m_C + J_m·Z² of MODEL.md §3) leave the output
     unchanged, so the fit is the same; the representative nearest the reference values makes the parameters —
     and the magnitudes of force-type effects, which scale with the mechanism — comparable with the reference. A
     symmetry is used only if all its parameters are free, the move stays within the feasible domains, and the
-    output is verified unchanged (``tol_m``). Returns (theta, {"mechanical_scale", "current_scale", ...}).
+    output is verified unchanged (``tol_m``); symmetries in ``broken`` (broken by an effect of the model) are
+    not used. Returns (theta, {"mechanical_scale", "current_scale", ...}).
     """
     from .plant import GEOMETRY as G
 
@@ -800,9 +821,11 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
     info: dict = {"mechanical_scale": 1.0, "current_scale": 1.0, "applied": False}
     free = set(free)
     mech = [n for n in MECHANICAL]
-    use_m = all(n in free for n in mech)
-    use_e = all(n in free for n in ELECTRICAL)
-    if not (use_m or use_e):
+    sym = gauge_symmetries(free, broken)
+    use_m = "mechanical" in sym
+    use_e = "current" in sym
+    use_split = "inertia_split" in sym
+    if not (use_m or use_e or use_split):
         return out, info
     names = sorted(set(mech if use_m else []) | set(ELECTRICAL if use_e else []))
     x = np.array([out[ALL_INDEX[n]] for n in names])
@@ -831,7 +854,7 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
             for p in e.params:
                 if p.unit == "1/V":
                     out[ALL_INDEX[p.name]] *= c_e
-    if "m_C" in free and "J_m" in free and reference[ALL_INDEX["m_C"]] > 0 and reference[ALL_INDEX["J_m"]] > 0:
+    if use_split and reference[ALL_INDEX["m_C"]] > 0 and reference[ALL_INDEX["J_m"]] > 0:
         Z2 = G.Z ** 2
         total = out[ALL_INDEX["m_C"]] + out[ALL_INDEX["J_m"]] * Z2
         rc, rj = reference[ALL_INDEX["m_C"]], reference[ALL_INDEX["J_m"]]
@@ -849,7 +872,7 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
         info["note"] = f"output changed by {diff:.3g} m along the symmetry; not applied"
         return theta.copy(), info
     held = ([GAUGE_HELD["mechanical"]] if use_m else []) + ([GAUGE_HELD["current"]] if use_e else [])
-    if "m_C" in free and "J_m" in free:
+    if use_split:
         held.append(GAUGE_HELD["inertia_split"])
     info.update({"mechanical_scale": c_m, "current_scale": c_e, "applied": True, "output_change_m": diff,
                  "held": held})
@@ -970,6 +993,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
             raise ConfigError(f"unknown free parameter {k!r}")
     pool = [e for e in effects if settings.candidates is None or e.name in settings.candidates]
     pool = [e for e in pool if not any(p in free or p in fixed for p in e.names)]
+    # one parameter per exact symmetry of x_B held during the polishes (the gauge): same fits, no flat directions
+    held = tuple(GAUGE_HELD[s] for s in gauge_symmetries(free)) if settings.hold_gauge else ()
+    free = tuple(nm for nm in free if nm not in held)
     split = record.clamp_index(GEOMETRY.x_B_L)
     split = split if 0 < split < record.n else None
     n = record.n
@@ -1025,7 +1051,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                     and (max(here[c.name].profile_score, here[c.name].score) > screen
                          or (c.name not in points[0].profiles
                              and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
-        scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings)
+        scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
                   for c in screened}
         for c in scores:
             c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
@@ -1037,7 +1063,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         refits: list[Refit] = []
         for sc in order[:settings.top_k]:
             eff = EFFECTS_BY_NAME[sc.name]
-            rf = refit_candidate(model, current, eff, sc, settings, it)
+            rf = refit_candidate(model, current, eff, sc, settings, it, held)
             if rf.accepted:
                 better_null = guard_null(model, current, rf, eff, settings)
                 if better_null is not None and better_null.sse < current.sse:
@@ -1089,8 +1115,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
     gauge_before = gauge_after = {"applied": False}
     if settings.gauge:
-        baseline.theta, gauge_before = gauge_fix(model, baseline.theta, baseline.free, ref)
-        current.theta, gauge_after = gauge_fix(model, current.theta, current.free, ref)
+        broken = {sym for a in added for sym in EFFECTS_BY_NAME[a["name"]].breaks}
+        baseline.theta, gauge_before = gauge_fix(model, baseline.theta, baseline.free + held, ref)
+        current.theta, gauge_after = gauge_fix(model, current.theta, tuple(set(current.free) | set(held)), ref,
+                                               broken=broken)
     uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ())) if added else {}
     for a in added:  # the values of the final model (later refits move earlier effects' parameters too)
         eff = EFFECTS_BY_NAME[a["name"]]

@@ -38,12 +38,16 @@ class Effect:
 
     ``probe`` lists parameter settings (name → value) at which the effect is 'small but on'; the score test
     linearises the output around the nominal fit in the direction of each probe and keeps the best.
+    ``breaks`` names the exact symmetries of the rigid model's x_B (``mechanical``, ``current``,
+    ``inertia_split``; see :mod:`toggle_id.discover`) that the effect breaks: with it on, the parameter that
+    fixes such a symmetry becomes determined by the data and is fitted again.
     """
 
     name: str
     description: str
     params: tuple[EffectParam, ...]
     probe: tuple[dict, ...] = field(default_factory=tuple)
+    breaks: tuple[str, ...] = ()
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -66,8 +70,10 @@ EFFECTS: tuple[Effect, ...] = (
            (EffectParam("c_B", K.C_B, "N·s/m", 0.0, 1e4),), ({"c_B": 10.0},)),
     Effect("dead_time", "transport delay of the drive input, v_in(t − τ_d)",
            (EffectParam("tau_d", K.TAU_D, "s", 0.0, 0.05),), ({"tau_d": 1e-4},)),
-    Effect("backlash", "dead band b_l of the screw–nut: the nut follows the rotor only after the lash is taken up",
-           (EffectParam("b_l", K.B_L, "m", 0.0, 2e-3),), ({"b_l": 1e-5},)),
+    Effect("backlash", "dead band b_l in the screw–nut: rotor and linkage move apart while the flank force is "
+           "reversed and meet again in an inelastic impact (toggle_id/_backlash.py)",
+           (EffectParam("b_l", K.B_L, "m", 0.0, 2e-3),), ({"b_l": 1e-5},),
+           breaks=("inertia_split",)),  # in the lash the rotor's inertia J_m acts apart from m_C
     Effect("cogging_torque", "torque ripple a·sin(n·θ_r + φ) periodic in the rotor angle θ_r = Z·x_C",
            (EffectParam("a_cog", K.A_COG, "N·m", 0.0, 20.0),
             EffectParam("n_cog", K.N_COG, "1/rev", 1.0, 48.0, 6.0, True),
