@@ -108,6 +108,7 @@ from ._kernels import (
     _command,
     _derived,
     _geometry,
+    _illinois,
     _lookup,
     _lookup_d,
     _x_of_q,
@@ -236,16 +237,7 @@ def _locate_event(kind, g0, g1, t, h, y, yn, k, mode, contact, q_L, b, pc, jz2, 
     for _ in range(100):
         th_ = (a * gb - bb * ga) / (gb - ga)
         gm = _event_value(kind, th_, t, h, y, yn, k, mode, contact, q_L, b, pc, jz2, geo, tab, head, v, ytmp, ftmp)
-        if (gm < 0.0) == (ga < 0.0):
-            a, ga = th_, gm
-            if side == -1:
-                gb *= 0.5
-            side = -1
-        else:
-            bb, gb = th_, gm
-            if side == 1:
-                ga *= 0.5
-            side = 1
+        a, bb, ga, gb, side = _illinois(a, bb, ga, gb, side, th_, gm)
         if (bb - a) * h < 1e-13 or gm == 0.0:
             break
     return bb

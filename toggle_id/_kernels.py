@@ -561,19 +561,23 @@ def _locate(q, q_L, h, g0, g1, r2, r3, r4, r5):
     for _ in range(100):
         th_ = (a * gb - b * ga) / (gb - ga)
         gm = q_L - _dense(th_, q, r2, r3, r4, r5)
-        if (gm < 0.0) == (ga < 0.0):
-            a, ga = th_, gm
-            if side == -1:
-                gb *= 0.5
-            side = -1
-        else:
-            b, gb = th_, gm
-            if side == 1:
-                ga *= 0.5
-            side = 1
+        a, b, ga, gb, side = _illinois(a, b, ga, gb, side, th_, gm)
         if (b - a) * h < 1e-13 or gm == 0.0:
             break
     return b
+
+
+@nb.njit(cache=True, inline="always")
+def _illinois(a, b, ga, gb, side, th_, gm):
+    """One bracket update of the Illinois (modified regula falsi) method: the new point th_ with value gm
+    replaces the end of [a, b] with the same sign; an end kept twice in a row has its value halved."""
+    if (gm < 0.0) == (ga < 0.0):
+        if side == -1:
+            gb *= 0.5
+        return th_, b, gm, gb, -1
+    if side == 1:
+        ga *= 0.5
+    return a, th_, ga, gm, 1
 
 
 @nb.njit(cache=True)
