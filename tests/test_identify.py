@@ -96,11 +96,9 @@ class _Interrupt(Exception):
     pass
 
 
-@pytest.mark.parametrize("stage,gen", [("stage1", 2), ("stage2", 3)])
-def test_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path, stage, gen):
-    rec = _record(0.6)
-    kw = dict(method="two_stage", ga=GAConfig(population=16, generations=5), seed=11, polish=NO_POLISH,
-              identifiability=False)
+def _interrupt_and_resume(tmp_path, rec, stage: str, gen: int, **kw):
+    """The uninterrupted result, and the result of a run stopped in ``stage`` at generation ``gen`` and resumed
+    from its checkpoint."""
     full = identify(rec, **kw)
 
     def stop(name, ga):
@@ -109,7 +107,14 @@ def test_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path, stage, ge
 
     with pytest.raises(_Interrupt):
         identify(rec, checkpoint_dir=tmp_path, checkpoint_every=1, on_generation=stop, **kw)
-    resumed = identify(rec, checkpoint_dir=tmp_path, checkpoint_every=1, resume=True, **kw)
+    return full, identify(rec, checkpoint_dir=tmp_path, checkpoint_every=1, resume=True, **kw)
+
+
+@pytest.mark.parametrize("stage,gen", [("stage1", 2), ("stage2", 3)])
+def test_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path, stage, gen):
+    full, resumed = _interrupt_and_resume(tmp_path, _record(0.6), stage, gen, method="two_stage",
+                                          ga=GAConfig(population=16, generations=5), seed=11, polish=NO_POLISH,
+                                          identifiability=False)
     np.testing.assert_array_equal(resumed.theta, full.theta)
     assert [s.history for s in resumed.stages] == [s.history for s in full.stages]
 
@@ -213,17 +218,9 @@ def test_joint_fit_same_seed_same_result_serial_and_ray(ray_session):
 
 def test_interrupted_joint_run_resumes_to_the_uninterrupted_result(tmp_path):
     recs = [_record(0.6), _clean_record("experiment", 0.6)]
-    kw = dict(method="two_stage", ga=GAConfig(population=16, generations=4), seed=4, polish=NO_POLISH,
-              identifiability=False)
-    full = identify(recs, **kw)
-
-    def stop(name, ga):
-        if name == "stage2" and ga.generation == 2:
-            raise _Interrupt
-
-    with pytest.raises(_Interrupt):
-        identify(recs, checkpoint_dir=tmp_path, checkpoint_every=1, on_generation=stop, **kw)
-    resumed = identify(recs, checkpoint_dir=tmp_path, checkpoint_every=1, resume=True, **kw)
+    full, resumed = _interrupt_and_resume(tmp_path, recs, "stage2", 2, method="two_stage",
+                                          ga=GAConfig(population=16, generations=4), seed=4, polish=NO_POLISH,
+                                          identifiability=False)
     np.testing.assert_array_equal(resumed.theta, full.theta)
     assert [s.windows for s in resumed.stages] == [s.windows for s in full.stages]
     assert [s.history for s in resumed.stages] == [s.history for s in full.stages]
