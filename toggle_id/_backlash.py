@@ -111,6 +111,7 @@ from ._kernels import (
     _illinois,
     _lookup,
     _lookup_d,
+    _pi_control,
     _x_of_q,
 )
 
@@ -351,14 +352,12 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             h *= 0.25
             last_reject = True
             continue
-        fac11 = err ** 0.17
-        if err > 1.0:
-            h = h / min(fac11 / 0.9, 5.0)
+        accepted, h_prop, facold = _pi_control(err, h, facold)
+        if not accepted:
+            h = h_prop
             last_reject = True
             continue
-        fac = max(0.1, min(5.0, fac11 / facold ** 0.04 / 0.9))
-        facold = max(err, 1e-4)
-        h_new = min(h / fac, hmax)
+        h_new = min(h_prop, hmax)
         if last_reject:
             h_new = min(h_new, h)
         last_reject = False

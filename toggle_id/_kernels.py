@@ -552,6 +552,17 @@ def _x_near(qs, q0, c0, s0, geo):
     return r1 * c + r3 * math.sqrt(max(0.0, 1.0 - ratio * ratio * (1.0 - c * c)))
 
 
+@nb.njit(cache=True, inline="always")
+def _pi_control(err, h, facold):
+    """DOPRI5's PI step-size controller (beta 0.04, safety 0.9, factors in [0.2, 10]) for the scaled error
+    ``err`` of a step of size h: (accepted, the next step size — the retry's after a rejection —, facold)."""
+    fac11 = err ** 0.17
+    if err > 1.0:
+        return False, h / min(fac11 / 0.9, 5.0), facold
+    fac = max(0.1, min(5.0, fac11 / facold ** 0.04 / 0.9))
+    return True, h / fac, max(err, 1e-4)
+
+
 @nb.njit(cache=True)
 def _locate(q, q_L, h, g0, g1, r2, r3, r4, r5):
     """Fraction b ∈ (0, 1] of the step at which the dense output of q reaches q_L (Illinois method; the returned
@@ -684,15 +695,14 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                 fac = max(fac, facgus)
             h_acc = h
             err_acc = max(1e-2, err)
-        else:  # PI controller of DOPRI5: beta = 0.04, safety 0.9, factors in [0.2, 10]
-            fac11 = err ** 0.17
-            if err > 1.0:
-                h = h / min(fac11 / 0.9, 5.0)
+            h_prop = h / fac
+        else:
+            accepted, h_prop, facold = _pi_control(err, h, facold)
+            if not accepted:
+                h = h_prop
                 last_reject = True
                 continue
-            fac = max(0.1, min(5.0, fac11 / facold ** 0.04 / 0.9))
-            facold = max(err, 1e-4)
-        h_new = min(h / fac, hmax)
+        h_new = min(h_prop, hmax)
         if last_reject:
             h_new = min(h_new, h)
         last_reject = False
