@@ -107,6 +107,7 @@ from ._kernels import (
     SOLVER_FAILURE,
     _command,
     _derived,
+    _first_sample,
     _geometry,
     _illinois,
     _lookup,
@@ -292,15 +293,9 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     mode = ENGAGED_FWD
     contact = contact0
     t = t_start
-    kk = 0
-    while kk < n_out and t_out[kk] < t_start - 1e-12:
-        kk += 1
-    if kk < n_out and abs(t_out[kk] - t) <= 1e-12:
-        if not _geometry(y[0], geo)[0]:
-            return MODEL_FAILURE, 0, t_c, qc, wc, ic
-        out_x[kk] = _x_of_q(y[0], geo) + xoff
-        out_i[kk] = y[2]
-        kk += 1
+    ok, kk = _first_sample(y[0], y[2], t_start, t_out, n_out, geo, xoff, out_x, out_i)
+    if not ok:
+        return MODEL_FAILURE, 0, t_c, qc, wc, ic
     if kk >= n_out:
         return OK, 0, t_c, qc, wc, ic
     t_end = t_out[n_out - 1]

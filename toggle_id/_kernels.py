@@ -592,6 +592,22 @@ def _illinois(a, b, ga, gb, side, th_, gm):
 
 
 @nb.njit(cache=True)
+def _first_sample(q, iq, t_start, t_out, n_out, geo, xoff, out_x, out_i):
+    """(ok, k): k the first output sample after ``t_start``; the sample at ``t_start`` itself, if there is one,
+    is written from the start state (ok False: that state lies outside the assembly range)."""
+    k = 0
+    while k < n_out and t_out[k] < t_start - 1e-12:
+        k += 1
+    if k < n_out and abs(t_out[k] - t_start) <= 1e-12:
+        if not _geometry(q, geo)[0]:
+            return False, k
+        out_x[k] = _x_of_q(q, geo) + xoff
+        out_i[k] = iq
+        k += 1
+    return True, k
+
+
+@nb.njit(cache=True)
 def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
                   out_x, out_i):
     """Integrate one parameter vector from ``t_start`` (state y0, contact mode contact0) and write x_B and i_q
@@ -617,15 +633,9 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     t = t_start
     q, w, iq = y0[0], y0[1], y0[2]
     contact = contact0
-    k = 0  # next output sample
-    while k < n_out and t_out[k] < t_start - 1e-12:
-        k += 1
-    if k < n_out and abs(t_out[k] - t) <= 1e-12:
-        if not _geometry(q, geo)[0]:
-            return MODEL_FAILURE, 0, t_c, qc, wc, ic
-        out_x[k] = _x_of_q(q, geo) + xoff
-        out_i[k] = iq
-        k += 1
+    ok, k = _first_sample(q, iq, t_start, t_out, n_out, geo, xoff, out_x, out_i)  # k: next output sample
+    if not ok:
+        return MODEL_FAILURE, 0, t_c, qc, wc, ic
     if k >= n_out:
         return OK, 0, t_c, qc, wc, ic
     t_end = t_out[n_out - 1]
