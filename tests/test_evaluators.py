@@ -225,3 +225,12 @@ def test_ray_multi_node_cluster_survives_node_loss():
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=180,
                           cwd=root, env=env)
     assert "MULTI-NODE-OK" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-4000:]
+
+
+def test_the_ray_readiness_timeout_is_a_checked_setting():
+    from toggle_id.workflow import evaluator_factory
+
+    for bad in (0, -5, "soon", True):
+        with pytest.raises(ConfigError, match="ready_timeout_s"):
+            evaluator_factory({"kind": "ray", "ready_timeout_s": bad})
+    assert callable(evaluator_factory({"kind": "ray", "ready_timeout_s": 30}))

@@ -1131,6 +1131,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                           "identifiable": a["identifiable"][eff.magnitude.name],
                           "scales_with_mechanism": _force_like(eff.magnitude.name),
                           "at_reference_scale": bool(gauge_after.get("applied")) and _force_like(eff.magnitude.name)}
+        k_l = float(current.theta[ALL_INDEX["K_l"]])
+        if _force_like(eff.magnitude.name) and k_l > 0:
+            # x_B fixes a force only relative to the mechanism (every force scales with it, exactly): the ratio
+            # to the contact stiffness is what the record determines, whatever representative is reported
+            a["magnitude"]["per_K_l"] = a["params"][eff.magnitude.name] / k_l
     diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split)
     diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
     cands = []
@@ -1319,6 +1324,10 @@ def summary_text(res: DiscoveryResult) -> str:
         lines.append(f"added {a['name']}: {a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
                      f"{a['magnitude']['unit']}" + (f" ± {se:.2g}" if se else "") +
                      f"  (F-test p {a['p_value']:.3g}, ΔBIC {a['delta_bic']:.4g})")
+        if "per_K_l" in a["magnitude"]:
+            lines.append(f"  a force-type magnitude: x_B fixes it only relative to the mechanism's common scale "
+                         f"({a['magnitude']['name']}/K_l = {a['magnitude']['per_K_l']:.5g} per N/m; at the "
+                         "reference scale above — fix one mechanical parameter, e.g. fixed.K_t, to pin it)")
     lines.append(f"RMS error before {res.rmse_before_m * 1e6:.4g} µm, after {res.rmse_after_m * 1e6:.4g} µm; "
                  f"{res.seconds:.1f} s, {res.n_simulations} simulations")
     lines.append(res.conclusion)

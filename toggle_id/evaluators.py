@@ -214,8 +214,9 @@ class RayEvaluator(_EvaluatorBase):
         except ray.exceptions.GetTimeoutError as err:
             cpus = ray.cluster_resources().get("CPU", 0)
             self.close()
-            raise ConfigError(f"{n_workers} Ray workers not ready after {ready_timeout_s} s "
-                              f"(cluster has {cpus:g} CPUs)") from err
+            raise ConfigError(f"{n_workers} Ray workers not ready after {ready_timeout_s:g} s (cluster has {cpus:g} "
+                              "CPUs; each worker compiles or loads the kernels first, slowly on a busy machine): "
+                              "raise evaluator.ready_timeout_s or use evaluator=serial") from err
         except BaseException:
             self.close()
             raise

@@ -194,9 +194,13 @@ def evaluator_factory(ev: Mapping) -> Callable[[Any], Any]:
     n = ev.get("n_workers")
     if n is not None and (not isinstance(n, int) or n < 1):
         raise ConfigError(f"evaluator.n_workers must be a positive integer or null, got {n!r}")
+    timeout = ev.get("ready_timeout_s", 600.0)
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
+        raise ConfigError(f"evaluator.ready_timeout_s must be a positive number of seconds, got {timeout!r}")
     if kind == "serial":
         return lambda problem: make_evaluator("serial", problem)
-    return lambda problem: make_evaluator("ray", problem, n_workers=n, address=ev.get("address"))
+    return lambda problem: make_evaluator("ray", problem, n_workers=n, address=ev.get("address"),
+                                          ready_timeout_s=float(timeout))
 
 
 def make_tracker(cfg: Mapping, project_root: str | Path) -> Tracker:
