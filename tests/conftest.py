@@ -37,3 +37,22 @@ def run_job(module: str, *args: str, cwd: Path, env: dict | None = None, timeout
 def job_env(tmp_path: Path) -> dict:
     """Environment that points MLflow at a scratch store (absolute URI) for jobs run in a test."""
     return {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+
+
+def wait_until_dead(actor, timeout: float = 60.0) -> None:
+    """Block until a killed Ray actor is really gone (``ray.kill`` is asynchronous: a call queued just after it
+    may still be answered by the old process)."""
+    import time
+
+    import ray
+
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        try:
+            ray.get(actor.ready.remote(), timeout=max(t_end - time.monotonic(), 0.1))
+        except ray.exceptions.RayActorError:
+            return
+        except ray.exceptions.GetTimeoutError:
+            break
+        time.sleep(0.05)
+    pytest.fail(f"the killed actor still answers after {timeout:g} s")

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import wait_until_dead
 
 from toggle_id.errors import ConfigError, DataError
 from toggle_id.evaluators import RayEvaluator, SerialEvaluator, init_ray, make_evaluator
@@ -136,8 +137,7 @@ def test_ray_replaces_actor_killed_between_evaluations(ray_session, population):
         np.testing.assert_array_equal(ev.evaluate(population), expected)
         killed = ev.actors[1]
         ray.kill(killed)
-        with pytest.raises(ray.exceptions.RayActorError):  # ray.kill is asynchronous: wait until it is dead
-            ray.get(killed.ready.remote(), timeout=60)
+        wait_until_dead(killed)
         np.testing.assert_array_equal(ev.evaluate(population), expected)
         assert ev.stats["restarts"] == 1
         assert ev.actors[1] is not killed

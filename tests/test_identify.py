@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import wait_until_dead
 
 from toggle_id import params as P
 from toggle_id.errors import CheckpointError, ConfigError
@@ -84,8 +85,7 @@ def test_killed_actor_mid_run_gives_the_fault_free_result(ray_session):
         if ga.generation in (2, 4):
             actor = made[-1].actors[0]
             ray.kill(actor, no_restart=True)
-            with pytest.raises(ray.exceptions.RayActorError):  # asynchronous: wait until it is dead
-                ray.get(actor.ready.remote(), timeout=60)
+            wait_until_dead(actor)
 
     faulty = identify(rec, make_evaluator=make, on_generation=kill, **kw)
     np.testing.assert_array_equal(faulty.theta, clean.theta)
