@@ -72,31 +72,10 @@ from ._kernels import (
     J_M,
     MODEL_FAILURE,
     OK,
-    PC_CB,
-    PC_D,
-    PC_FLOAD,
-    PC_FMU,
-    PC_FS,
-    PC_IEPS,
     PC_ILQ,
-    PC_IVS,
-    PC_K3,
-    PC_KL,
-    PC_M0,
-    PC_M3,
-    PC_M5,
-    PC_MB,
-    PC_MC,
-    PC_NZ,
-    PC_PHI,
     PC_PLZL,
     PC_RSL,
-    PC_XBL,
     PC_XOFF,
-    PC_Z2BM,
-    PC_ZACOG,
-    PC_ZKT,
-    PC_ZTAUC,
     S_ATOL_I,
     S_ATOL_Q,
     S_ATOL_W,
@@ -106,12 +85,15 @@ from ._kernels import (
     S_RTOL,
     SOLVER_FAILURE,
     _command,
+    _dense,
     _derived,
     _first_sample,
+    _forces,
     _geometry,
     _illinois,
     _lookup,
     _lookup_d,
+    _motor_force,
     _pi_control,
     _x_of_q,
 )
@@ -133,61 +115,42 @@ _DD = np.array([_D1, 0.0, _D3, _D4, _D5, _D6, _D7])
 
 
 @nb.njit(cache=True)
-def _motor_force(iq, v_rot, x_rot, pc):
-    """Force of the motor on the nut side (N): electromagnetic − viscous − Coulomb + cogging, at the rotor's
-    speed and position in the nut's coordinate."""
-    F = pc[PC_ZKT] * iq - pc[PC_Z2BM] * v_rot
-    if pc[PC_ZTAUC] != 0.0:
-        F -= pc[PC_ZTAUC] * math.tanh(v_rot * pc[PC_IEPS])
-    if pc[PC_ZACOG] != 0.0:
-        F += pc[PC_ZACOG] * math.sin(pc[PC_NZ] * x_rot + pc[PC_PHI])
-    return F
-
-
-@nb.njit(cache=True)
 def lash_rhs(y, u, mode, contact, pc, jz2, geo, tab, head, out):
     """dy/dt into ``out`` for y = (q, q̇, i_q, δ, ẋ_r) in ``mode`` (engaged ±1 or lash 0) and the command u (V).
     Returns ok (False outside the assembly range) and the flank force F_s (N; 0 in the lash)."""
     q, w, iq, d, vr = y[0], y[1], y[2], y[3], y[4]
-    ok, x_B, dxB, dxC, b3, b5, db3, db5, dgB, dgC, x_C = _lookup(q, geo, tab, head)
-    M = pc[PC_M0] + pc[PC_M3] * b3 + pc[PC_M5] * b5 + pc[PC_MB] * dxB * dxB + pc[PC_MC] * dxC * dxC
-    dM = pc[PC_M3] * db3 + pc[PC_M5] * db5 + pc[PC_MB] * dgB + pc[PC_MC] * dgC
-    if not (ok and x_B > 0.0 and M > 0.0):
+    ok, _, dxB, dxC, x_C, M, dM, _, vC, _, _, F_f, _, F_i, _, dgC = _forces(q, w, iq, contact, pc, geo, tab, head)
+    if not ok:
         return False, 0.0
-    vB = dxB * w
-    vC = dxC * w
-    sg = math.tanh(vB * pc[PC_IEPS])
-    F_f = -pc[PC_FMU] * sg - pc[PC_CB] * vB - pc[PC_FLOAD]
-    if pc[PC_FS] != 0.0:
-        r = vB * pc[PC_IVS]
-        F_f -= pc[PC_FS] * math.exp(-r * r) * sg
-    F_i = 0.0
-    if contact:
-        z = x_B - pc[PC_XBL]
-        F_i = pc[PC_KL] * z + pc[PC_D] * vB + pc[PC_K3] * z * z * z
+    v_rot = vC if mode != LASH else vr  # the back-EMF and the motor's friction follow the rotor
+    F_rot = _motor_force(iq, v_rot, x_C + d, pc)
+    out[0] = w
+    out[2] = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * v_rot
     if mode != LASH:
-        F_C = _motor_force(iq, vC, x_C + d, pc)
-        wdot = (F_C * dxC + (F_f - F_i) * dxB - 0.5 * dM * w * w) / M
+        wdot = (F_rot * dxC + (F_f - F_i) * dxB - 0.5 * dM * w * w) / M
         okd, _, ddxC, _, _, _, _ = _lookup_d(q, geo, tab, head)
         a_C = ddxC * w * w + dxC * wdot
-        out[0], out[1], out[3], out[4] = w, wdot, 0.0, a_C
-        out[2] = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * vC
-        return okd, F_C - jz2 * a_C
+        out[1], out[3], out[4] = wdot, 0.0, a_C
+        return okd, F_rot - jz2 * a_C
     ML = M - jz2 * dxC * dxC
     if not ML > 0.0:
         return False, 0.0
-    out[0] = w
     out[1] = ((F_f - F_i) * dxB - 0.5 * (dM - jz2 * dgC) * w * w) / ML
-    out[2] = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * vr
     out[3] = vr - vC
-    out[4] = _motor_force(iq, vr, x_C + d, pc) / jz2
+    out[4] = F_rot / jz2
     return True, 0.0
+
+
+@nb.njit(cache=True)
+def _rotor_with_nut(y, geo, tab, head):
+    """The rotor's speed set to the nut's, ẋ_r = x_C'(q)·q̇ (engaged, or just separated)."""
+    y[4] = _lookup(y[0], geo, tab, head)[3] * y[1]
 
 
 @nb.njit(cache=True)
 def _step(h, t, y, k, mode, contact, pc, jz2, geo, tab, head, v, ytmp, yn):
     """One DOPRI5 step from (t, y) with k[0] = f(t, y); fills k[1..6] and yn = y(t + h) (k[6] = f(t+h, yn)).
-    Returns ok and the error norm's unscaled components are left to the caller (k holds all stages)."""
+    Returns ok (False when a stage leaves the assembly range); the caller forms the error estimate from k."""
     for s in range(1, 7):
         for j in range(N_Y):
             acc = 0.0
@@ -207,13 +170,10 @@ def _dense_at(th_, h, y, yn, k, j):
     """Component j of DOPRI5's continuous extension at fraction th_ of the step."""
     r2 = yn[j] - y[j]
     r3 = h * k[0, j] - r2
-    r4 = r2 - h * k[6, j] - r3
     r5 = 0.0
     for m in range(7):
         r5 += _DD[m] * k[m, j]
-    r5 *= h
-    s = 1.0 - th_
-    return y[j] + th_ * (r2 + s * (r3 + th_ * (r4 + s * r5)))
+    return _dense(th_, y[j], r2, r3, r2 - h * k[6, j] - r3, h * r5)
 
 
 @nb.njit(cache=True)
@@ -289,7 +249,7 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     k = np.empty((7, N_Y))
     y[0], y[1], y[2] = y0[0], y0[1], y0[2]
     y[3] = 0.0
-    y[4] = _lookup(y[0], geo, tab, head)[3] * y[1]
+    _rotor_with_nut(y, geo, tab, head)
     mode = ENGAGED_FWD
     contact = contact0
     t = t_start
@@ -321,7 +281,7 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             # an engaged flank that pulls the wrong way opens at once (after an impact or a restart)
             if (mode == ENGAGED_FWD and F_s < 0.0) or (mode == ENGAGED_BWD and F_s > 0.0):
                 mode = LASH
-                y[4] = _lookup(y[0], geo, tab, head)[3] * y[1]
+                _rotor_with_nut(y, geo, tab, head)
                 ok, F_s = lash_rhs(y, _command(t, pc, v)[0], mode, contact, pc, jz2, geo, tab, head, k[0])
                 if not ok:
                     return MODEL_FAILURE, n_steps, t_c, qc, wc, ic
@@ -399,10 +359,10 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                 contact = 1 - contact
             elif first == 3:  # the flank opens: the rotor leaves the nut with the same speed
                 mode = LASH
-                y[4] = _lookup(y[0], geo, tab, head)[3] * y[1]
+                _rotor_with_nut(y, geo, tab, head)
             else:  # the gap closes: inelastic impact, generalised momentum conserved
-                _, _, dxB, dxC, b3, b5, _, _, _, _, _ = _lookup(y[0], geo, tab, head)
-                M = pc[PC_M0] + pc[PC_M3] * b3 + pc[PC_M5] * b5 + pc[PC_MB] * dxB * dxB + pc[PC_MC] * dxC * dxC
+                _, _, _, dxC, _, M, _, _, _, _, _, _, _, _, _, _ = _forces(y[0], y[1], y[2], contact, pc, geo, tab,
+                                                                          head)
                 y[1] = ((M - jz2 * dxC * dxC) * y[1] + jz2 * dxC * y[4]) / M
                 y[3] = 0.0 if first == 1 else -b
                 y[4] = dxC * y[1]

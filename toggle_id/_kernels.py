@@ -244,19 +244,27 @@ def _lookup_d(q, geo, tab, head):
 
 
 @nb.njit(cache=True, inline="always")
+def _motor_force(iq, v_rot, x_rot, pc):
+    """Force of the motor on the nut (N): Z·τ, electromagnetic − viscous − Coulomb + cogging, at the rotor's
+    speed and position in the nut's coordinate (the nut's own in the rigid model)."""
+    F = pc[PC_ZKT] * iq - pc[PC_Z2BM] * v_rot
+    if pc[PC_ZTAUC] != 0.0:
+        F -= pc[PC_ZTAUC] * math.tanh(v_rot * pc[PC_IEPS])
+    if pc[PC_ZACOG] != 0.0:
+        F += pc[PC_ZACOG] * math.sin(pc[PC_NZ] * x_rot + pc[PC_PHI])
+    return F
+
+
+@nb.njit(cache=True, inline="always")
 def _forces(q, w, iq, contact, pc, geo, tab, head):
-    """Geometry at q and the generalised force terms shared by the right-hand side and its Jacobian."""
+    """Geometry at q and the generalised force terms shared by the right-hand sides and the Jacobian (the last
+    value, (x_C'²)', serves the backlash kernel's linkage without the rotor)."""
     ok, x_B, dxB, dxC, b3, b5, db3, db5, dgB, dgC, x_C = _lookup(q, geo, tab, head)
     M = pc[PC_M0] + pc[PC_M3] * b3 + pc[PC_M5] * b5 + pc[PC_MB] * dxB * dxB + pc[PC_MC] * dxC * dxC
     dM = pc[PC_M3] * db3 + pc[PC_M5] * db5 + pc[PC_MB] * dgB + pc[PC_MC] * dgC
     vB = dxB * w
     vC = dxC * w
-    # motor force on slider C: electromagnetic − viscous − Coulomb + cogging, Z·τ (N)
-    F_C = pc[PC_ZKT] * iq - pc[PC_Z2BM] * vC
-    if pc[PC_ZTAUC] != 0.0:
-        F_C -= pc[PC_ZTAUC] * math.tanh(vC * pc[PC_IEPS])
-    if pc[PC_ZACOG] != 0.0:
-        F_C += pc[PC_ZACOG] * math.sin(pc[PC_NZ] * x_C + pc[PC_PHI])
+    F_C = _motor_force(iq, vC, x_C, pc)
     # forces on slider B: friction (Coulomb, Stribeck, viscous) and a constant load (N)
     sg = math.tanh(vB * pc[PC_IEPS])
     F_f = -pc[PC_FMU] * sg - pc[PC_CB] * vB - pc[PC_FLOAD]
@@ -269,7 +277,7 @@ def _forces(q, w, iq, contact, pc, geo, tab, head):
         F_i = pc[PC_KL] * z + pc[PC_D] * vB + pc[PC_K3] * z * z * z
     Q = F_C * dxC + (F_f - F_i) * dxB
     ok = ok and x_B > 0.0 and M > 0.0
-    return ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q
+    return ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q, dgC
 
 
 @nb.njit(cache=True, inline="always")
@@ -289,7 +297,7 @@ def _rhs_u(q, w, iq, u, contact, pc, geo, tab, head):
     """dy/dt of the plant with all effect terms for the drive command u (V); ``contact`` is the mode decided
     by event location. Returns ok (False outside the assembly range), q̇, ẇ, i̇ and ∂ẇ/∂i_q (exact: ẇ is affine
     in i_q)."""
-    ok, _, _, dxC, _, M, dM, _, vC, _, _, _, _, _, Q = _forces(q, w, iq, contact, pc, geo, tab, head)
+    ok, _, _, dxC, _, M, dM, _, vC, _, _, _, _, _, Q, _ = _forces(q, w, iq, contact, pc, geo, tab, head)
     if not ok:
         return False, 0.0, 0.0, 0.0, 0.0
     inv_m = 1.0 / M
@@ -315,7 +323,8 @@ def _rhs_jac(t, q, w, iq, contact, pc, geo, tab, head, v):
 def _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head):
     """Right-hand side for the command u and its analytic Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] and
     ∂i̇/∂t (from du/dt). Returns ok, q̇, ẇ, i̇, a, b, c, d, e, g, ft."""
-    ok, _, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q = _forces(q, w, iq, contact, pc, geo, tab, head)
+    ok, _, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q, _ = _forces(q, w, iq, contact, pc, geo, tab,
+                                                                            head)
     okd, ddxB, ddxC, ddb3, ddb5, ddgB, ddgC = _lookup_d(q, geo, tab, head)
     if not (ok and okd):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
