@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-
 from . import params as P
 from .checkpoint import atomic_write_json, atomic_write_text
 from .console import markdown_table

@@ -240,19 +240,18 @@ def stage_child_run(tracker: Tracker, st: StageResult, truth: np.ndarray | None)
             tracker.log_dict(st.identifiability, f"identifiability_{st.name}.json")
 
 
-def write_figures(run_dir: Path, record: Record | list[Record], result: IdentificationResult, tracker: Tracker,
-                  label: str) -> list[str]:
-    """Fitness history and the paper's Fig. 7 panels (x_B, difference, impulse force, v_in) as PNGs.
+def write_figures(run_dir: Path, records: list[Record], result: IdentificationResult, tracker: Tracker,
+                  label: str, responses: list[dict[str, np.ndarray]]) -> list[str]:
+    """Fitness history and the paper's Fig. 7 panels (x_B, difference, impulse force, v_in) as PNGs, from the
+    model's ``responses`` (:func:`model_response`) on ``records``.
 
     Several records (a joint fit): ``response.png`` for the first, ``response_<k>_<name>.png`` for the others.
     """
-    records = record if isinstance(record, list) else [record]
     clamp = [r["clamp_index"] for r in result.extra.get("records") or []] or [result.clamp_index]
     out = []
     fig = figures.fitness_history({s.name: s.history for s in result.stages})
     out.append(figures.save(fig, run_dir / "fitness_history.png"))
-    for k, (rec, k_c) in enumerate(zip(records, clamp)):
-        resp = model_response(rec, result.theta)
+    for k, (rec, k_c, resp) in enumerate(zip(records, clamp, responses)):
         t_c = rec.t[k_c] if k_c < rec.n else None
         title = "Measured and model responses" + (f" — {rec.name}" if len(records) > 1 else "")
         fig = figures.response_comparison(rec.t, rec.x_B, {label: resp["x_B"]}, stage_boundary=t_c,
@@ -342,7 +341,8 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         wall = time.perf_counter() - t0
         report = result.to_dict()
         report.update(_truth_report(result.theta, truth))
-        status = [int(model_response(r, result.theta)["status"]) for r in records]
+        responses = [model_response(r, result.theta) for r in records]
+        status = [int(resp["status"]) for resp in responses]
         report.update({"job": "identify", "record": "+".join(r.name for r in records), "wall_seconds": wall,
                        "config": _jsonable_cfg(cfg), "mlflow_run_id": run.run_id,
                        "solver_status": max(status, key=abs)})
@@ -359,7 +359,7 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                              **{f"rmse_m.{r['name']}": r["rmse_m"] for r in report.get("records") or []},
                              **{f"param.{k}": v for k, v in result.params.items()},
                              **{f"pct_error.{k}": v for k, v in (report.get("pct_error") or {}).items()}})
-        write_figures(run_dir, records, result, tracker, method)
+        write_figures(run_dir, records, result, tracker, method, responses)
         path = publish_report(tracker, run_dir, console_report(result, truth), report)
     return path
 
