@@ -10,12 +10,13 @@ from scipy.integrate import solve_ivp
 from toggle_id.effects import ALL_INDEX
 from toggle_id.params import ASSIGNED, INDEX
 from toggle_id.plant import GEOMETRY as G
-from toggle_id.plant import kinematics, mass_matrix
+from toggle_id.plant import kinematics, mass_matrix, mass_matrix_derivative
 from toggle_id.record import Record
 from toggle_id.simulate import FAST, PRECISE, STATUS_INVALID, extend, simulate
 
 
 def _d(f, q, e=1e-6):
+    """Fourth-order central difference of f at q (the stencil of plant.mass_matrix_derivative)."""
     return (-f(q + 2 * e) + 8 * f(q + e) - 8 * f(q - e) + f(q - 2 * e)) / (12 * e)
 
 
@@ -33,7 +34,7 @@ class Reference:
         q, w, iq = y[:3]
         k = kinematics(q)
         M = float(mass_matrix(q, self.theta))
-        dM = float(_d(lambda x: mass_matrix(x, self.theta), q))
+        dM = float(mass_matrix_derivative(q, self.theta))
         ddxC = float(_d(lambda x: kinematics(x)["dx_C"], q))
         dgC = float(_d(lambda x: kinematics(x)["dx_C"] ** 2, q))
         vB, vC = k["dx_B"] * w, k["dx_C"] * w
