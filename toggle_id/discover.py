@@ -333,16 +333,18 @@ def _off_values(effect: Effect) -> dict[str, float]:
 
 
 def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effects: Sequence[Effect],
-                     absorbed_ratio: float = 1e-4) -> list[CandidateScore]:
+                     absorbed_ratio: float = 1e-4, y0: np.ndarray | None = None) -> list[CandidateScore]:
     """Score test of every effect in ``effects`` (see the module docstring), sorted by score (best first).
 
     ``theta``: current fit (the effects' parameters at their off values); ``r``: its residual (N,);
-    ``proj``: range of the free parameters' sensitivities. One batched simulation for all probes.
+    ``proj``: range of the free parameters' sensitivities; ``y0``: the model output at ``theta`` when the caller
+    has it. One batched simulation for all probes.
     """
     n = r.size
     rp = proj.perp(r)
     sigma2 = float(rp @ rp) / max(n - proj.rank, 1)  # = r·r/(N − rank) at a fitted point
-    y0 = model.outputs(theta[None, :])[0]
+    if y0 is None:
+        y0 = model.outputs(theta[None, :])[0]
     rows, owners = [], []
     for e in effects:
         base = _with(theta, _off_values(e))
@@ -671,12 +673,16 @@ class Point:
 
 
 def assess(model: Model, label: str, theta: np.ndarray, free: Sequence[str], effects: Sequence[Effect],
-           settings: DiscoverSettings) -> Point:
-    """Score test and profile of every effect in ``effects`` at ``theta`` (free parameters ``free``)."""
-    r = model.residuals(theta[None, :])[0]
+           settings: DiscoverSettings) -> Point | None:
+    """Score test and profile of every effect in ``effects`` at ``theta`` (free parameters ``free``); None when
+    ``theta`` cannot be simulated on the record."""
+    y0 = model.outputs(theta[None, :])[0]
+    if not np.all(np.isfinite(y0)):
+        return None
+    r = model.record.x_B - y0
     J = sensitivities(model, theta, free, settings.jac_rel_step)
     proj = Projector.of(J, settings.rank_rtol)
-    scores = score_candidates(model, theta, r, proj, effects, settings.absorbed_ratio)
+    scores = score_candidates(model, theta, r, proj, effects, settings.absorbed_ratio, y0)
     profiles = {c.name: profile_effect(model, theta, r, proj, EFFECTS_BY_NAME[c.name], c, settings.grid_points)
                 for c in scores if c.score > 0.0}
     for c in scores:
@@ -1032,9 +1038,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         # fit may have bent the nominal parameters far towards the missing effect (masses → 0, friction × 50),
         # where the local picture of the remaining candidates is distorted
         alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
-        if (settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0)
-                and np.all(np.isfinite(model.residuals(alt[None, :])[0]))):
-            points.append(assess(model, "nominal start", alt, current.free, remaining, settings))
+        if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
+            second = assess(model, "nominal start", alt, current.free, remaining, settings)
+            if second is not None:  # (None: the nominal start cannot be simulated with these effects)
+                points.append(second)
         scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
         for c in scores:
             for pt in points[1:]:
