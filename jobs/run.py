@@ -28,7 +28,7 @@ def run(cfg: dict, run_dir: str, project_root: str) -> str:
 
         return str(run_table1(cfg, run_dir, project_root))
     if job == "discover":
-        from toggle_id.discover import run_discover
+        from toggle_id.discovery import run_discover
 
         return str(run_discover(cfg, run_dir, project_root))
     if job == "identifiability":

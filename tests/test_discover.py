@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from toggle_id import discover as D
+from toggle_id import discovery as D
 from toggle_id.effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME
 from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED, PARAM_NAMES

@@ -1,0 +1,123 @@
+"""The exact symmetries of x_B(t): one parameter held per symmetry in the polishes, and the representative of a
+fit nearest the reference values for the report."""
+from __future__ import annotations
+
+from collections.abc import Collection, Sequence
+
+import numpy as np
+
+from .. import params as P
+from ..effects import ALL_INDEX, ALL_NAMES, EFFECTS, Effect
+from ..identify import stage_bounds
+from .model import Model
+
+
+#: Parameters that scale together with every force of the mechanism: multiplying all of them (and every effect
+#: parameter whose unit is a force, torque, damping or stiffness) by c leaves x_B(t) and i_q(t) unchanged.
+MECHANICAL = ("m_2", "m_3", "m_5", "m_B", "m_C", "J_m", "B_m", "K_t", "K_l", "D")
+
+
+#: The current scale: i_q → i_q/c with K_i → K_i/c, λ_d → λ_d/c, K_t → c·K_t leaves x_B(t) unchanged.
+ELECTRICAL = {"K_t": 1.0, "K_i": -1.0, "lambda_d": -1.0}
+
+
+#: The parameter held at its value to fix each symmetry in the uncertainty analysis (one per symmetry).
+GAUGE_HELD = {"mechanical": "K_l", "current": "K_i", "inertia_split": "m_C"}
+
+
+def gauge_symmetries(free: Collection[str], broken: Collection[str] = ()) -> list[str]:
+    """The exact symmetries of x_B whose parameters are all in ``free`` and that no effect in the model breaks."""
+    f = set(free)
+    members = {"mechanical": MECHANICAL, "current": tuple(ELECTRICAL), "inertia_split": ("m_C", "J_m")}
+    return [s for s, names in members.items() if s not in broken and set(names) <= f]
+
+
+def freed_with(base_free: Sequence[str], effect: Effect, held: Collection[str]) -> tuple[str, ...]:
+    """The parameters of a refit with ``effect`` on: the base fit's, the gauge parameters ``effect`` makes
+    determined again (held so far), and the effect's own."""
+    back = tuple(GAUGE_HELD[s] for s in effect.breaks if GAUGE_HELD[s] in held and GAUGE_HELD[s] not in base_free)
+    return tuple(base_free) + back + effect.names
+
+
+def _force_like(name: str) -> bool:
+    """An effect parameter in newtons (force, torque, damping, stiffness) scales with the mechanism."""
+    for e in EFFECTS:
+        for p in e.params:
+            if p.name == name:
+                return p.unit.startswith("N")
+    return False
+
+
+def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,
+              tol_m: float = 2e-8, broken: Collection[str] = ()) -> tuple[np.ndarray, dict]:
+    """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
+
+    The symmetries (see :data:`MECHANICAL`, :data:`ELECTRICAL`, and m_C + J_m·Z² of MODEL.md §3) leave the output
+    unchanged, so the fit is the same; the representative nearest the reference values makes the parameters —
+    and the magnitudes of force-type effects, which scale with the mechanism — comparable with the reference. A
+    symmetry is used only if all its parameters are free, the move stays within the feasible domains, and the
+    output is verified unchanged (``tol_m``); symmetries in ``broken`` (broken by an effect of the model) are
+    not used. Returns (theta, {"mechanical_scale", "current_scale", ...}).
+    """
+    from ..plant import GEOMETRY as G
+
+    out = theta.copy()
+    info: dict = {"mechanical_scale": 1.0, "current_scale": 1.0, "applied": False}
+    free = set(free)
+    mech = [n for n in MECHANICAL]
+    sym = gauge_symmetries(free, broken)
+    use_m = "mechanical" in sym
+    use_e = "current" in sym
+    use_split = "inertia_split" in sym
+    if not (use_m or use_e or use_split):
+        return out, info
+    names = sorted(set(mech if use_m else []) | set(ELECTRICAL if use_e else []))
+    x = np.array([out[ALL_INDEX[n]] for n in names])
+    ref = np.array([reference[ALL_INDEX[n]] for n in names])
+    if np.any(x <= 0) or np.any(ref <= 0):
+        return out, info
+    cols = []
+    if use_m:
+        cols.append([1.0 if n in mech else 0.0 for n in names])
+    if use_e:
+        cols.append([ELECTRICAL.get(n, 0.0) for n in names])
+    A = np.array(cols).T
+    logc = np.linalg.lstsq(A, np.log(ref) - np.log(x), rcond=None)[0]
+    c_m = float(np.exp(logc[0])) if use_m else 1.0
+    c_e = float(np.exp(logc[-1])) if use_e else 1.0
+    if use_m:
+        for n in mech:
+            out[ALL_INDEX[n]] *= c_m
+        for n in ALL_NAMES[P.N_PARAMS:]:
+            if _force_like(n):
+                out[ALL_INDEX[n]] *= c_m
+    if use_e:
+        for n, k in ELECTRICAL.items():
+            out[ALL_INDEX[n]] *= c_e ** k
+        for e in EFFECTS:  # a limit on the drive voltage K_i·v (unit 1/V) follows the current scale
+            for p in e.params:
+                if p.unit == "1/V":
+                    out[ALL_INDEX[p.name]] *= c_e
+    if use_split and reference[ALL_INDEX["m_C"]] > 0 and reference[ALL_INDEX["J_m"]] > 0:
+        Z2 = G.Z ** 2
+        total = out[ALL_INDEX["m_C"]] + out[ALL_INDEX["J_m"]] * Z2
+        rc, rj = reference[ALL_INDEX["m_C"]], reference[ALL_INDEX["J_m"]]
+        fr = np.linspace(1e-3, 1 - 1e-3, 2001)
+        cost = (np.log(fr * total / rc)) ** 2 + (np.log((1 - fr) * total / Z2 / rj)) ** 2
+        f = fr[int(np.argmin(cost))]
+        out[ALL_INDEX["m_C"]], out[ALL_INDEX["J_m"]] = f * total, (1 - f) * total / Z2
+    lo, hi = stage_bounds(list(ALL_NAMES))
+    if np.any(out < lo) or np.any(out > hi):
+        info["note"] = "the symmetric representative nearest the reference leaves the feasible domain; not applied"
+        return theta.copy(), info
+    y = model.outputs(np.array([theta, out]))
+    diff = float(np.nanmax(np.abs(y[0] - y[1]))) if np.all(np.isfinite(y)) else np.inf
+    if not diff <= tol_m:
+        info["note"] = f"output changed by {diff:.3g} m along the symmetry; not applied"
+        return theta.copy(), info
+    held = ([GAUGE_HELD["mechanical"]] if use_m else []) + ([GAUGE_HELD["current"]] if use_e else [])
+    if use_split:
+        held.append(GAUGE_HELD["inertia_split"])
+    info.update({"mechanical_scale": c_m, "current_scale": c_e, "applied": True, "output_change_m": diff,
+                 "held": held})
+    return out, info

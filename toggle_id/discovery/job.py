@@ -1,0 +1,127 @@
+"""The discover job: nominal fit, the loop, figures, MLflow, ``discovery.json``."""
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from .. import params as P
+from ..effects import ALL_INDEX, ALL_NAMES
+from ..errors import ConfigError, DataError
+from ..identify import IdentificationResult
+from ..simulate import extend
+from .loop import discover
+from .refit import Refit
+from .report import summary_text, write_figures
+from .settings import DiscoverSettings
+
+
+def discover_settings(cfg: Mapping) -> DiscoverSettings:
+    """Settings from the ``discover`` node of a job config (ConfigError on a bad value)."""
+    node = dict(cfg.get("discover") or {})
+    nominal = node.get("nominal", "ga")
+    if nominal not in ("ga", "base"):
+        raise ConfigError(f"discover.nominal must be 'ga' (two-stage RGA + polish) or 'base' (polish from the "
+                          f"assigned/base values), got {nominal!r}")
+    if node.get("noise_std") is None:
+        noise = (cfg.get("identifiability") or {}).get("noise_std_m")
+        if noise is not None:
+            node["noise_std"] = float(noise)
+    try:
+        return DiscoverSettings.from_dict(node)
+    except TypeError as err:
+        raise ConfigError(f"discover: {err}") from err
+
+
+def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
+    """The discover job: nominal two-stage fit, the discovery loop, figures, MLflow, ``discovery.json``."""
+    from .. import console, workflow
+    from ..identify import identify
+
+    workflow.validate_config(cfg)
+    settings = discover_settings(cfg)
+    nominal_mode = (cfg.get("discover") or {}).get("nominal", "ga")
+    method = cfg.get("method", "two_stage")
+    fixed = dict(cfg.get("fixed") or {})
+    for nm in fixed:
+        if nm not in ALL_INDEX:
+            raise ConfigError(f"fixed: unknown parameter {nm!r}")
+    if cfg.get("extra_free"):
+        raise ConfigError("extra_free is not used by the discover job: the loop frees effect parameters itself")
+    base_start = _base_vector(cfg)
+    ga = workflow.ga_config(cfg)
+    polish_cfg = workflow.polish_settings(cfg)
+    tier = workflow.solver_tier(cfg)
+    ev = cfg.get("evaluator") or {}
+    make_eval = workflow.evaluator_factory(ev)
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    record, truth = workflow.build_record(cfg.get("data") or {})
+    if record.x_B is None:
+        raise DataError(f"record {record.name!r} has no measured x_B")
+    if settings.noise_std is None and truth is not None:
+        noise = float((cfg.get("data") or {}).get("noise_m", 0.0) or 0.0)
+        settings.noise_std = noise if noise > 0 else None
+    tracker = workflow.make_tracker(cfg, project_root)
+    show = bool(cfg.get("progress", True))
+    t0 = time.perf_counter()
+    with workflow.ray_session(ev), tracker.run("discover", tags={"job": "discover", "method": method}) as run:
+        tracker.log_params(workflow._flat_config(cfg))
+        nominal_result: IdentificationResult | None = None
+        if nominal_mode == "ga":
+            with tracker.run("nominal", tags={"stage": "nominal"}, nested=True):
+                nominal_result = identify(record, method=method, ga=ga, seed=int(cfg.get("seed", 0)),
+                                          make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
+                                          settings=tier, polish=polish_cfg, identifiability=False,
+                                          progress=lambda total, desc: console.progress(total, desc, enabled=show),
+                                          on_stage=lambda st: workflow.stage_child_run(tracker, st, truth))
+                tracker.log_metrics({"fitness": nominal_result.fitness, "rmse_m": nominal_result.rmse_m,
+                                     "seconds": nominal_result.seconds})
+        nominal = nominal_result if nominal_result is not None else base_start
+        starts = [base_start] if nominal_result is not None else []
+
+        def on_refit(rf: Refit) -> None:
+            with tracker.run(f"refit_{rf.iteration}_{rf.name}", tags={"effect": rf.name,
+                                                                       "iteration": str(rf.iteration)}, nested=True):
+                tracker.log_params({"effect": rf.name, "iteration": rf.iteration,
+                                    **{f"start.{k}": v for k, v in (rf.search.get("best_grid") or {}).items()}})
+                tracker.log_metrics({"sse_before_m2": rf.sse0, "sse_after_m2": rf.sse1, "F": rf.F,
+                                     "p_value": rf.p_value, "delta_bic": rf.delta_bic, "accepted": float(rf.accepted),
+                                     "rmse_after_m": float(np.sqrt(rf.sse1 / record.n)) if np.isfinite(rf.sse1) else
+                                     float("nan"), "seconds": rf.seconds,
+                                     **{f"param.{k}": v for k, v in rf.params.items()}})
+
+        res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, reference=base_start,
+                       on_refit=on_refit,
+                       progress=(lambda msg: print(msg, flush=True)) if show else None)
+        wall = time.perf_counter() - t0
+        report = res.to_dict()
+        report.update({"job": "discover", "wall_seconds": wall, "mlflow_run_id": run.run_id,
+                       "config": workflow._jsonable_cfg(cfg), "nominal_mode": nominal_mode,
+                       "settings": asdict(settings)})
+        if truth is not None:
+            report["truth"] = {nm: float(truth[i]) for i, nm in enumerate(ALL_NAMES)}
+        tracker.log_metrics({"rmse_before_m": res.rmse_before_m, "rmse_after_m": res.rmse_after_m,
+                             "fitness_before": report["fitness_before"], "fitness_after": report["fitness_after"],
+                             "n_effects_added": len(res.effects_added), "wall_seconds": wall,
+                             "ljung_box_p_before": res.diagnostics_before.get("whiteness", {}).get("p_value", np.nan),
+                             "ljung_box_p_after": res.diagnostics_after.get("whiteness", {}).get("p_value", np.nan),
+                             **{f"score.{c['name']}": c["score"] for c in res.candidates}})
+        tracker.set_tags({"effects_added": ",".join(a["name"] for a in res.effects_added) or "none"})
+        for path in write_figures(run_dir, record, res, settings):
+            tracker.log_artifact(path, "figures")
+        path = workflow.publish_report(tracker, run_dir, summary_text(res), report, "discovery.json", "discovery.txt")
+    return path
+
+
+def _base_vector(cfg: Mapping) -> np.ndarray:
+    """Start of the baseline polish when no GA runs: the assigned values with ``discover.base`` overrides."""
+    theta = extend(P.ASSIGNED)[0]
+    for k, v in ((cfg.get("discover") or {}).get("base") or {}).items():
+        if k not in ALL_INDEX:
+            raise ConfigError(f"discover.base: unknown parameter {k!r}")
+        theta[ALL_INDEX[k]] = float(v)
+    return theta

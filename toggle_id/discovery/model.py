@@ -1,0 +1,272 @@
+"""The toggle plant as the discovery engine sees it: batched PRECISE simulations of one record, sensitivities in
+analysis coordinates, the range of the free parameters' sensitivities, and bounded least-squares fits."""
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..effects import ALL_INDEX, EFFECTS, Effect
+from ..errors import ConfigError, DataError
+from ..identify import stage_bounds
+from ..polish import polish
+from ..record import Record
+from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
+from .settings import DiscoverSettings
+
+
+class Model:
+    """Simulations of one record in the PRECISE tier: residuals, batched, with failures as NaN rows."""
+
+    def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True) -> None:
+        if record.x_B is None:
+            raise DataError(f"record {record.name!r} has no measured x_B to fit")
+        self.record = record
+        self.settings = settings
+        self.parallel = parallel
+        self.n_sims = 0
+
+    @property
+    def n(self) -> int:
+        return self.record.n
+
+    def outputs(self, thetas: np.ndarray) -> np.ndarray:
+        """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA); NaN rows for failures."""
+        thetas = np.atleast_2d(thetas)
+        self.n_sims += thetas.shape[0]
+        res = simulate(thetas, self.record, self.settings, parallel=self.parallel and thetas.shape[0] > 1)
+        x = res.x_B
+        x[res.status != STATUS_OK] = np.nan
+        return x
+
+    def residuals(self, thetas: np.ndarray) -> np.ndarray:
+        """(P, N) measured − model [m]."""
+        return self.record.x_B[None, :] - self.outputs(thetas)
+
+    def response(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """x_B [m], i_q [A] and the status of one vector."""
+        res = simulate(np.atleast_2d(theta), self.record, self.settings)
+        return res.x_B[0], res.i_q[0], int(res.status[0])
+
+
+def _sse(r: np.ndarray) -> np.ndarray:
+    r = np.atleast_2d(r)
+    s = np.einsum("ij,ij->i", r, r)
+    s[~np.isfinite(s)] = np.inf
+    return s
+
+
+def _typical(names: Sequence[str], theta: np.ndarray) -> np.ndarray:
+    """A typical magnitude per parameter: |value|, or for an effect parameter at 0 its probe size."""
+    out = np.abs(np.array([theta[ALL_INDEX[n]] for n in names], float))
+    probe_size: dict[str, float] = {}
+    for e in EFFECTS:
+        for pr in e.probe:
+            for k, v in pr.items():
+                off = next(p.off for p in e.params if p.name == k)
+                probe_size[k] = max(probe_size.get(k, 0.0), abs(float(v) - off))
+    for j, n in enumerate(names):
+        floor = probe_size.get(n, 0.0) or 1e-12
+        out[j] = max(out[j], floor)
+    return out
+
+
+def _coords(names: Sequence[str], theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Analysis coordinates of ``names`` at ``theta``: log for positive parameters with lower bound ≥ 0,
+    else u = x / scale. Returns (log_mask, scale)."""
+    lo, _ = stage_bounds(list(names))
+    x = np.array([theta[ALL_INDEX[n]] for n in names], float)
+    mask = (lo >= 0.0) & (x > 0.0)
+    return mask, _typical(names, theta)
+
+
+def sensitivities(model: Model, theta: np.ndarray, names: Sequence[str], rel_step: float = 1e-5) -> np.ndarray:
+    """Central-difference Jacobian (N, p) of the model output w.r.t. the analysis coordinates of ``names``
+    (see :func:`_coords`), one batched simulation. Columns whose simulation failed are zero."""
+    mask, scale = _coords(names, theta)
+    p = len(names)
+    T = np.repeat(theta[None, :], 2 * p, axis=0)
+    steps = np.empty(p)
+    for j, n in enumerate(names):
+        i = ALL_INDEX[n]
+        if mask[j]:
+            T[2 * j, i] = theta[i] * np.exp(rel_step)
+            T[2 * j + 1, i] = theta[i] * np.exp(-rel_step)
+            steps[j] = rel_step
+        else:
+            T[2 * j, i] = theta[i] + rel_step * scale[j]
+            T[2 * j + 1, i] = theta[i] - rel_step * scale[j]
+            steps[j] = rel_step
+    Y = model.outputs(T)
+    J = ((Y[0::2] - Y[1::2]) / (2.0 * steps[:, None])).T
+    J[:, ~np.all(np.isfinite(J), axis=0)] = 0.0
+    return J
+
+
+@dataclass
+class Projector:
+    """Orthonormal basis U of the range of J (rank by ``rank_rtol``) and its pseudo-inverse pieces."""
+
+    U: np.ndarray
+    s: np.ndarray
+    Vt: np.ndarray
+
+    @classmethod
+    def of(cls, J: np.ndarray, rank_rtol: float = 1e-7) -> Projector:
+        if J.size == 0:
+            return cls(np.zeros((J.shape[0], 0)), np.zeros(0), np.zeros((0, J.shape[1])))
+        U, s, Vt = np.linalg.svd(J, full_matrices=False)
+        k = int(np.sum(s > rank_rtol * s[0])) if s.size and s[0] > 0 else 0
+        return cls(U[:, :k], s[:k], Vt[:k])
+
+    @property
+    def rank(self) -> int:
+        return int(self.s.size)
+
+    def perp(self, v: np.ndarray) -> np.ndarray:
+        """(I − U Uᵀ) v for v (N,) or (P, N) rows."""
+        v = np.asarray(v, float)
+        if self.rank == 0:
+            return v.copy()
+        return v - (v @ self.U) @ self.U.T
+
+    def solve(self, r: np.ndarray) -> np.ndarray:
+        """Minimum-norm least-squares step δu with J δu ≈ r."""
+        if self.rank == 0:
+            return np.zeros(self.Vt.shape[1])
+        return self.Vt.T @ ((self.U.T @ r) / self.s)
+
+
+def _with(theta: np.ndarray, values: Mapping[str, float]) -> np.ndarray:
+    out = theta.copy()
+    for k, v in values.items():
+        out[ALL_INDEX[k]] = float(v)
+    return out
+
+
+def _off_values(effect: Effect) -> dict[str, float]:
+    return {p.name: p.off for p in effect.params}
+
+
+@dataclass
+class Fit:
+    """A fitted model: extended vector, free names, SSE on the whole record and the polish's record."""
+
+    theta: np.ndarray
+    free: tuple[str, ...]
+    sse: float
+    info: dict = field(default_factory=dict)
+    jac_u: np.ndarray | None = None
+    scaling: Any = None
+
+    def rmse(self, n: int) -> float:
+        return float(np.sqrt(self.sse / n))
+
+
+def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-4,
+             bounds: Mapping[str, Sequence[float]] | None = None, rounds: int = 1, round_rtol: float = 1e-4) -> Fit:
+    """Polish ``free`` parameters of ``theta`` on the whole record (PRECISE, bounded least squares in log
+    space for positive parameters). Keeps ``theta`` when nothing improves; never raises for a failed trial.
+
+    ``rounds`` > 1 restarts the polish from its result (a fresh trust region) while a round still lowers the
+    SSE by more than ``round_rtol`` (relative): the nominal parameters lie in long curved valleys (scaling
+    symmetries), where one trust-region run often stops early.
+    """
+    fit = _fit_once(model, theta, free, max_nfev, fd_rel_step, bounds)
+    info = dict(fit.info)
+    for _ in range(max(int(rounds), 1) - 1):
+        more = _fit_once(model, fit.theta, free, max_nfev, fd_rel_step, bounds)
+        gain = (fit.sse - more.sse) / fit.sse if fit.sse > 0 else 0.0
+        if more.sse < fit.sse:
+            info["nfev"] += more.info["nfev"]
+            info["seconds"] += more.info["seconds"]
+            info["sse_after"] = more.sse
+            info["message"] = more.info["message"]
+            info["rounds"] = info.get("rounds", 1) + 1
+            fit = more
+        if gain <= round_rtol:
+            break
+    fit.info = info
+    return fit
+
+
+def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float,
+              bounds: Mapping[str, Sequence[float]] | None) -> Fit:
+    free = tuple(free)
+    idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
+    lo, hi = stage_bounds(list(free), bounds)
+    x0 = np.clip(theta[idx].astype(float), lo, hi)
+    typ = _typical(free, theta)
+    mask = (lo >= 0.0) & (x0 > 0.0)
+    # a log parameter must start strictly inside its bounds
+    x0 = np.where(mask, np.clip(x0, lo + 1e-12 * typ, hi * (1 - 1e-12)), x0)
+
+    def thetas_of(X: np.ndarray) -> np.ndarray:
+        T = np.repeat(theta[None, :], X.shape[0], axis=0)
+        T[:, idx] = X
+        return T
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        return model.residuals(thetas_of(x[None, :]))[0]
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        h = fd_rel_step * np.maximum(np.abs(x), typ)
+        h = np.where(x + h > hi, -h, h)
+        X = np.repeat(x[None, :], len(free) + 1, axis=0)
+        X[1:] += np.diag(h)
+        Rr = model.residuals(thetas_of(X))
+        return (Rr[1:] - Rr[0]).T / h
+
+    t0 = time.perf_counter()
+    res = polish(resid, x0, lo, hi, log_mask=mask, jac_fn=jac, max_nfev=max_nfev)
+    out = thetas_of(res.x[None, :])[0]
+    info = {"sse_before": float(res.sse0), "sse_after": float(res.sse), "improved": bool(res.improved),
+            "nfev": int(res.nfev), "message": str(res.message), "seconds": time.perf_counter() - t0}
+    return Fit(out, free, float(res.sse), info, res.jac, res.scaling)
+
+
+def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, held: Sequence[str] = ()) -> dict:
+    """Identifiability report (:func:`toggle_id.identifiability.analyze`) of the free parameters at ``fit``:
+    standard errors, 95 % intervals and whether each parameter is determined by the record (a parameter
+    with a component along a null direction of the sensitivities is not, whatever its local curvature).
+
+    ``held``: parameters treated as known — one per exact symmetry fixed by :func:`gauge_fix` (the
+    symmetry's scale is then the reference's, and e.g. a friction torque is determined relative to it)."""
+    from ..identifiability import analyze
+
+    names = [nm for nm in fit.free if nm not in set(held)]
+    try:
+        J = sensitivities(model, fit.theta, names, settings.jac_rel_step)
+        r = model.residuals(fit.theta[None, :])[0]
+        mask, scale = _coords(names, fit.theta)
+        x = np.array([fit.theta[ALL_INDEX[nm]] for nm in names])
+        noise = settings.noise_std ** 2 if settings.noise_std else None
+        out = analyze(J, r, names, x, log_mask=mask, scale=scale, noise_var=noise).to_dict()
+        out["held_for_symmetries"] = list(held)
+        return out
+    except (ConfigError, DataError, np.linalg.LinAlgError, ValueError) as err:
+        return {"error": str(err)}
+
+
+def _std_errors(fit: Fit, names: Sequence[str], n: int) -> dict[str, float | None]:
+    """Gauss–Newton standard errors (physical units) of ``names`` from the polish's Jacobian (pseudo-inverse:
+    directions the data do not see are left out, so read them as lower bounds there)."""
+    if fit.jac_u is None or fit.scaling is None:
+        return {k: None for k in names}
+    J = np.asarray(fit.jac_u, float)
+    sigma2 = fit.sse / max(n - J.shape[1], 1)
+    try:
+        cov = sigma2 * np.linalg.pinv(J.T @ J, rcond=1e-12)
+    except np.linalg.LinAlgError:
+        return {k: None for k in names}
+    x = np.array([fit.theta[ALL_INDEX[k]] for k in fit.free])
+    dxdu = fit.scaling.dx_du(x)
+    out = {}
+    for k in names:
+        j = fit.free.index(k)
+        v = cov[j, j]
+        out[k] = float(np.sqrt(v) * abs(dxdu[j])) if np.isfinite(v) and v >= 0 else None
+    return out

@@ -1,0 +1,138 @@
+"""What the loop found, as JSON, console text and figures."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import params as P
+from .. import residuals as R
+from ..effects import ALL_INDEX, ALL_NAMES
+from ..plant import GEOMETRY
+from ..record import Record
+from ..simulate import PRECISE
+from .model import Fit, Model
+from .refit import Refit
+from .settings import DiscoverSettings
+
+
+@dataclass
+class DiscoveryResult:
+    """What the loop found: the model before and after, every candidate's score and refit, the diagnostics."""
+
+    record: str
+    n: int
+    baseline: Fit
+    final: Fit
+    effects_added: list[dict]
+    candidates: list[dict]
+    iterations: list[dict]
+    diagnostics_before: dict
+    diagnostics_after: dict
+    residual_before: np.ndarray
+    residual_after: np.ndarray
+    nominal: dict | None
+    conclusion: str
+    unexplained: bool
+    seconds: float
+    n_simulations: int
+    refits: list[Refit] = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def rmse_before_m(self) -> float:
+        return self.baseline.rmse(self.n)
+
+    @property
+    def rmse_after_m(self) -> float:
+        return self.final.rmse(self.n)
+
+    def to_dict(self) -> dict:
+        def params_of(fit: Fit) -> dict:
+            return {"physical": {nm: float(fit.theta[i]) for i, nm in enumerate(P.PARAM_NAMES)},
+                    "effects": {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]},
+                    "free": list(fit.free)}
+
+        return {"record": self.record, "n_samples": self.n,
+                "effects_added": self.effects_added, "candidates": self.candidates,
+                "rmse_before_m": self.rmse_before_m, "rmse_after_m": self.rmse_after_m,
+                "fitness_before": 1.0 / self.baseline.sse if self.baseline.sse > 0 else float("inf"),
+                "fitness_after": 1.0 / self.final.sse if self.final.sse > 0 else float("inf"),
+                "sse_before_m2": self.baseline.sse, "sse_after_m2": self.final.sse,
+                "params_before": params_of(self.baseline), "params_after": params_of(self.final),
+                "final_params": {**params_of(self.final)["physical"],
+                                 **{nm: float(self.final.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]}},
+                "residual_tests_before": self.diagnostics_before, "residual_tests_after": self.diagnostics_after,
+                "conclusion": self.conclusion, "unexplained": self.unexplained, "iterations": self.iterations,
+                "baseline_polish": self.baseline.info, "nominal": self.nominal, "seconds": self.seconds,
+                "n_simulations": self.n_simulations, **self.extra}
+
+
+def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings) -> str:
+    """One plain sentence (or two) on what was found and what is left."""
+    def tests(d: dict) -> str:
+        w = d.get("whiteness", {})
+        u = d.get("input_correlation", {})
+        return (f"Ljung–Box p = {w.get('p_value', float('nan')):.3g}, "
+                f"input-correlation p = {u.get('p_value', float('nan')):.3g} (level {s.alpha_diag:g})")
+
+    if added:
+        text = "added " + ", ".join(f"{a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.4g} "
+                                    f"{a['magnitude']['unit']})" for a in added)
+        text += f"; RMS error {before.get('rms_m', float('nan')) * 1e6:.4g} → {after.get('rms_m', float('nan')) * 1e6:.4g} µm."
+    else:
+        text = "no effect of the library is significant (F-test and BIC); the nominal model is kept."
+    if unexplained:
+        text += (" Residual structure remains that no effect of the library explains: " + tests(after) + ".")
+    else:
+        text += " The residual is consistent with white noise independent of the input: " + tests(after) + "."
+    return text
+
+
+def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings: DiscoverSettings) -> list[str]:
+    """Residual diagnostics before/after, residual against states and input, and the before/after comparison."""
+    from .. import figures
+
+    out = []
+    split = record.clamp_index(GEOMETRY.x_B_L)
+    t_split = float(record.t[split]) if 0 < split < record.n else None
+    model = Model(record, PRECISE, settings.parallel)
+    for label, fit, r in (("before", res.baseline, res.residual_before), ("after", res.final, res.residual_after)):
+        if not np.all(np.isfinite(r)):
+            continue
+        fig = R.diagnostics_figure(record.t, r, alpha=settings.alpha_diag, title=f"Residual diagnostics ({label})")
+        out.append(figures.save(fig, run_dir / f"residual_{label}.png"))
+        x, i_q, _ = model.response(fit.theta)
+        states = R.plant_states(record.t, x, i_q, x_off=float(fit.theta[ALL_INDEX["x_off"]]))
+        fig = R.states_figure(r, states, record.v_in, dt=record.dt, alpha=settings.alpha_diag,
+                              title=f"Residual against the states and the input ({label})")
+        out.append(figures.save(fig, run_dir / f"residual_states_{label}.png"))
+    if np.all(np.isfinite(res.residual_before)) and np.all(np.isfinite(res.residual_after)):
+        names = ", ".join(a["name"] for a in res.effects_added) or "no effect added"
+        fig = R.comparison_figure(record.t, {"before (nominal)": res.residual_before, f"after ({names})":
+                                             res.residual_after}, noise_std=settings.noise_std, split_time=t_split)
+        out.append(figures.save(fig, run_dir / "residual_before_after.png"))
+    return out
+
+
+def summary_text(res: DiscoveryResult) -> str:
+    """Console summary: candidate table (first iteration), effects added, RMS before/after, conclusion."""
+    from .. import console
+
+    rows = [[c["name"], c["score"], c["p_value"], "yes" if c["refitted"] else "", "yes" if c["accepted"] else "",
+             c["note"]] for c in res.candidates]
+    lines = [console.text_table(["effect", "score χ²(1)", "p", "refitted", "accepted", "note"], rows)]
+    for a in res.effects_added:
+        se = a["std_errors"].get(a["magnitude"]["name"])
+        lines.append(f"added {a['name']}: {a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
+                     f"{a['magnitude']['unit']}" + (f" ± {se:.2g}" if se else "") +
+                     f"  (F-test p {a['p_value']:.3g}, ΔBIC {a['delta_bic']:.4g})")
+        if "per_K_l" in a["magnitude"]:
+            lines.append(f"  a force-type magnitude: x_B fixes it only relative to the mechanism's common scale "
+                         f"({a['magnitude']['name']}/K_l = {a['magnitude']['per_K_l']:.5g} per N/m; at the "
+                         "reference scale above — fix one mechanical parameter, e.g. fixed.K_t, to pin it)")
+    lines.append(f"RMS error before {res.rmse_before_m * 1e6:.4g} µm, after {res.rmse_after_m * 1e6:.4g} µm; "
+                 f"{res.seconds:.1f} s, {res.n_simulations} simulations")
+    lines.append(res.conclusion)
+    return "\n".join(lines)

@@ -1,0 +1,234 @@
+"""Score tests and magnitude profiles of the candidate effects at a linearisation point."""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
+from ..identify import stage_bounds
+from .model import Model, Projector, _coords, _off_values, _sse, _with, sensitivities
+from .settings import DiscoverSettings
+
+
+@dataclass
+class CandidateScore:
+    """Score test of one effect at the current fit: the best probe, its χ²(1) statistic and p-value,
+    the first-order magnitude estimate (LM step) and why no test was possible (``note``)."""
+
+    name: str
+    score: float
+    p_value: float
+    probe: dict
+    magnitude_linear: float | None
+    sensitivity_norm_m: float
+    perp_ratio: float
+    note: str = ""
+    probes: list = field(default_factory=list)
+    profile_score: float = 0.0
+    profile_best: dict = field(default_factory=dict)
+    scout_rmse_m: float | None = None
+    profile_score_alt: float | None = None
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "score": self.score, "p_value": self.p_value, "probe": self.probe,
+                "magnitude_linear": self.magnitude_linear, "profile_score": self.profile_score,
+                "profile_best": self.profile_best, "scout_rmse_m": self.scout_rmse_m,
+                "profile_score_at_nominal_start": self.profile_score_alt, "sensitivity_norm_m": self.sensitivity_norm_m,
+                "perp_ratio": self.perp_ratio, "note": self.note}
+
+
+def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effects: Sequence[Effect],
+                     absorbed_ratio: float = 1e-4, y0: np.ndarray | None = None) -> list[CandidateScore]:
+    """Score test of every effect in ``effects`` (see the module docstring), sorted by score (best first).
+
+    ``theta``: current fit (the effects' parameters at their off values); ``r``: its residual (N,);
+    ``proj``: range of the free parameters' sensitivities; ``y0``: the model output at ``theta`` when the caller
+    has it. One batched simulation for all probes.
+    """
+    n = r.size
+    rp = proj.perp(r)
+    sigma2 = float(rp @ rp) / max(n - proj.rank, 1)  # = r·r/(N − rank) at a fitted point
+    if y0 is None:
+        y0 = model.outputs(theta[None, :])[0]
+    rows, owners = [], []
+    for e in effects:
+        base = _with(theta, _off_values(e))
+        for pr in e.probe:
+            rows.append(_with(base, pr))
+            owners.append((e, pr))
+    Y = model.outputs(np.array(rows)) if rows else np.zeros((0, n))
+    noise_floor = 1e-12 * np.sqrt(n)  # integrator round-off, m
+    per_effect: dict[str, list[CandidateScore]] = {}
+    for (e, pr), y in zip(owners, Y):
+        mag = e.magnitude
+        if not np.all(np.isfinite(y)):
+            cand = CandidateScore(e.name, 0.0, 1.0, dict(pr), None, float("nan"), 0.0, "probe simulation failed")
+        else:
+            s = y - y0
+            s_norm = float(np.linalg.norm(s))
+            sp = proj.perp(s)
+            sp_norm = float(np.linalg.norm(sp))
+            ratio = sp_norm / s_norm if s_norm > 0 else 0.0
+            if s_norm <= noise_floor:
+                cand = CandidateScore(e.name, 0.0, 1.0, dict(pr), None, s_norm, ratio,
+                                      "no output sensitivity on this record (term silent or not implemented)")
+            elif ratio < absorbed_ratio:
+                cand = CandidateScore(e.name, 0.0, 1.0, dict(pr), None, s_norm, ratio,
+                                      "absorbed by the free parameters (no direction of its own)")
+            else:
+                c = float(sp @ r) / (sp_norm ** 2)
+                score = float(sp @ r) ** 2 / (sigma2 * sp_norm ** 2) if sigma2 > 0 else 0.0
+                step = float(pr.get(mag.name, mag.off)) - mag.off
+                est = mag.off + c * step
+                note = "" if mag.lower <= est <= mag.upper else \
+                    "the score points outside the feasible domain (e.g. a negative friction)"
+                cand = CandidateScore(e.name, score, float(stats.chi2.sf(score, 1)), dict(pr), est, s_norm, ratio,
+                                      note)
+        per_effect.setdefault(e.name, []).append(cand)
+    best: dict[str, CandidateScore] = {}
+    for name, cands in per_effect.items():
+        top = max(cands, key=lambda c: c.score)
+        top.probes = [{"probe": c.probe, "score": c.score, "magnitude_linear": c.magnitude_linear, "note": c.note}
+                      for c in cands]
+        best[name] = top
+    return sorted(best.values(), key=lambda c: -c.score)
+
+
+def _magnitude_grid(effect: Effect, probe: Mapping[str, float], linear: float | None, points: int) -> np.ndarray:
+    """Magnitudes to try for ``effect`` at ``probe``'s nuisance setting: geometric on |m − off| from a tenth
+    of the probe step to the feasible bound, on each side the domain allows, plus the LM estimate."""
+    mag = effect.magnitude
+    step = abs(float(probe.get(mag.name, mag.off)) - mag.off) or 1e-12
+    vals = []
+    for sign, bound in ((1.0, mag.upper), (-1.0, mag.lower)):
+        room = (bound - mag.off) * sign
+        if room <= 0:
+            continue
+        lo_ = min(0.1 * step, 0.5 * room)
+        hi_ = 0.98 * room
+        vals.extend(mag.off + sign * np.geomspace(lo_, hi_, points))
+    if linear is not None and np.isfinite(linear):
+        vals.append(float(np.clip(linear, mag.lower, mag.upper)))
+    v = np.unique(np.array(vals, float))
+    return v[(v != mag.off) & (v >= mag.lower) & (v <= mag.upper)]
+
+
+@dataclass
+class Profile:
+    """The 1-D search of one effect: every probe's nuisance setting × a magnitude grid, each ranked by the
+    residual left after the linearised re-adjustment of the free parameters, ‖(I − UUᵀ)(y_meas − y(θ_m))‖².
+
+    ``score`` = (‖(I − UUᵀ) r‖² − min over the grid)/σ²: the nonlinear counterpart of the score test (equal to
+    it for a small effect that is linear in its magnitude, larger when the effect acts nonlinearly or the fit
+    absorbs it in a curved way). ``rows``/``residuals``: the best two grid vectors and their residuals."""
+
+    name: str
+    score: float
+    best: dict
+    rows: list
+    residuals: np.ndarray
+    perp_sse: list
+    n_grid: int
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return {"score": self.score, "best": self.best, "n_grid": self.n_grid, "perp_sse_m2": self.perp_sse,
+                "note": self.note}
+
+
+def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effect: Effect,
+                   cand: CandidateScore, points: int = 14) -> Profile:
+    """Grid search of ``effect`` at the current fit ``theta`` (residual ``r``) — see :class:`Profile`."""
+    base = _with(theta, _off_values(effect))
+    mag = effect.magnitude
+    rows, labels = [], []
+    lin = {json_key(s["probe"]): s.get("magnitude_linear") for s in cand.probes}
+    for pr in effect.probe:
+        for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points):
+            setting = dict(pr)
+            setting[mag.name] = float(m)
+            rows.append(_with(base, setting))
+            labels.append(setting)
+    n = r.size
+    rp = proj.perp(r)
+    ref = float(rp @ rp)
+    sigma2 = ref / max(n - proj.rank, 1)
+    if not rows:
+        return Profile(effect.name, 0.0, {}, [], np.zeros((0, n)), [], 0, "no grid")
+    Rr = model.residuals(np.array(rows))
+    ok = np.all(np.isfinite(Rr), axis=1)
+    perp = np.full(len(rows), np.inf)
+    if ok.any():
+        Pp = proj.perp(Rr[ok])
+        perp[ok] = np.einsum("ij,ij->i", Pp, Pp)
+    order = [int(i) for i in np.argsort(perp)[:2] if np.isfinite(perp[i])]
+    if not order:
+        return Profile(effect.name, 0.0, {}, [], np.zeros((0, n)), [], len(rows), "every grid simulation failed")
+    score = max(0.0, (ref - perp[order[0]]) / sigma2) if sigma2 > 0 else 0.0
+    return Profile(effect.name, float(score), {k: float(v) for k, v in labels[order[0]].items()},
+                   [rows[i] for i in order], Rr[order], [float(perp[i]) for i in order], len(rows))
+
+
+def refit_start(model: Model, theta: np.ndarray, free: Sequence[str], proj: Projector, prof: Profile
+                ) -> tuple[np.ndarray | None, dict]:
+    """Start of a refit from the profile's best two grid points, each with the free parameters as they are
+    and with the linear (minimum-norm) correction; the lowest actual SSE wins. Returns (start, info)."""
+    if not prof.rows:
+        return None, {"grid": prof.n_grid, "note": prof.note}
+    mask, scale = _coords(free, theta)
+    idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
+    lo, hi = stage_bounds(list(free))
+    starts = []
+    for row, res in zip(prof.rows, prof.residuals):
+        starts.append(row)
+        du = np.clip(proj.solve(res), -0.5, 0.5)
+        corrected = row.copy()
+        x = corrected[idx]
+        x = np.where(mask, x * np.exp(du), x + du * scale)
+        corrected[idx] = np.clip(x, lo, hi)
+        starts.append(corrected)
+    S = np.array(starts)
+    sse = _sse(model.residuals(S))
+    j = int(np.argmin(sse))
+    info = {"grid": prof.n_grid, "best_grid": prof.best, "grid_perp_sse_m2": prof.perp_sse[j // 2],
+            "start_sse_m2": float(sse[j]), "start_corrected": bool(j % 2)}
+    return (S[j] if np.isfinite(sse[j]) else None), info
+
+
+def json_key(d: Mapping[str, float]) -> tuple:
+    return tuple(sorted((k, round(float(v), 12)) for k, v in d.items()))
+
+
+@dataclass
+class Point:
+    """A linearisation point of one iteration: a parameter vector, its residual, the range of its
+    sensitivities, and the candidates' score tests and profiles there."""
+
+    label: str
+    theta: np.ndarray
+    proj: Projector
+    scores: dict
+    profiles: dict
+
+
+def assess(model: Model, label: str, theta: np.ndarray, free: Sequence[str], effects: Sequence[Effect],
+           settings: DiscoverSettings) -> Point | None:
+    """Score test and profile of every effect in ``effects`` at ``theta`` (free parameters ``free``); None when
+    ``theta`` cannot be simulated on the record."""
+    y0 = model.outputs(theta[None, :])[0]
+    if not np.all(np.isfinite(y0)):
+        return None
+    r = model.record.x_B - y0
+    J = sensitivities(model, theta, free, settings.jac_rel_step)
+    proj = Projector.of(J, settings.rank_rtol)
+    scores = score_candidates(model, theta, r, proj, effects, settings.absorbed_ratio, y0)
+    profiles = {c.name: profile_effect(model, theta, r, proj, EFFECTS_BY_NAME[c.name], c, settings.grid_points)
+                for c in scores if c.score > 0.0}
+    for c in scores:
+        if c.name in profiles:
+            c.profile_score = profiles[c.name].score
+            c.profile_best = profiles[c.name].best
+    return Point(label, theta, proj, {c.name: c for c in scores}, profiles)

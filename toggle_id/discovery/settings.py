@@ -1,0 +1,115 @@
+"""The numbers of the discovery loop a user may change (``discover`` node of conf/experiment/discover.yaml)."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..effects import EFFECTS_BY_NAME
+from ..errors import ConfigError
+
+
+@dataclass
+class DiscoverSettings:
+    """Numbers of the discovery loop a user may change (conf/experiment/discover.yaml, node ``discover``).
+
+    - top_k: candidates refitted per iteration (best scouts); alpha: level of the F-test an effect must pass
+      (BIC must improve too); max_effects: most effects added; candidates: effect names to consider (None: all).
+    - screen_alpha: a candidate is scouted only if its score or profile statistic at the polished fit exceeds
+      the χ²(1) quantile of this level (1: always).
+    - alpha_diag: level of the residual tests; acf_lags, ccf_lags, ccf_step: their lags (samples).
+    - baseline_nfev, refit_nfev, null_nfev, scout_nfev: polish budgets (residual evaluations) of the
+      baseline, a refit, the nominal re-polish guarding an acceptance, and a scout; rounds / refit_rounds:
+      restarts of the baseline and guard / refit polishes while they still improve.
+    - second_point: also linearise at the nominal start (see the module docstring); gauge: report the
+      representatives nearest the reference along the exact symmetries; grid_points: magnitudes per probe.
+    - hold_gauge: during the loop's polishes, hold one parameter per exact symmetry of x_B (K_l, K_i, m_C; see
+      :data:`GAUGE_HELD`) at its value — the same fits without the flat directions that stall the trust region
+      in long valleys; an effect that breaks a symmetry (``Effect.breaks``) frees its parameter again.
+    - fd_rel_step: relative forward-difference step of the polish Jacobian (1e-4: smaller steps drown in the
+      adaptive integrator's step-selection noise); jac_rel_step: (log-)step of the sensitivities J;
+      rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
+      as absorbed by the free parameters.
+    - noise_std: known measurement noise (m), only reported as rms/noise; parallel: threaded simulation batches.
+    """
+
+    top_k: int = 3
+    alpha: float = 1e-3
+    max_effects: int = 3
+    candidates: tuple[str, ...] | None = None
+    screen_alpha: float = 0.01
+    alpha_diag: float = 0.01
+    acf_lags: int = 20
+    ccf_lags: int = 50
+    ccf_step: int = 5
+    baseline_nfev: int = 60
+    refit_nfev: int = 40
+    null_nfev: int = 30
+    scout_nfev: int = 8
+    refit_rounds: int = 2
+    rounds: int = 3
+    second_point: bool = True
+    gauge: bool = True
+    hold_gauge: bool = True
+    grid_points: int = 10
+    fd_rel_step: float = 1e-4
+    jac_rel_step: float = 1e-4
+    rank_rtol: float = 1e-7
+    absorbed_ratio: float = 1e-4
+    noise_std: float | None = None
+    parallel: bool = True
+
+    def validate(self) -> DiscoverSettings:
+        """Raise ConfigError naming the first bad value; normalise ``candidates``."""
+        for name in ("alpha", "screen_alpha", "alpha_diag", "fd_rel_step", "jac_rel_step", "rank_rtol",
+                     "absorbed_ratio", "noise_std"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+                raise ConfigError(f"discover.{name} must be a number, got {v!r}")
+        if not isinstance(self.top_k, int) or self.top_k < 1:
+            raise ConfigError(f"discover.top_k must be a positive integer, got {self.top_k!r}")
+        if not 0.0 < float(self.alpha) < 1.0:
+            raise ConfigError(f"discover.alpha must lie in (0, 1), got {self.alpha!r}")
+        if not 0.0 < float(self.screen_alpha) <= 1.0:
+            raise ConfigError(f"discover.screen_alpha must lie in (0, 1], got {self.screen_alpha!r}")
+        if not 0.0 < float(self.alpha_diag) < 1.0:
+            raise ConfigError(f"discover.alpha_diag must lie in (0, 1), got {self.alpha_diag!r}")
+        if not isinstance(self.max_effects, int) or self.max_effects < 0:
+            raise ConfigError(f"discover.max_effects must be a non-negative integer, got {self.max_effects!r}")
+        for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "scout_nfev",
+                     "grid_points", "rounds", "refit_rounds"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ConfigError(f"discover.{name} must be a positive integer, got {v!r}")
+        for name in ("fd_rel_step", "jac_rel_step", "rank_rtol", "absorbed_ratio"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 < float(v) < 1.0):
+                raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
+        if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std > 0):
+            raise ConfigError(f"discover.noise_std must be a positive number of metres or null, got {self.noise_std!r}")
+        if self.candidates is not None:
+            if isinstance(self.candidates, str):
+                self.candidates = None if self.candidates == "all" else (self.candidates,)
+            if self.candidates is not None:
+                names = tuple(str(c) for c in self.candidates)
+                unknown = [c for c in names if c not in EFFECTS_BY_NAME]
+                if unknown:
+                    raise ConfigError(f"discover.candidates: unknown effect(s) {', '.join(unknown)}; "
+                                      f"known: {', '.join(EFFECTS_BY_NAME)}")
+                self.candidates = names
+        return self
+
+    @classmethod
+    def from_dict(cls, node: Mapping[str, Any] | None) -> DiscoverSettings:
+        """Settings from a config node; unknown keys are a ConfigError."""
+        node = dict(node or {})
+        known = {f for f in cls.__dataclass_fields__}
+        extra = sorted(set(node) - known - {"nominal", "base"})
+        if extra:
+            raise ConfigError(f"discover: unknown setting(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
+        kw = {k: v for k, v in node.items() if k in known}
+        if isinstance(kw.get("candidates"), (list, tuple)):
+            kw["candidates"] = tuple(kw["candidates"])
+        return cls(**kw).validate()
