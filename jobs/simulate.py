@@ -1,7 +1,10 @@
-"""`python -m jobs.simulate out=FILE.csv [sweep=simulation|experiment] [params.NAME=VALUE ...] [noise_m=SIGMA] [seed=N]`
+"""`python -m jobs.simulate out=FILE.csv [command=sweep|cycling] [sweep=simulation|experiment] [params.NAME=VALUE ...]
+[effects.NAME=VALUE ...] [noise_m=SIGMA] [noise_ar=RHO] [quantum_m=Q] [seed=N]`
 
-Simulates the plant (PRECISE tier) and writes a record in the CSV format of MODEL.md §8 (t, v_in, x_B, i_q);
-the last line of output is `report: <absolute path of the CSV>`.
+Simulates the plant (PRECISE tier) and writes a record in the CSV format of MODEL.md §8 (t, v_in, x_B, i_q):
+the paper's swept sine or the open/close cycling command (``command=cycling``), x_B with white or AR(1)
+Gaussian noise (``noise_ar``) and optionally quantised to an encoder's resolution (``quantum_m``). The last line
+of output is `report: <absolute path of the CSV>`.
 """
 from __future__ import annotations
 
@@ -23,10 +26,15 @@ def write_record(cfg: dict, cwd: str) -> Path:
     out = cfg.get("out")
     if not out or out == "???":
         raise ConfigError("out must name the CSV file to write (out=FILE.csv)")
-    data = {k: cfg[k] for k in ("sweep", "duration", "rate_hz", "params", "effects", "noise_m", "x_B0")}
+    keys = ("command", "sweep", "duration", "rate_hz", "params", "effects", "noise_m", "noise_ar", "quantum_m", "x_B0")
+    data = {k: cfg[k] for k in keys if k in cfg}
     data.update(source="simulated", noise_seed=cfg.get("seed", 0))
-    if not float(data["duration"]) > 0:
-        raise ConfigError(f"duration must be a positive time in seconds, got {data['duration']}")
+    try:
+        duration = float(data.get("duration", 5.0))
+    except (TypeError, ValueError):
+        duration = float("nan")
+    if not duration > 0:
+        raise ConfigError(f"duration must be a positive time in seconds, got {data.get('duration')}")
     record, _ = build_record(data)
     path = Path(out).expanduser()
     if not path.is_absolute():

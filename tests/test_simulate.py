@@ -190,3 +190,116 @@ def test_settings_reject_bad_values():
         SolverSettings(method="euler")
     with pytest.raises(ConfigError, match="tolerances"):
         SolverSettings(rtol=0.0)
+
+
+# ---------------------------------------------------------------------------------- synthetic-record options
+def _sim_data(**kw) -> dict:
+    """A simulated-record spec (conf/data/simulated.yaml) with ``kw`` overrides."""
+    return {"source": "simulated", "sweep": "simulation", "duration": 5.0, "noise_m": 1e-6, "noise_seed": 2016,
+            **kw}
+
+
+def test_white_noise_is_bit_identical_to_the_records_before_the_noise_options():
+    from toggle_id.workflow import build_record
+
+    rec, truth = build_record(_sim_data(duration=1.0))
+    ref = Record.from_sweep("simulation", 1.0)
+    old = simulate(truth[None], ref, PRECISE).x_B[0] + 1e-6 * np.random.default_rng(2016).standard_normal(ref.n)
+    assert np.array_equal(rec.x_B, old)
+    assert rec.meta["noise"] == {"model": "white", "sigma_m": 1e-6, "ar": 0.0, "quantum_m": 0.0}
+    assert rec.meta["command"]["kind"] == "sweep" and rec.sweep is not None
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.5, 0.9])
+def test_ar1_noise_has_its_lag_one_correlation_and_keeps_the_marginal_sigma(rho):
+    from toggle_id.record import ar1_noise
+
+    sigma, n = 2e-6, 400_000
+    e = ar1_noise(n, sigma, rho, np.random.default_rng(1))
+    r1 = np.corrcoef(e[:-1], e[1:])[0, 1]
+    assert r1 == pytest.approx(rho, abs=0.01)
+    assert np.std(e) == pytest.approx(sigma, rel=0.02 if rho < 0.9 else 0.04)
+    # stationary from the start: the first sample has the marginal spread over many draws
+    starts = np.array([ar1_noise(2, sigma, rho, np.random.default_rng(s))[0] for s in range(2000)])
+    assert np.std(starts) == pytest.approx(sigma, rel=0.06)
+
+
+def test_quantisation_rounds_the_noisy_record_to_multiples_of_the_quantum():
+    from toggle_id.workflow import build_record
+
+    q = 1e-6
+    rec, truth = build_record(_sim_data(duration=1.0, noise_m=0.0, quantum_m=q))
+    clean = simulate(truth[None], Record.from_sweep("simulation", 1.0), PRECISE).x_B[0]
+    k = rec.x_B / q
+    assert np.max(np.abs(k - np.round(k))) < 1e-6
+    assert np.max(np.abs(rec.x_B - clean)) <= 0.5 * q * (1 + 1e-9)
+    assert np.std(rec.x_B - clean) == pytest.approx(q / np.sqrt(12), rel=0.1)  # the quantisation error
+    noisy, _ = build_record(_sim_data(duration=1.0, noise_m=1e-6, noise_ar=0.5, quantum_m=q))
+    assert np.max(np.abs(noisy.x_B / q - np.round(noisy.x_B / q))) < 1e-6  # rounding after the noise
+    assert noisy.meta["noise"] == {"model": "ar1", "sigma_m": 1e-6, "ar": 0.5, "quantum_m": q}
+
+
+def test_cycling_command_opens_and_closes_within_its_voltage_limit():
+    from toggle_id.record import CYCLING
+    from toggle_id.workflow import build_record
+
+    rec, _ = build_record(_sim_data(command="cycling", noise_m=0.0))
+    assert rec.sweep is None and rec.name == "simulated_cycling" and rec.meta["command"]["kind"] == "cycling"
+    assert np.max(np.abs(rec.v_in)) <= 0.3 and rec.v_in[0] == 0.0 and CYCLING.v_max <= 0.3
+    assert rec.v_in.min() < 0 < rec.v_in.max()  # it opens as well as closes
+    x, x_L = rec.x_B, 0.056
+    clamped = x >= x_L
+    entries = np.flatnonzero(clamped[1:] & ~clamped[:-1])
+    exits = np.flatnonzero(~clamped[1:] & clamped[:-1])
+    assert len(entries) >= 3 and len(exits) >= 3, "the slider must reach the clamp and come back on several cycles"
+    per_cycle = [x[(rec.t >= k * CYCLING.period) & (rec.t < (k + 1) * CYCLING.period)].max() for k in range(4)]
+    assert sum(m < x_L for m in per_cycle) >= 1  # and one cycle stays short of it
+    assert 0.015 < x.min() and x.max() < 0.07
+
+
+def test_cycling_record_round_trips_through_csv_to_the_same_simulation(tmp_path):
+    """The cycling command is defined by its samples: the simulated record and the same record read back from
+    its CSV drive the simulator identically."""
+    from toggle_id.data import read_csv, write_csv
+    from toggle_id.workflow import build_record
+
+    rec, truth = build_record(_sim_data(command="cycling", duration=2.0, noise_m=0.0, effects={"tau_d": 1e-3}))
+    back = read_csv(write_csv(rec, tmp_path / "cyc.csv"))
+    assert np.array_equal(back.v_in, rec.v_in) and np.array_equal(back.x_B, rec.x_B) and back.sweep is None
+    again = simulate(truth[None], back, PRECISE)
+    assert again.status[0] == 0
+    np.testing.assert_array_equal(again.x_B[0], rec.x_B)
+
+
+@pytest.mark.parametrize("override,needle", [
+    ({"noise_ar": 1.0}, "data.noise_ar"), ({"noise_ar": -0.1}, "data.noise_ar"),
+    ({"noise_ar": "strong"}, "data.noise_ar"), ({"noise_ar": float("nan")}, "data.noise_ar"),
+    ({"quantum_m": -1e-6}, "data.quantum_m"), ({"quantum_m": float("inf")}, "data.quantum_m"),
+    ({"quantum_m": "fine"}, "data.quantum_m"), ({"command": "zigzag"}, "data.command"),
+    ({"noise_m": -1.0}, "data.noise_m"), ({"noise_seed": -3}, "data.noise_seed"),
+    ({"noise_seed": 1.5}, "data.noise_seed"), ({"duration": 0.0}, "duration"),
+])
+def test_bad_synthetic_record_options_are_one_line_config_errors(override, needle):
+    from toggle_id.workflow import build_record
+
+    with pytest.raises(ConfigError, match=needle) as info:
+        build_record(_sim_data(**override))
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.integration
+def test_simulate_job_writes_a_cycling_record_and_rejects_bad_noise_in_one_line(tmp_path):
+    from conftest import run_job
+
+    from toggle_id.data import read_csv
+
+    proc = run_job("jobs.simulate", "out=c.csv", "command=cycling", "duration=1.5", "noise_m=1e-6", "noise_ar=0.5",
+                   "quantum_m=1e-6", "seed=4", cwd=tmp_path, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rec = read_csv(tmp_path / "c.csv")
+    assert rec.n == 1501 and rec.v_in.min() < 0 < rec.v_in.max() and np.max(np.abs(rec.v_in)) <= 0.3
+    assert np.max(np.abs(rec.x_B / 1e-6 - np.round(rec.x_B / 1e-6))) < 1e-6
+    bad = run_job("jobs.simulate", "out=d.csv", "noise_ar=1.2", cwd=tmp_path, timeout=300)
+    lines = [ln for ln in bad.stderr.splitlines() if ln.strip()]
+    assert bad.returncode == 2 and len(lines) == 1 and "noise_ar" in lines[0], bad.stderr
+    assert not (tmp_path / "d.csv").exists()

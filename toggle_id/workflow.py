@@ -25,7 +25,7 @@ from .errors import ConfigError
 from .ga import GAConfig
 from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify, joint_plan
 from .plant import impulse_force
-from .record import SWEEPS, Record
+from .record import COMMANDS, CYCLING, SWEEPS, Record, measure
 from .simulate import PRECISE, TIERS, extend, simulate
 from .tracking import Tracker
 
@@ -56,8 +56,28 @@ def truth_vector(data: Mapping) -> np.ndarray:
     return theta
 
 
+def _number(data: Mapping, key: str, default: float) -> float:
+    """``data[key]`` as a float (``default`` when absent or null); one-line ConfigError otherwise."""
+    value = data.get(key, default)
+    if value is None:
+        value = default
+    if isinstance(value, bool):
+        raise ConfigError(f"data.{key} must be a number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"data.{key} must be a number, got {value!r}") from None
+
+
 def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
-    """The record a job works on and, for simulated records, the true extended parameter vector."""
+    """The record a job works on and, for simulated records, the true extended parameter vector.
+
+    A simulated record (``source: simulated``, conf/data/simulated.yaml) is driven by ``command``: ``sweep``
+    (the paper's swept sine named by ``sweep``, in continuous time) or ``cycling`` (the open/close cycling
+    command :data:`toggle_id.record.CYCLING`, defined by its samples). Its x_B is the PRECISE simulation of the
+    truth plus Gaussian noise of standard deviation ``noise_m`` — white, or AR(1) with lag-1 coefficient
+    ``noise_ar`` ∈ [0, 1) at the same marginal σ — rounded to multiples of ``quantum_m`` (an encoder; 0: off).
+    """
     source = data.get("source")
     if source == "joint":
         raise ConfigError("data=joint (several records) is for the identify job (python -m jobs.run "
@@ -69,25 +89,44 @@ def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
         return read_csv(path, x_B0=data.get("x_B0")), None
     if source != "simulated":
         raise ConfigError(f"unknown data.source {source!r}; known: simulated, csv")
+    command = data.get("command", "sweep") or "sweep"
+    if command not in COMMANDS:
+        raise ConfigError(f"unknown data.command {command!r}; known: {', '.join(COMMANDS)}")
     sweep = data.get("sweep", "simulation")
-    if sweep not in SWEEPS:
+    if command == "sweep" and sweep not in SWEEPS:
         raise ConfigError(f"unknown data.sweep {sweep!r}; known: {', '.join(SWEEPS)}")
-    noise = float(data.get("noise_m", 0.0))
+    noise = _number(data, "noise_m", 0.0)
     if not (np.isfinite(noise) and noise >= 0):
         raise ConfigError(f"data.noise_m must be a non-negative number, got {noise}")
+    rho = _number(data, "noise_ar", 0.0)
+    if not (np.isfinite(rho) and 0.0 <= rho < 1.0):
+        raise ConfigError(f"data.noise_ar must be an AR(1) coefficient in [0, 1), got {rho}")
+    quantum = _number(data, "quantum_m", 0.0)
+    if not (np.isfinite(quantum) and quantum >= 0):
+        raise ConfigError(f"data.quantum_m must be a non-negative number (m; 0: no quantisation), got {quantum}")
+    seed = data.get("noise_seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"data.noise_seed must be a non-negative integer, got {seed!r}")
+    duration, rate = _number(data, "duration", 5.0), _number(data, "rate_hz", 1000.0)
+    x_B0 = _number(data, "x_B0", 0.020)
     try:
-        rec = Record.from_sweep(sweep, float(data.get("duration", 5.0)), float(data.get("rate_hz", 1000.0)),
-                                x_B0=float(data.get("x_B0", 0.020)), name=f"simulated_{sweep}")
+        if command == "cycling":
+            rec = Record.from_cycling(CYCLING, duration, rate, x_B0=x_B0, name="simulated_cycling")
+        else:
+            rec = Record.from_sweep(sweep, duration, rate, x_B0=x_B0, name=f"simulated_{sweep}")
     except ValueError as err:
         raise ConfigError(f"data: {err}") from err
     theta = truth_vector(data)
     sim = simulate(theta[None, :], rec, PRECISE)
     if sim.status[0] != 0:
         raise ConfigError(f"the truth of data.params/effects cannot be simulated ({sim.status_counts()})")
-    rng = np.random.default_rng(int(data.get("noise_seed", 0)))
-    rec.x_B = sim.x_B[0] + noise * rng.standard_normal(rec.n)
+    rec.x_B = measure(sim.x_B[0], noise_m=noise, noise_ar=rho, quantum_m=quantum, seed=int(seed))
     rec.i_q = sim.i_q[0].copy()
-    rec.meta.update({"truth": {n: float(v) for n, v in zip(ALL_NAMES, theta)}, "noise_m": noise})
+    rec.meta.update({"truth": {n: float(v) for n, v in zip(ALL_NAMES, theta)}, "noise_m": noise,
+                     "noise": {"model": "none" if noise == 0 else "ar1" if rho > 0 else "white", "sigma_m": noise, "ar": rho,
+                               "quantum_m": quantum},
+                     "command": (CYCLING.to_dict() if command == "cycling" else
+                                 {"kind": "sweep", "sweep": sweep, **SWEEPS[sweep].__dict__})})
     return rec, theta
 
 
