@@ -3,6 +3,7 @@ command, and the measurement model of synthetic records (white or AR(1) Gaussian
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -92,7 +93,7 @@ class Cycling:
         for c in self.cycles:
             pts = c.breakpoints()
             times = [0.0] + [p[0] for p in pts] + [self.period]
-            if any(b - a < self.ramp for a, b in zip(times[:-1], times[1:])) or min(c.close_s, c.open_s) <= 0:
+            if any(b - a < self.ramp for a, b in pairwise(times)) or min(c.close_s, c.open_s) <= 0:
                 raise ValueError(f"cycle {c} has a segment shorter than the ramp ({self.ramp} s) or leaves the "
                                  f"period ({self.period} s)")
 
@@ -194,8 +195,8 @@ class Record:
         return cls(t=t, v_in=sweep(t), sweep=sweep, **kw)
 
     @classmethod
-    def from_cycling(cls, cycling: "Cycling | None" = None, duration: float = 5.0, rate_hz: float = 1000.0,
-                     **kw) -> "Record":
+    def from_cycling(cls, cycling: Cycling | None = None, duration: float = 5.0, rate_hz: float = 1000.0,
+                     **kw) -> Record:
         """An input-only record of an open/close cycling command (default :data:`CYCLING`), given by its samples
         (``sweep`` is None: the simulator interpolates them linearly, exactly as when read back from a CSV)."""
         cycling = CYCLING if cycling is None else cycling
