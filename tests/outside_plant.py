@@ -1,0 +1,210 @@
+"""An independent reference of the motor-toggle plant (MODEL.md §1–5) with effects the library does NOT have.
+
+Written from MODEL.md alone — scalar kinematics and inertia, M'(q) by the complex-step derivative of M(q),
+scipy's DOP853 with its own location of the contact instant — and shares no code with the compiled kernels
+(``toggle_id/_kernels.py``) or with ``toggle_id/plant.py``. It is used by the tests (``tests/test_outside_plant.py``
+checks it against :func:`toggle_id.simulate.simulate`) and by ``jobs/bench_adversarial.py`` to make records
+with physics outside the discovery library (``toggle_id/effects.py``):
+
+* **friction bump** (``bump=(F_b, x_c, w)``): an extra force on slider B localised on its stroke,
+  −F_b·exp(−((x_B − x_c)/w)²)·tanh(ẋ_B/ε) (N, m, m; ε = 1e-3 m/s as for the slider's Coulomb friction) — a
+  worn or dirty spot of the guide, felt only while B passes x_c;
+* **saturating torque constant** (``i_sat``, A): K_t,eff = K_t / √(1 + (i_q/i_sat)²), so the torque
+  K_t,eff·i_q tends to K_t·i_sat at high current (magnetic saturation of the motor); the back-EMF (λ_d) is
+  unchanged.
+
+Both are off by default (``bump=None``, ``i_sat=None``); then this is the nominal plant of MODEL.md.
+"""
+from __future__ import annotations
+
+import cmath
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+# MODEL.md §1 (pinned constants)
+R1 = R3 = 0.06
+R2 = 0.032
+R4 = 0.068
+R5 = 0.03
+H = 0.068
+PHI = 0.4899
+POLES = 4.0
+Z = 2.0 * math.pi * 1.0 / 0.01
+G = 9.81
+X_B_L = 0.056
+X_B0 = 0.020
+EPS = 1e-3
+
+#: MODEL.md §6 order of the 15 physical parameters
+NAMES = ("B_m", "D", "J_m", "K_i", "K_l", "K_t", "L_q", "R_s", "m_2", "m_3", "m_5", "m_B", "m_C", "mu", "lambda_d")
+
+
+class OutOfRange(Exception):
+    """The mechanism left its assembly range (|sin θ5| ≥ 1 or x_B ≤ 0): a failed simulation (MODEL.md §6)."""
+
+
+def _kin(q, lib):
+    """x_B, x_C, x_B', x_C', θ2', θ5', sin θ2, sin θ5 at q (MODEL.md §2); ``lib`` is math or cmath."""
+    s1, c1 = lib.sin(q), lib.cos(q)
+    sp, cp = lib.sin(q + PHI), lib.cos(q + PHI)
+    sin2 = -R1 * s1 / R3
+    cos2 = lib.sqrt(1.0 - sin2 * sin2)
+    sin5 = (H - R4 * sp) / R5
+    cos5 = lib.sqrt(1.0 - sin5 * sin5)
+    d2 = -R1 * c1 / (R3 * cos2)
+    d5 = -R4 * cp / (R5 * cos5)
+    x_B = R1 * c1 + R3 * cos2
+    x_C = R4 * cp + R5 * cos5
+    dx_B = -R1 * s1 - R3 * sin2 * d2
+    dx_C = -R4 * sp - R5 * sin5 * d5
+    return x_B, x_C, dx_B, dx_C, d2, d5, s1, c1, sp, cp, sin5
+
+
+def _mass(q, p, lib=math):
+    """M(q) of MODEL.md §3 (kg·m²); with ``lib=cmath`` it accepts a complex q (complex-step derivative)."""
+    _, _, dx_B, dx_C, d2, d5, s1, c1, sp, cp, _ = _kin(q, lib)
+    g3x, g3y = 0.5 * (-R1 * s1 + dx_B), 0.5 * R1 * c1
+    g5x, g5y = 0.5 * (-R4 * sp + dx_C), 0.5 * R4 * cp
+    return (p["m_2"] * R2 ** 2
+            + p["m_3"] * (g3x * g3x + g3y * g3y + R3 ** 2 / 12.0 * d2 * d2)
+            + p["m_5"] * (g5x * g5x + g5y * g5y + R5 ** 2 / 12.0 * d5 * d5)
+            + p["m_B"] * dx_B * dx_B
+            + (p["m_C"] + p["J_m"] * Z * Z) * dx_C * dx_C)
+
+
+def _dmass(q, p, h=1e-20):
+    """M'(q) by the complex-step derivative (exact to rounding)."""
+    return _mass(complex(q, h), p, cmath).imag / h
+
+
+def x_B_of_q(q):
+    return R1 * np.cos(q) + R3 * np.sqrt(1.0 - (R1 * np.sin(q) / R3) ** 2)
+
+
+@dataclass(frozen=True)
+class Outside:
+    """Effects outside the library (both off by default): ``bump = (F_b N, x_c m, w m)``, ``i_sat`` A."""
+
+    bump: tuple[float, float, float] | None = None
+    i_sat: float | None = None
+
+    def to_dict(self) -> dict:
+        out: dict = {}
+        if self.bump is not None:
+            out["friction_bump"] = dict(zip(("F_b", "x_c", "w"), map(float, self.bump)))
+        if self.i_sat is not None:
+            out["saturating_torque_constant"] = {"i_sat": float(self.i_sat)}
+        return out
+
+
+class Plant:
+    """The plant of MODEL.md for one parameter vector (15 values, MODEL.md §6 order or a name → value mapping)
+    and one command ``v_in(t)`` (V), with the :class:`Outside` effects."""
+
+    def __init__(self, theta, v_in: Callable[[float], float], outside: Outside = Outside()) -> None:
+        if isinstance(theta, dict):
+            self.p = {n: float(theta[n]) for n in NAMES}
+        else:
+            self.p = {n: float(v) for n, v in zip(NAMES, np.asarray(theta, float)[:15])}
+        self.v_in = v_in
+        self.out = outside
+
+    def torque_constant(self, i_q: float) -> float:
+        if self.out.i_sat is None:
+            return self.p["K_t"]
+        return self.p["K_t"] / math.sqrt(1.0 + (i_q / self.out.i_sat) ** 2)
+
+    def rhs(self, t: float, y, contact: int):
+        p = self.p
+        q, w, i_q = float(y[0]), float(y[1]), float(y[2])
+        sin5 = (H - R4 * math.sin(q + PHI)) / R5
+        if abs(sin5) >= 1.0 or abs(R1 * math.sin(q) / R3) >= 1.0:
+            raise OutOfRange(f"link 5 cannot be assembled at t = {t:.6g} s")
+        x_B, _, dx_B, dx_C, *_ = _kin(q, math)
+        if x_B <= 0.0:
+            raise OutOfRange(f"x_B = {x_B:.6g} m at t = {t:.6g} s")
+        vB, vC = dx_B * w, dx_C * w
+        F_C = Z * self.torque_constant(i_q) * i_q - Z * Z * p["B_m"] * vC
+        F_f = -p["mu"] * p["m_B"] * G * math.tanh(vB / EPS)
+        if self.out.bump is not None:
+            F_b, x_c, width = self.out.bump
+            F_f -= F_b * math.exp(-((x_B - x_c) / width) ** 2) * math.tanh(vB / EPS)
+        F_i = p["K_l"] * (x_B - X_B_L) + p["D"] * vB if contact else 0.0
+        Q = F_C * dx_C + (F_f - F_i) * dx_B
+        wdot = (Q - 0.5 * _dmass(q, p) * w * w) / _mass(q, p)
+        idot = (p["K_i"] * self.v_in(t) - p["R_s"] * i_q - POLES * p["lambda_d"] * Z * vC) / p["L_q"]
+        return [w, wdot, idot]
+
+    def run(self, t_out: np.ndarray, rtol: float = 1e-11, atol=(1e-13, 1e-10, 1e-8), max_step: float = 1e-3,
+            x_B0: float = X_B0) -> tuple[np.ndarray, np.ndarray, dict]:
+        """x_B (m) and i_q (A) at the samples ``t_out`` and a summary (contacts, steps, status). A failure
+        (out of the assembly range, or the integrator gives up) leaves NaN from there on and ``status != 0``."""
+        q_L = math.acos(X_B_L / (R1 + R3))  # contact iff q ≤ q_L
+        y = np.array([math.acos(x_B0 / (R1 + R3)), 0.0, 0.0])
+        t, contact = float(t_out[0]), int(x_B0 >= X_B_L)
+        x = np.full(t_out.shape, np.nan)
+        i = np.full(t_out.shape, np.nan)
+        info = {"contacts": 0, "releases": 0, "steps": 0, "status": 0, "message": ""}
+
+        def event(tt, yy, _contact):  # x_B crosses x_B^L
+            return yy[0] - q_L
+
+        event.terminal = True
+        while t < t_out[-1] - 1e-12:
+            event.direction = -1 if contact == 0 else 1
+            try:
+                sol = solve_ivp(self.rhs, (t, float(t_out[-1])), y, method="DOP853", args=(contact,),
+                                rtol=rtol, atol=atol, events=event, dense_output=True, max_step=max_step)
+            except OutOfRange as err:
+                info.update(status=1, message=str(err))
+                break
+            info["steps"] += int(sol.t.size - 1)
+            sel = (t_out >= t - 1e-12) & (t_out <= sol.t[-1] + 1e-12)
+            if np.any(sel):
+                Y = sol.sol(t_out[sel])
+                x[sel] = x_B_of_q(Y[0])
+                i[sel] = Y[2]
+            if sol.status == -1:
+                info.update(status=2, message=sol.message)
+                break
+            t, y = float(sol.t[-1]), sol.y[:, -1].copy()
+            if sol.status == 1:  # the contact switched
+                info["contacts" if contact == 0 else "releases"] += 1
+                contact = 1 - contact
+        if info["status"]:
+            bad = ~np.isfinite(x)
+            x[bad] = np.nan
+            i[bad] = np.nan
+        return x, i, info
+
+
+def command_of(record) -> Callable[[float], float]:
+    """The record's v_in(t) as MODEL.md §5 defines it: the swept sine in continuous time, or the samples
+    interpolated linearly (held at the ends; 0 V before the record starts)."""
+    if record.sweep is not None:
+        sw = record.sweep
+        return lambda t: float(sw(t))
+    tt, vv = np.asarray(record.t, float), np.asarray(record.v_in, float)
+    t0, dt, n = float(tt[0]), float(tt[1] - tt[0]), tt.size
+
+    def v(t: float) -> float:
+        u = (t - t0) / dt
+        k = math.floor(u)
+        if k < 0:
+            return float(vv[0]) if t >= t0 - 1e-12 else 0.0
+        if k >= n - 1:
+            return float(vv[-1])
+        f = u - k
+        return float(vv[k] + f * (vv[k + 1] - vv[k]))
+
+    return v
+
+
+def simulate_outside(theta, record, outside: Outside = Outside(), **kw) -> tuple[np.ndarray, np.ndarray, dict]:
+    """x_B, i_q and the summary of :meth:`Plant.run` for ``theta`` (15 physical parameters) on ``record``."""
+    plant = Plant(theta, command_of(record), outside)
+    return plant.run(np.asarray(record.t, float), x_B0=float(record.x_B0), **kw)

@@ -1,0 +1,72 @@
+"""The independent scipy plant of tests/outside_plant.py: with its outside-the-library effects off it is the
+project's simulator (PRECISE tier) to far below the 1-µm encoder resolution; each effect moves x_B clearly."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from outside_plant import Outside, _dmass, _mass, simulate_outside
+
+from toggle_id.params import ASSIGNED, INDEX
+from toggle_id.plant import mass_matrix, mass_matrix_derivative
+from toggle_id.record import Record
+from toggle_id.simulate import PRECISE, extend, simulate
+
+
+@pytest.fixture(scope="module")
+def paper():
+    """The paper's record (Table 1 sweep, 5 s): the reference's and the kernel's x_B, i_q with nothing added."""
+    rec = Record.from_sweep("simulation", 5.0)
+    x, i, info = simulate_outside(ASSIGNED, rec)
+    return rec, x, i, info
+
+
+def test_inertia_agrees_with_the_plant_module():
+    p = {n: ASSIGNED[k] for n, k in INDEX.items()}
+    for q in np.linspace(0.9, 1.45, 7):
+        assert _mass(q, p) == pytest.approx(float(mass_matrix(q, ASSIGNED)), rel=1e-13)
+        assert _dmass(q, p) == pytest.approx(float(mass_matrix_derivative(q, ASSIGNED)), rel=1e-7)
+
+
+def test_without_its_effects_it_is_the_projects_simulator_on_the_papers_record(paper):
+    rec, x, i, info = paper
+    assert info["status"] == 0 and info["contacts"] == 1
+    sim = simulate(extend(ASSIGNED), rec, PRECISE)
+    assert sim.status[0] == 0
+    assert np.max(np.abs(x - sim.x_B[0])) < 1e-9  # m: a thousandth of the encoder's micrometre
+    assert np.max(np.abs(i - sim.i_q[0])) < 1e-6 * np.ptp(sim.i_q[0])
+    assert abs(rec.t[np.argmax(x >= 0.056)] - rec.t[np.argmax(sim.x_B[0] >= 0.056)]) == 0.0
+
+
+def test_without_its_effects_it_is_the_projects_simulator_on_the_cycling_command():
+    """The sampled command (linear interpolation) with several contacts and releases."""
+    rec = Record.from_cycling(duration=5.0)
+    theta = ASSIGNED * np.exp(0.1 * np.random.default_rng(3).standard_normal(ASSIGNED.size))
+    x, _, info = simulate_outside(theta, rec)
+    assert info["status"] == 0 and info["contacts"] >= 3 and info["releases"] >= 3
+    sim = simulate(extend(theta), rec, PRECISE)
+    assert sim.status[0] == 0
+    assert np.max(np.abs(x - sim.x_B[0])) < 2e-8
+
+
+def test_each_outside_effect_moves_x_B_clearly_and_vanishes_when_off(paper):
+    rec, x0, _, _ = paper
+    bump, _, info_b = simulate_outside(ASSIGNED, rec, Outside(bump=(50.0, 0.040, 0.003)))
+    sat, _, info_s = simulate_outside(ASSIGNED, rec, Outside(i_sat=2000.0))
+    assert info_b["status"] == info_s["status"] == 0
+    assert np.max(np.abs(bump - x0)) > 5e-6  # the slider is slowed where it passes x_c …
+    before = rec.t < rec.t[np.argmax(x0 >= 0.028)]  # 4 widths from x_c
+    assert np.max(np.abs(bump - x0)[before]) < 1e-9  # … and not before it gets near
+    assert np.max(np.abs(sat - x0)) > 1e-5  # less clamping force at the ~350-A stall current
+    free = rec.t < rec.t[np.argmax(x0 >= 0.05)]
+    assert np.max(np.abs(sat - x0)[free]) < 0.1 * np.max(np.abs(sat - x0))  # the free motion draws less current
+    off, _, _ = simulate_outside(ASSIGNED, rec, Outside(bump=(0.0, 0.040, 0.003), i_sat=1e12))
+    assert np.max(np.abs(off - x0)) < 1e-12
+
+
+def test_leaving_the_assembly_range_is_a_failed_simulation():
+    rec = Record.from_cycling(duration=2.0)
+    theta = ASSIGNED.copy()
+    theta[INDEX["K_i"]] *= 4.0  # opens far beyond x_B = 0
+    x, i, info = simulate_outside(theta, rec)
+    assert info["status"] == 1 and "x_B" in info["message"]
+    assert np.isnan(x[-1]) and np.isnan(i[-1]) and np.isfinite(x[0])
