@@ -1,49 +1,71 @@
 """The EMPS job: identify the electro-mechanical positioning system benchmark from its measured record.
 
 ``python -m jobs.run +experiment=emps`` composes ``conf/experiment/emps.yaml`` and calls :func:`run_emps` with the
-plain configuration. The job validates its settings and loads the record(s) before any work starts, runs the
-output-error effect-discovery loop (:func:`toggle_id.emps.run_emps_loop`: nominal M, Fv fit, then Coulomb friction,
-offset, Stribeck, asymmetry as the data support them), analyses the identifiability of the final model
-(:func:`toggle_id.identifiability.analyze`), compares M, Fv, Fc and offset with the benchmark's published IDIM-LS
-values, logs everything to MLflow (parent run ``emps``, one child run per fit), draws the figures, prints a short
-table and writes ``result.json`` atomically into the run directory; it returns that path. This module never
-imports Hydra, and it needs neither the GA nor Ray.
+plain configuration. The job validates its settings, finds the benchmark's records where the user has them
+(``emps.data_dir``, else ``$TOGGLE_ID_EMPS_DIR``, then the official loader's cache ``~/.nonlinear_benchmarks/EMPS/``;
+each file checked by its sha256) or takes the user's own file (``emps.path``), and loads them before any work
+starts. It then runs the output-error effect-discovery loop on the estimation record
+(:func:`toggle_id.emps.run_emps_loop`: nominal M, Fv fit, then Coulomb friction, offset, Stribeck, asymmetry as the
+data support them), analyses the identifiability of the final model (:func:`toggle_id.identifiability.analyze`),
+compares M, Fv, Fc and offset with the benchmark's published IDIM-LS values, predicts the validation record
+(``DATA_EMPS_PULSES.mat``, its pulses entering at the controller output; nothing is fitted on it), logs everything
+to MLflow (parent run ``emps``, one child run per fit), draws the figures, prints a short table and writes
+``result.json`` atomically into the run directory; it returns that path. This module never imports Hydra, and it
+needs neither the GA nor Ray. Its heavy imports (numba, matplotlib, MLflow) wait until the records are found.
 """
 from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
-from . import console, figures
-from .emps import EFFECTS, PUBLISHED, EmpsRecord, idim_ls, load_emps_csv, load_emps_mat, run_emps_loop, simulate_emps
-from .emps.fit import SOLVERS, make_jacobian, make_residual
-from .emps.idim import filtered_derivatives
-from .emps.model import INDEX, LOWER, PARAMS, PUBLISHED_THETA, UPPER, friction_force, theta_from_dict
+from .emps.data import (
+    ESTIMATION_FILE,
+    SHA256,
+    VALIDATION_FILE,
+    EmpsRecord,
+    find_benchmark_file,
+    find_benchmark_files,
+    not_found_message,
+    sha256_of,
+)
 from .errors import ConfigError, DataError
-from .tracking import Tracker
-from .workflow import _get, publish_report
 
-#: Repository root (the checkout holding the ``toggle_id`` package).
-REPO_ROOT = Path(__file__).resolve().parents[1]
-#: Default estimation record: the shared copy beside the checkout (see ../shared/data/emps/README.md).
-DEFAULT_RECORD = REPO_ROOT.parent / "shared" / "data" / "emps" / "emps_estimation.csv"
+if TYPE_CHECKING:
+    from .tracking import Tracker
+
 #: Parameters that may be zero or negative: analysed in affine (not log) coordinates.
 SIGNED_PARAMS = frozenset({"offset", "Fs", "Fc_asym", "Fv_asym"})
 #: The published (IDIM-LS, symmetric model) parameters compared in the report and the console table.
 COMPARED = ("M", "Fv", "Fc", "offset")
 #: Keys of the ``emps`` config node and their defaults (also used when run_emps is called from Python).
 EMPS_DEFAULTS: dict[str, Any] = {
-    "path": None, "samples": None, "candidates": None, "alpha": 0.01, "max_effects": None, "max_corr": 0.99,
-    "solver": "polish", "max_nfev": 50, "reference_fit": True,
-    "sim": {"eps": 1e-4, "h_lambda": 0.5, "n_sub_max": 5000, "pulse_sign": 1.0},
+    "data_dir": None, "path": None, "validate": True, "samples": None, "candidates": None, "alpha": 0.01,
+    "max_effects": None, "max_corr": 0.99, "solver": "polish", "max_nfev": 50, "reference_fit": True,
+    "sim": {"eps": 1e-4, "h_lambda": 0.5, "n_sub_max": 5000, "pulse_gain": 1.0},
 }
-_UNITS = {p.name: p.unit for p in PARAMS}
+
+
+def _units() -> dict[str, str]:
+    from .emps.model import PARAMS
+
+    return {p.name: p.unit for p in PARAMS}
+
+
+def _get(cfg: Mapping, path: str, default: Any = None) -> Any:
+    """``cfg`` at the dotted ``path``, ``default`` where a key is missing."""
+    node: Any = cfg
+    for key in path.split("."):
+        if not isinstance(node, Mapping) or key not in node:
+            return default
+        node = node[key]
+    return node
 
 
 # ------------------------------------------------------------------------------------------ configuration
@@ -51,7 +73,9 @@ _UNITS = {p.name: p.unit for p in PARAMS}
 class EmpsJobSettings:
     """Validated settings of the EMPS job (see conf/experiment/emps.yaml for the meaning of each)."""
 
-    path: Path
+    path: Path | None
+    data_dir: Path | None
+    validate: bool
     samples: int | None
     candidates: tuple[str, ...]
     alpha: float
@@ -92,7 +116,8 @@ def _resolve(path: Any, project_root: str | Path, what: str) -> Path:
 
 def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettings:
     """Validate the ``emps``, ``validation`` and ``identifiability`` nodes; raise ConfigError (one line) on the
-    first problem. Relative paths are taken relative to ``project_root`` (the directory the job was started in)."""
+    first problem. Relative paths are taken relative to ``project_root`` (the directory the job was started in);
+    a configured ``emps.data_dir`` must be a directory."""
     node = dict(EMPS_DEFAULTS)
     given = cfg.get("emps") or {}
     if not isinstance(given, Mapping):
@@ -108,12 +133,20 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
         raise ConfigError(f"emps.sim: unknown setting(s) {unknown}; known: {sorted(sim)}")
     sim.update(sim_given)
 
-    path = DEFAULT_RECORD if node["path"] is None else _resolve(node["path"], project_root, "emps.path")
+    path = None if node["path"] in (None, "") else _resolve(node["path"], project_root, "emps.path")
+    data_dir = None if node["data_dir"] in (None, "") else _resolve(node["data_dir"], project_root, "emps.data_dir")
+    if data_dir is not None and not data_dir.is_dir():
+        raise ConfigError(f"emps.data_dir={data_dir} is not a directory")
+    if not isinstance(node["validate"], bool):
+        raise ConfigError(f"emps.validate must be true or false, got {node['validate']!r}")
     samples = node["samples"]
     if samples is not None:
         samples = _number("emps.samples", samples, integer=True)
         if samples < 10:
             raise ConfigError(f"emps.samples must be null (all) or at least 10, got {samples}")
+    from .emps.fit import SOLVERS
+    from .emps.model import EFFECTS
+
     cands = node["candidates"]
     if cands is None:
         cands = list(EFFECTS)
@@ -142,7 +175,7 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
         raise ConfigError(f"emps.max_nfev must be >= 1, got {max_nfev}")
     sim_opts = {"eps": _number("emps.sim.eps", sim["eps"]), "h_lambda": _number("emps.sim.h_lambda", sim["h_lambda"]),
                 "n_sub_max": _number("emps.sim.n_sub_max", sim["n_sub_max"], integer=True),
-                "pulse_sign": _number("emps.sim.pulse_sign", sim["pulse_sign"])}
+                "pulse_gain": _number("emps.sim.pulse_gain", sim["pulse_gain"])}
     if sim_opts["eps"] <= 0 or sim_opts["h_lambda"] <= 0 or sim_opts["n_sub_max"] < 2:
         raise ConfigError(f"emps.sim needs eps > 0, h_lambda > 0 and n_sub_max >= 2, got {sim_opts}")
 
@@ -156,7 +189,7 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     tracking = cfg.get("tracking") or {}
     if not isinstance(tracking, Mapping):
         raise ConfigError(f"tracking must be a mapping, got {tracking!r}")
-    return EmpsJobSettings(path=path, samples=samples, candidates=tuple(cands), alpha=alpha,
+    return EmpsJobSettings(path=path, data_dir=data_dir, validate=node["validate"], samples=samples, candidates=tuple(cands), alpha=alpha,
                            max_effects=max_effects, max_corr=max_corr, solver=node["solver"], max_nfev=max_nfev,
                            reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
                            identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise)
@@ -164,6 +197,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
 
 def load_record(path: str | Path) -> EmpsRecord:
     """An EMPS record from a benchmark ``.mat`` or a ``.csv`` (t, vir, qm, qg[, pulses_N]); DataError otherwise."""
+    from .emps.data import load_emps_csv, load_emps_mat
+
     path = Path(path)
     if not path.is_file():
         raise DataError(f"EMPS record not found: {path}")
@@ -175,6 +210,53 @@ def load_record(path: str | Path) -> EmpsRecord:
     raise DataError(f"EMPS record {path.name}: unknown format {suffix!r}; expected .mat or .csv")
 
 
+def _user_file(path: Path, option: str) -> dict:
+    """Description of a file the user named (``emps.path`` / ``validation.path``): no hash is required, but one
+    that matches a benchmark file says so."""
+    if not path.is_file():
+        raise DataError(f"EMPS record not found: {path} ({option})")
+    digest = sha256_of(path)
+    same = [name for name, h in SHA256.items() if h == digest]
+    return {"file": path.name, "path": str(path), "found_in": option, "sha256": digest,
+            "sha256_verified": bool(same), "benchmark_file": same[0] if same else None}
+
+
+def locate_records(st: EmpsJobSettings, env: Mapping[str, str] | None = None) -> dict:
+    """Where the estimation and validation records come from, before anything is loaded.
+
+    Returns ``{"estimation": {file, path, found_in, sha256, sha256_verified, ...}, "validation": {...} or
+    {"skipped": reason}}``. Without ``emps.path`` the benchmark's files are looked up
+    (:func:`toggle_id.emps.data.find_benchmark_files`: a one-line DataError names the files, their source, the
+    citation and where to put them when the estimation file is nowhere; a wrong sha256 is one line too). The
+    validation record is ``validation.path`` when given; otherwise the benchmark's ``DATA_EMPS_PULSES.mat`` when the
+    estimation record is the benchmark's (found, or ``emps.path`` with the benchmark's hash: looked for beside it
+    first); ``emps.validate=false`` skips validation.
+    """
+    env = os.environ if env is None else env
+    if st.path is None:
+        files = find_benchmark_files(st.data_dir, env)
+        est = files.estimation.to_dict()
+        bench_val = files.validation
+    else:
+        est = _user_file(st.path, "emps.path")
+        bench_val = None
+        if est["benchmark_file"] == ESTIMATION_FILE and st.validate and st.validation_path is None:
+            beside = st.path.parent / VALIDATION_FILE
+            bench_val = (find_benchmark_file(VALIDATION_FILE, st.path.parent, {}) if beside.is_file()
+                         else find_benchmark_file(VALIDATION_FILE, st.data_dir, env))
+    if not st.validate:
+        val: dict = {"skipped": "emps.validate=false"}
+    elif st.validation_path is not None:
+        val = _user_file(st.validation_path, "validation.path")
+    elif bench_val is not None:
+        val = bench_val.to_dict()
+    elif st.path is None or est.get("benchmark_file") == ESTIMATION_FILE:
+        val = {"skipped": not_found_message([VALIDATION_FILE], st.data_dir, env)}
+    else:
+        val = {"skipped": "no validation record: emps.path is the user's own record and validation.path is unset"}
+    return {"estimation": est, "validation": val}
+
+
 # ------------------------------------------------------------------------------------------ analysis
 def _pct_diff(value: float | None, reference: float) -> float | None:
     """100·(value − reference)/|reference| (%), None when value is None."""
@@ -184,6 +266,9 @@ def _pct_diff(value: float | None, reference: float) -> float | None:
 def idim_reference(record: EmpsRecord) -> dict:
     """The benchmark's IDIM-LS recipe on this record (symmetric model) with % differences from the published
     values; ``{"error": ...}`` when the record is too short for it."""
+    from .emps.idim import idim_ls
+    from .emps.model import PUBLISHED
+
     try:
         out = idim_ls(record)
     except DataError as err:
@@ -196,6 +281,9 @@ def comparison(report: Mapping, idim: Mapping) -> dict:
     """Per compared parameter (M, Fv, Fc, offset): the published value, this record's IDIM-LS value, the final
     model's value and the output-error fit of the benchmark's own structure, each with its % difference from the
     published value (None where the model lacks the parameter, e.g. an offset absorbed by asymmetric friction)."""
+    from .emps.model import PUBLISHED
+
+    units = _units()
     free = set(report["free"])
     ref = (report.get("reference") or {}).get("identified") or {}
     idim_p = idim.get("params") or {}
@@ -203,7 +291,7 @@ def comparison(report: Mapping, idim: Mapping) -> dict:
     for name in COMPARED:
         pub = PUBLISHED[name]
         final = report["identified"][name] if name in free else None
-        out[name] = {"unit": _UNITS[name], "published": pub,
+        out[name] = {"unit": units[name], "published": pub,
                      "idim_ls": idim_p.get(name), "idim_ls_pct_diff": _pct_diff(idim_p.get(name), pub),
                      "final_model": final, "final_model_pct_diff": _pct_diff(final, pub),
                      "reference_fit": ref.get(name), "reference_fit_pct_diff": _pct_diff(ref.get(name), pub)}
@@ -219,6 +307,8 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
     strongly autocorrelated, so the intervals (white-noise assumption) are optimistic; ranks and null directions
     are what to read. Returns the JSON form of the report plus its console ``table``; ``{"error": ...}`` if the
     analysis is impossible (e.g. a failed simulation)."""
+    from .emps.fit import make_jacobian, make_residual
+    from .emps.model import INDEX, LOWER, UPPER
     from .identifiability import analyze, format_table, log_jacobian
 
     idx = np.array([INDEX[n] for n in free])
@@ -254,8 +344,12 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
 
 
 # ------------------------------------------------------------------------------------------ figures
-def response_figure(record: EmpsRecord, models: Mapping[str, np.ndarray], title: str) -> Any:
-    """Measured and simulated position (mm), their difference (µm) and the measured controller output ν (V)."""
+def response_figure(record: EmpsRecord, models: Mapping[str, np.ndarray], title: str,
+                    pulse_gain: float = 1.0) -> Any:
+    """Measured and simulated position (mm), their difference (µm) and the measured controller output ν (V), with
+    the record's pulse train (as added to ν: ``pulse_gain``·pulses_N) where it has one."""
+    from . import figures
+
     fig = figures.response_comparison(record.t, record.qm, models, v_in=record.vir, title=title)
     ax = fig.axes
     ax[0].set_ylabel("q [mm]")
@@ -263,6 +357,10 @@ def response_figure(record: EmpsRecord, models: Mapping[str, np.ndarray], title:
     ax[1].set_ylabel(r"$q^{model} - q^{meas}$ [µm]")
     ax[2].set_ylabel(r"$\nu$ [V]")
     ax[2].set_title("(c) measured controller output", loc="left", fontsize="medium")
+    if np.any(record.pulses != 0) and pulse_gain != 0:
+        ax[2].plot(record.t, pulse_gain * record.pulses, lw=0.8, color="0.3", ls="--",
+                   label=f"pulses added to the controller output ({pulse_gain:g}·pulses_N)")
+        ax[2].legend(fontsize="small", loc="upper right")
     return fig
 
 
@@ -270,6 +368,10 @@ def friction_figure(record: EmpsRecord, models: Mapping[str, np.ndarray], mass: 
     """Friction force (N) against velocity (mm/s): each model's curve, and the measured estimate
     gtau·ν − M̂·q̈ (q̇, q̈ from the benchmark's 100 Hz zero-phase filter) as points, M̂ the final model's mass."""
     from matplotlib.figure import Figure
+
+    from . import figures
+    from .emps.idim import filtered_derivatives
+    from .emps.model import friction_force
 
     _, qd, qdd = filtered_derivatives(record.qm, record.dt)
     est = record.tau - mass * qdd
@@ -299,9 +401,34 @@ def friction_figure(record: EmpsRecord, models: Mapping[str, np.ndarray], mass: 
 
 
 # ------------------------------------------------------------------------------------------ console
+def validation_lines(report: Mapping) -> list[str]:
+    """Console lines of the validation record's prediction (or why there is none)."""
+    v = report.get("validation")
+    if not v:
+        return []
+    if "skipped" in v:
+        return [f"validation: skipped ({v['skipped']})"]
+    names = {"final": "final", "published": "published", "reference": "OE ref"}
+    parts = [f"{names.get(k, k)} {m['position_rel_error_pct']:.4g} %" for k, m in v["models"].items()]
+    lines = [f"validation {v['record']} ({v['n_samples']} samples, predicted, nothing fitted on it): "
+             + ", ".join(parts)]
+    if v.get("has_pulses"):
+        lines.append(f"  pulses at the controller output x{v['pulse_gain']:g} V per unit of pulses_N (logged vir "
+                     f"shows x{v['logged_pulse_gain']:.4f}); without the pulses: "
+                     + ", ".join(f"{names.get(k, k)} {m['without_pulses_rel_error_pct']:.4g} %"
+                                 for k, m in v["models"].items()))
+    bad = {k: m["status"] for k, m in v["models"].items() if m["status"] != 0}
+    if bad:
+        lines.append(f"  simulation status not ok: {bad}")
+    return lines
+
+
 def console_text(report: Mapping) -> str:
     """A short table: published vs identified M, Fv, Fc, offset, the other fitted parameters, errors, timing."""
+    from . import console
+
     cmp = report["comparison"]
+    units = _units()
 
     def pct(v: float | None) -> str:
         return "—" if v is None else f"{v:+.2f}%"
@@ -314,7 +441,7 @@ def console_text(report: Mapping) -> str:
              pct(c["reference_fit_pct_diff"])] for n, c in cmp.items()]
     for n in report["free"]:
         if n not in cmp:
-            rows.append([n, _UNITS[n], "—", "—", "—", val(report["identified"][n]), "—", "—", "—"])
+            rows.append([n, units[n], "—", "—", "—", val(report["identified"][n]), "—", "—", "—"])
     header = ["param", "unit", "published", "IDIM-LS", "%", "final", "%", "OE ref", "%"]
     effects = ", ".join(e["name"] for e in report["effects_added"]) or "none"
     lines = [f"EMPS: {report['record']} ({report['n_samples']} samples); effects added: {effects}",
@@ -325,10 +452,7 @@ def console_text(report: Mapping) -> str:
              + (f", OE ref {report['reference']['rel_error_pct']:.4g} %" if report.get("reference") else "")]
     if "error" in (report.get("idim_ls") or {}):
         lines.append(f"IDIM-LS: {report['idim_ls']['error']}")
-    if "validation" in report:
-        v = report["validation"]
-        lines.append(f"validation {v['record']}: final {v['position_rel_error_pct']:.4g} %, published "
-                     f"{v['published_model_rel_error_pct']:.4g} % (status {v['status']})")
+    lines.extend(validation_lines(report))
     ident = report.get("identifiability") or {}
     if "rank" in ident:
         lines.append(f"identifiability: rank {ident['rank']}/{len(ident['param_order'])}, practical rank "
@@ -374,43 +498,62 @@ def _parent_metrics(report: Mapping) -> dict:
          "n_effects": len(report["effects_added"]), "wall_seconds": report["wall_seconds"],
          **{f"param.{k}": report["identified"][k] for k in report["free"]},
          **{f"pct_diff.{k}": v for k, v in report["pct_diff_vs_published"].items() if v is not None}}
-    if "validation" in report:
-        m["validation.position_rel_error_pct"] = report["validation"]["position_rel_error_pct"]
-        m["validation.published_model_rel_error_pct"] = report["validation"]["published_model_rel_error_pct"]
+    v = report.get("validation") or {}
+    if "models" in v:
+        m["validation.position_rel_error_pct"] = v["position_rel_error_pct"]
+        m["validation.published_model_rel_error_pct"] = v["published_model_rel_error_pct"]
+        for label, entry in v["models"].items():
+            m[f"validation.{label}.position_rel_error_pct"] = entry["position_rel_error_pct"]
+            m[f"validation.{label}.max_abs_error_um"] = entry["max_abs_error_um"]
+            if "without_pulses_rel_error_pct" in entry:
+                m[f"validation.{label}.without_pulses_rel_error_pct"] = entry["without_pulses_rel_error_pct"]
+        if v.get("logged_pulse_gain") is not None:
+            m["validation.logged_pulse_gain"] = v["logged_pulse_gain"]
     return m
 
 
 # ------------------------------------------------------------------------------------------ the job
-def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
+def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
+             env: Mapping[str, str] | None = None) -> Path:
     """Identify the EMPS from its record (see the module docstring); return the path of ``result.json``.
 
     ``cfg`` is the plain composed configuration (nodes ``emps``, ``validation``, ``identifiability``,
-    ``tracking``). Bad settings raise :class:`ConfigError`, a missing or malformed record :class:`DataError`,
-    both before any fitting or tracking starts.
+    ``tracking``); ``env`` (default ``os.environ``) supplies ``$TOGGLE_ID_EMPS_DIR`` and ``$HOME``. Bad settings
+    raise :class:`ConfigError`, records that are missing, malformed or not the benchmark's :class:`DataError`,
+    all before any fitting or tracking starts.
     """
     t0 = time.perf_counter()
     st = emps_settings(cfg, project_root)
-    record = load_record(st.path)
+    sources = locate_records(st, env)
+    record = load_record(sources["estimation"]["path"])
     if st.samples is not None:
         if st.samples > record.n:
-            raise ConfigError(f"emps.samples={st.samples} but {st.path.name} has only {record.n} samples")
+            raise ConfigError(f"emps.samples={st.samples} but {record.name} has only {record.n} samples")
         record = record.slice(0, st.samples)
-    validation = None if st.validation_path is None else load_record(st.validation_path)
+    vsrc = sources["validation"]
+    validation = None if "skipped" in vsrc else load_record(vsrc["path"])
+
+    from . import figures
+    from .emps.fit import run_emps_loop
+    from .emps.model import INDEX, PUBLISHED_THETA, simulate_emps, theta_from_dict
+    from .workflow import make_tracker, publish_report
+
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
-    from .workflow import make_tracker
-
     tracker = make_tracker(cfg, project_root)
     with tracker.run("emps", tags={"job": "emps", "plant": "emps"}) as run:
         tracker.log_params({"emps": {**{k: v for k, v in (cfg.get("emps") or {}).items()},
-                                     "record": str(st.path), "n_samples": record.n},
-                            "validation.path": None if st.validation_path is None else str(st.validation_path)})
+                                     "record": sources["estimation"]["path"], "n_samples": record.n,
+                                     "record_sha256": sources["estimation"]["sha256"]},
+                            "validation.path": vsrc.get("path"),
+                            "validation.sha256": vsrc.get("sha256"), "validation.skipped": vsrc.get("skipped")})
         idim = idim_reference(record)
         report = run_emps_loop(record, validation, candidates=st.candidates, alpha=st.alpha, max_nfev=st.max_nfev,
                                max_effects=st.max_effects, max_corr=st.max_corr, solver=st.solver,
                                reference_fit=st.reference_fit, sim_options=st.sim)
         final = theta_from_dict(report["identified"])
         nominal = theta_from_dict(report["nominal"]["identified"])
+        report["data"] = sources
         report["idim_ls"] = idim
         report["comparison"] = comparison(report, idim)
         report["identifiability"] = (identifiability_of(record, final, report["free"], st.sim, st.noise_std_m)
@@ -433,12 +576,18 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") 
             vs = simulate_emps(np.stack([final, PUBLISHED_THETA]), validation, **st.sim).q
             fig_paths.append(figures.save(response_figure(
                 validation, {final_label: vs[0], "published IDIM-LS": vs[1]},
-                f"EMPS validation {validation.name}: measured and simulated position"), run_dir / "validation.png"))
-            report["validation"]["path"] = str(st.validation_path)
+                f"EMPS validation {validation.name} (predicted; fitted on {record.name} only)",
+                st.sim["pulse_gain"]),
+                run_dir / "validation.png"))
+            report["validation"]["path"] = vsrc["path"]
+            report["validation"]["sha256"] = vsrc["sha256"]
+            report["validation"]["sha256_verified"] = vsrc["sha256_verified"]
+        else:
+            report["validation"] = {"skipped": vsrc["skipped"]}
         for p in fig_paths:
             tracker.log_artifact(p, "figures")
 
-        report.update({"job": "emps", "plant": "emps", "path": str(st.path), "figures": fig_paths,
+        report.update({"job": "emps", "plant": "emps", "path": sources["estimation"]["path"], "figures": fig_paths,
                        "mlflow_run_id": run.run_id, "config": json.loads(json.dumps(dict(cfg), default=str)),
                        "wall_seconds": time.perf_counter() - t0})
         tracker.log_metrics(_parent_metrics(report))

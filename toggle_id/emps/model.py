@@ -2,7 +2,7 @@
 
 Plant (load side, SI units), between samples continuous:
 
-    M q̈ = gtau·ν + f_ext − f(q̇)
+    M q̈ = gtau·ν − f(q̇)
     f(v) = Fv·v + Fc·s + offset + Fs·s·exp(−(v/vs)²) + Fc_asym·|s| + Fv_asym·v·s,    s = tanh(v/eps)
 
 so that for v > 0 the friction is (Fv+Fv_asym)·v + (Fc+Fc_asym) and for v < 0 it is (Fv−Fv_asym)·v − (Fc−Fc_asym),
@@ -18,7 +18,14 @@ Controller (benchmark eq. 6), evaluated at the samples k with the *simulated* po
 over [t_k, t_k + dt):
 
     qf(k) = 0.5 q(k) + 0.5 q(k−1),  q̇(k) = (qf(k) − qf(k−1))/dt = (q(k) − q(k−2))/(2 dt)
-    ν(k) = sat_{±v_sat}( kp·kv·(qg(k) − q(k)) − kv·q̇(k) )
+    ν(k) = sat_{±v_sat}( kp·kv·(qg(k) − q(k)) − kv·q̇(k) + p(k) )
+
+where p(k) is the validation record's pulse train ``pulses_N`` (zero otherwise), times ``pulse_gain`` (default 1).
+The pulses enter at the controller output in the unit of ν (V): in DATA_EMPS_PULSES the logged ``vir`` minus the
+control law recomputed from ``qg`` and ``qm`` is a train of rectangular pulses on the same samples as ``pulses_N``
+(shifting them by one sample raises the rms mismatch from 0.05 V to 0.23 V), so the drive force is
+gtau·(law + pulse), about 178 N per pulse. The logged pulses are 1.014·``pulses_N`` (5.07 V for 5); the
+simulator keeps the file's value unless ``pulse_gain`` says otherwise.
 
 Integration: classical RK4 with n_sub substeps per sample, n_sub chosen per parameter row so that
 h·λ ≤ ``h_lambda`` with λ a bound on |∂q̈/∂v| (the smoothed Coulomb term is stiff for small eps).
@@ -164,7 +171,7 @@ def _accel(v: float, force: float, M: float, Fv: float, Fc: float, off: float, F
 
 
 @numba.njit(cache=True)
-def _simulate_row(th: np.ndarray, qg: np.ndarray, f_ext: np.ndarray, init: np.ndarray, dt: float, gtau: float,
+def _simulate_row(th: np.ndarray, qg: np.ndarray, u_ext: np.ndarray, init: np.ndarray, dt: float, gtau: float,
                   kp: float, kv: float, v_sat: float, eps: float, h_lambda: float, n_sub_min: int,
                   n_sub_max: int, q_out: np.ndarray, nu_out: np.ndarray) -> int:
     """Simulate one parameter row in closed loop; fills q_out (m) and nu_out (V); returns the status code."""
@@ -200,7 +207,7 @@ def _simulate_row(th: np.ndarray, qg: np.ndarray, f_ext: np.ndarray, init: np.nd
     for k in range(n):
         q_out[k] = x
         qd = (x - q_km2) / (2.0 * dt)
-        nu = kp * kv * (qg[k] - x) - kv * qd
+        nu = kp * kv * (qg[k] - x) - kv * qd + u_ext[k]
         if nu > v_sat:
             nu = v_sat
         elif nu < -v_sat:
@@ -210,7 +217,7 @@ def _simulate_row(th: np.ndarray, qg: np.ndarray, f_ext: np.ndarray, init: np.nd
         q_km1 = x
         if k == n - 1:
             break
-        force = gtau * nu + f_ext[k]
+        force = gtau * nu
         for _ in range(n_sub):
             a1 = _accel(v, force, M, Fv, Fc, off, Fs, vs, dFc, dFv, inv_eps)
             v2 = v + 0.5 * h * a1
@@ -229,18 +236,20 @@ def _simulate_row(th: np.ndarray, qg: np.ndarray, f_ext: np.ndarray, init: np.nd
 
 
 @numba.njit(cache=True, parallel=True)
-def simulate_kernel(theta: np.ndarray, qg: np.ndarray, f_ext: np.ndarray, init: np.ndarray, dt: float,
+def simulate_kernel(theta: np.ndarray, qg: np.ndarray, u_ext: np.ndarray, init: np.ndarray, dt: float,
                     gtau: float, kp: float, kv: float, v_sat: float, eps: float, h_lambda: float,
                     n_sub_min: int, n_sub_max: int, q_out: np.ndarray, nu_out: np.ndarray,
                     status: np.ndarray) -> None:
     """Batched closed-loop simulation: rows of θ (P, 8) → q_out (P, N) m, nu_out (P, N) V, status (P,) int8.
+
+    ``u_ext`` (N,) V is added to the control law before the saturation (the validation record's pulses).
 
     Status: 0 ok, 1 model failure (non-finite / diverged state), 2 solver failure (needs more than n_sub_max RK4
     substeps per sample), 3 invalid parameters (non-finite, M ≤ 0, Fv < 0, Fc < 0, Fs ≠ 0 with vs ≤ 0).
     Pure: no allocation besides locals, no Python objects; rows run in parallel (prange).
     """
     for p in numba.prange(theta.shape[0]):
-        status[p] = _simulate_row(theta[p], qg, f_ext, init, dt, gtau, kp, kv, v_sat, eps, h_lambda,
+        status[p] = _simulate_row(theta[p], qg, u_ext, init, dt, gtau, kp, kv, v_sat, eps, h_lambda,
                                   n_sub_min, n_sub_max, q_out[p], nu_out[p])
 
 
@@ -277,13 +286,13 @@ def as_theta_batch(theta: np.ndarray | Mapping[str, float]) -> np.ndarray:
 
 
 def simulate_emps(theta: np.ndarray | Mapping[str, float], record: EmpsRecord, *, eps: float = 1e-4,
-                  h_lambda: float = 0.5, n_sub_min: int = 2, n_sub_max: int = 5000, pulse_sign: float = 1.0,
+                  h_lambda: float = 0.5, n_sub_min: int = 2, n_sub_max: int = 5000, pulse_gain: float = 1.0,
                   init: np.ndarray | None = None) -> EmpsSimResult:
-    """Simulate the EMPS closed loop for each row of θ on ``record``'s reference ``qg`` (and its force pulses).
+    """Simulate the EMPS closed loop for each row of θ on ``record``'s reference ``qg`` (and its pulse train).
 
-    ``eps`` (m/s) smooths sign(q̇); ``h_lambda`` bounds h·λ of the RK4 substeps; ``pulse_sign`` multiplies the
-    record's ``pulses`` (N) before adding them to the drive force gtau·ν; ``init`` overrides
-    :func:`initial_state`. Bad settings raise :class:`ConfigError`; bad rows are reported in ``status``.
+    ``eps`` (m/s) smooths sign(q̇); ``h_lambda`` bounds h·λ of the RK4 substeps; ``pulse_gain`` multiplies the
+    record's ``pulses`` before they are added to the controller output ν (V, before the saturation; 0 ignores
+    them); ``init`` overrides :func:`initial_state`. Bad settings raise :class:`ConfigError`; bad rows are reported in ``status``.
     """
     th = as_theta_batch(theta)
     if not (np.isfinite(eps) and eps > 0):
@@ -293,18 +302,21 @@ def simulate_emps(theta: np.ndarray | Mapping[str, float], record: EmpsRecord, *
     if not (1 <= int(n_sub_min) <= int(n_sub_max)):
         raise ConfigError(f"need 1 <= n_sub_min <= n_sub_max, got {n_sub_min}, {n_sub_max}")
     init = initial_state(record.qm, record.dt) if init is None else np.asarray(init, dtype=float).reshape(4)
-    f_ext = np.ascontiguousarray(float(pulse_sign) * record.pulses)
+    if not np.isfinite(pulse_gain):
+        raise ConfigError(f"pulse_gain must be finite, got {pulse_gain}")
+    u_ext = np.ascontiguousarray(float(pulse_gain) * record.pulses)
     p, n = th.shape[0], record.n
     q = np.empty((p, n))
     nu = np.empty((p, n))
     status = np.zeros(p, dtype=np.int8)
-    simulate_kernel(th, record.qg, f_ext, init, record.dt, record.gtau, record.kp, record.kv, record.v_sat,
+    simulate_kernel(th, record.qg, u_ext, init, record.dt, record.gtau, record.kp, record.kv, record.v_sat,
                     float(eps), float(h_lambda), int(n_sub_min), int(n_sub_max), q, nu, status)
     return EmpsSimResult(q=q, nu=nu, status=status)
 
 
-def controller_law(record: EmpsRecord, q: np.ndarray | None = None) -> np.ndarray:
-    """ν(k) (V) of the documented controller driven by the positions ``q`` (default the measured ``qm``).
+def controller_law(record: EmpsRecord, q: np.ndarray | None = None, pulse_gain: float = 1.0) -> np.ndarray:
+    """ν(k) (V) of the documented controller driven by the positions ``q`` (default the measured ``qm``), with
+    ``pulse_gain``·``record.pulses`` added before the saturation, as in the simulator.
 
     The first two samples use the velocity from :func:`initial_state`. On DATA_EMPS the law reproduces the
     recorded ``vir`` to 0.004 V rms (signal rms 1.54 V); applied one sample late it would be off by 0.054 V rms.
@@ -313,7 +325,7 @@ def controller_law(record: EmpsRecord, q: np.ndarray | None = None) -> np.ndarra
     init = initial_state(q, record.dt)
     hist = np.concatenate(([init[3], init[2]], q))
     qd = (hist[2:] - hist[:-2]) / (2.0 * record.dt)
-    nu = record.kp * record.kv * (record.qg - q) - record.kv * qd
+    nu = record.kp * record.kv * (record.qg - q) - record.kv * qd + float(pulse_gain) * record.pulses
     return np.clip(nu, -record.v_sat, record.v_sat)
 
 
