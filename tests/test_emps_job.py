@@ -1,5 +1,11 @@
-"""The EMPS job end to end: `python -m jobs.run +experiment=emps` on a shortened part of the measured record,
-its report, figures and MLflow runs; bad settings and missing files end in one line and a non-zero exit."""
+"""The EMPS job end to end: `python -m jobs.run +experiment=emps`.
+
+A fast run on records simulated from the published EMPS model (written to scratch .mat/.csv files and passed as
+``emps.path`` / ``validation.path``) needs no real data. The run on the benchmark's own records (found through
+``$TOGGLE_ID_EMPS_DIR`` or the loader's cache) checks the estimation acceptance and the prediction of the
+validation record; it skips, with the job's one-line reason, only when the records are absent. Bad settings and
+missing files end in one line and a non-zero exit.
+"""
 from __future__ import annotations
 
 import json
@@ -7,39 +13,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import run_job
-from toggle_id.emps_job import DEFAULT_RECORD, EMPS_DEFAULTS, emps_settings, load_record
+
+from toggle_id.emps import PUBLISHED, PUBLISHED_THETA, EmpsRecordsNotFound, find_benchmark_files, theta_from_dict
+from toggle_id.emps.synthetic import back_and_forth, pulse_train, simulated_record, write_record
+from toggle_id.emps_job import EMPS_DEFAULTS, emps_settings, load_record
 from toggle_id.errors import ConfigError, DataError
 
-SAMPLES = 6000  # the record's first 6 s: the loop finds Coulomb friction in ~6 s of fitting
 REPORT_KEYS = {"position_rel_error_pct_before", "position_rel_error_pct_after", "effects_added", "candidates",
                "identified", "published", "pct_diff_vs_published", "comparison", "idim_ls", "identifiability",
-               "validation", "reference", "wall_seconds", "figures", "mlflow_run_id", "n_samples"}
+               "validation", "reference", "wall_seconds", "figures", "mlflow_run_id", "n_samples", "data"}
 
 
-@pytest.fixture(scope="module")
-def emps_dir(shared: Path) -> Path:
-    path = shared / "data" / "emps"
-    if not (path / "emps_estimation.csv").is_file():
-        pytest.skip(f"EMPS data not found in {path}")
-    return path
+def _benchmark():
+    try:
+        return find_benchmark_files(require_validation=True), None
+    except EmpsRecordsNotFound as err:
+        return None, str(err)
 
 
-@pytest.fixture(scope="module")
-def job(emps_dir: Path, tmp_path_factory) -> dict:
-    """One run of the job on the first SAMPLES samples, validated on the next 3000, tracked in a scratch store."""
-    from toggle_id.emps import load_emps_csv
-
-    tmp = tmp_path_factory.mktemp("emps_job")
-    rec = load_emps_csv(emps_dir / "emps_estimation.csv")
-    val = tmp / "held_out.csv"
-    np.savetxt(val, np.column_stack([rec.t, rec.vir, rec.qm, rec.qg])[SAMPLES:SAMPLES + 3000], delimiter=",",
-               header="t,vir,qm,qg", comments="", fmt="%.17g")
-    uri = f"sqlite:///{tmp / 'mlflow.db'}"
-    proc = run_job("jobs.run", "+experiment=emps", f"emps.samples={SAMPLES}", f"validation.path={val}",
-                   f"hydra.run.dir={tmp / 'run'}", cwd=tmp, env={"MLFLOW_TRACKING_URI": uri})
-    return {"proc": proc, "run": tmp / "run", "uri": uri}
+FILES, MISSING = _benchmark()
+needs_records = pytest.mark.skipif(FILES is None, reason=MISSING or "")
 
 
 def _one_line_error(proc) -> str:
@@ -49,72 +43,111 @@ def _one_line_error(proc) -> str:
     return lines[0]
 
 
-@pytest.mark.integration
-def test_job_finds_coulomb_friction_and_writes_the_report(job):
-    proc = job["proc"]
+def _report(proc, run_dir: Path) -> dict:
     assert proc.returncode == 0, proc.stderr[-3000:]
     last = [ln for ln in proc.stdout.splitlines() if ln.strip()][-1]
-    report_path = Path(last.removeprefix("report: "))
-    assert last.startswith("report: ") and report_path == (job["run"] / "result.json").resolve()
-    rep = json.loads(report_path.read_text())
-    assert REPORT_KEYS <= set(rep)
-    assert rep["n_samples"] == SAMPLES
-    assert rep["effects_added"][0]["name"] == "coulomb_friction"
-    assert rep["identified"]["Fc"] > 5.0  # N: the benchmark's Coulomb friction is 20.4 N
-    assert rep["position_rel_error_pct_after"] < 0.5 * rep["position_rel_error_pct_before"]
-    assert rep["position_rel_error_pct_after"] < rep["published_model_rel_error_pct"]
-    # the published values and their comparison
-    assert rep["published"] == {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "offset": -3.1648}
-    m = rep["comparison"]["M"]
-    assert m["published"] == 95.1089 and abs(m["final_model_pct_diff"]) < 2.0 and abs(m["idim_ls_pct_diff"]) < 2.0
-    ref = rep["comparison"]["Fc"]
-    assert ref["reference_fit"] == pytest.approx(20.39, rel=0.1)
-    assert ref["reference_fit_pct_diff"] == pytest.approx(100 * (ref["reference_fit"] / 20.3935 - 1))
-    assert set(rep["idim_ls"]["params"]) == {"M", "Fv", "Fc", "offset"}
-    # identifiability of the final model, all parameters with finite intervals on 6000 samples
-    ident = rep["identifiability"]
-    assert ident["param_order"] == rep["free"] and ident["m"] == SAMPLES
-    assert ident["rank"] == len(rep["free"]) and ident["identifiable"]["Fc"]
-    assert ident["log_mask"]["M"] and not ident["log_mask"].get("offset", False)
-    # the held-out continuation: simulated in closed loop, better than the published values
-    val = rep["validation"]
-    assert val["status"] == 0 and val["n_samples"] == 3000
-    assert 0 < val["position_rel_error_pct"] < val["published_model_rel_error_pct"]
-    for name in ("response.png", "friction.png", "validation.png"):
-        assert (job["run"] / name).stat().st_size > 10_000
-    assert "coulomb_friction" in (job["run"] / "table.txt").read_text()
+    assert last == f"report: {(run_dir / 'result.json').resolve()}"
+    return json.loads((run_dir / "result.json").read_text())
+
+
+# ------------------------------------------------------------------------------------------ simulated records
+#: Truth of the simulated records: the published model with a direction-dependent viscous friction.
+TRUTH = theta_from_dict({**PUBLISHED, "Fv_asym": -30.0})
+
+
+@pytest.fixture(scope="module")
+def sim_files(tmp_path_factory) -> dict:
+    tmp = tmp_path_factory.mktemp("emps_sim")
+    est = simulated_record(TRUTH, 4000, name="sim_estimation")
+    val = simulated_record(TRUTH, 3000, qg=back_and_forth(3000, waypoints=(0.0, 0.15, 0.05, 0.0)),
+                           pulses=pulse_train(3000), name="sim_validation")
+    return {"tmp": tmp, "est": write_record(est, str(tmp / "sim_estimation.mat")),
+            "val": write_record(val, str(tmp / "sim_validation.csv"))}
 
 
 @pytest.mark.integration
-def test_job_logs_a_parent_run_with_one_child_per_fit(job):
+def test_job_on_simulated_records_end_to_end(sim_files, tmp_path):
+    """The whole job (loop, reference fit, identifiability, figures, MLflow) on 4 s of a simulated record, then the
+    prediction of a simulated record with pulses at the controller output."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    run = tmp_path / "run"
+    proc = run_job("jobs.run", "+experiment=emps", f"emps.path={sim_files['est']}",
+                   f"validation.path={sim_files['val']}", f"hydra.run.dir={run}", cwd=tmp_path,
+                   env={"MLFLOW_TRACKING_URI": uri, "TOGGLE_ID_EMPS_DIR": ""})
+    rep = _report(proc, run)
+    assert REPORT_KEYS <= set(rep)
+    assert rep["data"]["estimation"]["found_in"] == "emps.path" and not rep["data"]["estimation"]["sha256_verified"]
+    names = [e["name"] for e in rep["effects_added"]]
+    assert names[0] == "coulomb_friction" and "asymmetric_friction" in names
+    assert rep["identified"]["Fv_asym"] == pytest.approx(-30.0, rel=0.02)
+    assert rep["identified"]["M"] == pytest.approx(PUBLISHED["M"], rel=0.01)
+    assert rep["identified"]["Fc"] == pytest.approx(PUBLISHED["Fc"], rel=0.05)
+    assert rep["position_rel_error_pct_after"] < 0.2 * rep["position_rel_error_pct_before"]
+    v = rep["validation"]
+    assert v["path"] == sim_files["val"] and v["has_pulses"] and v["status"] == 0 and v["n_samples"] == 3000
+    assert set(v["models"]) == {"final", "published", "reference"}
+    assert v["position_rel_error_pct"] < 0.5 * v["published_model_rel_error_pct"]  # the truth has Fv_asym
+    assert v["models"]["final"]["without_pulses_rel_error_pct"] > 10 * v["position_rel_error_pct"]
+    for name in ("response.png", "friction.png", "validation.png"):
+        assert (run / name).stat().st_size > 10_000
+    table = (run / "table.txt").read_text()
+    assert "validation sim_validation" in table and "pulses at the controller output" in table
     from mlflow import MlflowClient
 
-    assert job["proc"].returncode == 0, job["proc"].stderr[-3000:]
-    rep = json.loads((job["run"] / "result.json").read_text())
-    client = MlflowClient(job["uri"])
+    client = MlflowClient(uri)
     parent = client.get_run(rep["mlflow_run_id"])
     assert parent.info.run_name == "emps" and parent.info.status == "FINISHED"
-    assert parent.data.metrics["position_rel_error_pct_after"] == pytest.approx(rep["position_rel_error_pct_after"])
+    m = parent.data.metrics
+    assert m["validation.position_rel_error_pct"] == pytest.approx(v["position_rel_error_pct"])
+    assert m["validation.published.position_rel_error_pct"] == pytest.approx(v["published_model_rel_error_pct"])
     children = client.search_runs([parent.info.experiment_id],
                                    filter_string=f"tags.`mlflow.parentRunId` = '{parent.info.run_id}'")
-    names = sorted(r.info.run_name for r in children)
     expected = sorted(["nominal", "reference"] + [f"round{c['round']}_{c['name']}" for c in rep["candidates"]])
-    assert names == expected
-    accepted = {r.info.run_name for r in children if r.data.tags.get("accepted") == "True"}
-    assert "round1_coulomb_friction" in accepted and len(accepted) == len(rep["effects_added"])
+    assert sorted(r.info.run_name for r in children) == expected
     arts = {a.path for a in client.list_artifacts(parent.info.run_id)}
     assert {"result.json", "table.txt", "figures"} <= arts
 
 
+# ------------------------------------------------------------------------------------------ the benchmark's records
+@pytest.mark.integration
+@needs_records
+def test_job_on_the_benchmark_records(tmp_path):
+    """`python -m jobs.run +experiment=emps` on DATA_EMPS.mat, predicting DATA_EMPS_PULSES.mat: the estimation
+    acceptance (M within 2 %, Fv and Fc within 5 % of the published values, position error ≤ 0.0011 %) and the
+    validation error of the fitted model (nothing fitted on the validation record)."""
+    run = tmp_path / "run"
+    proc = run_job("jobs.run", "+experiment=emps", f"hydra.run.dir={run}", "tracking.enabled=false", cwd=tmp_path)
+    rep = _report(proc, run)
+    assert rep["data"]["estimation"]["sha256_verified"] and rep["data"]["validation"]["sha256_verified"]
+    assert rep["n_samples"] == 24841 and rep["effects_added"][0]["name"] == "coulomb_friction"
+    cmp = rep["comparison"]
+    assert abs(cmp["M"]["final_model_pct_diff"]) < 2.0
+    assert abs(cmp["Fv"]["final_model_pct_diff"]) < 5.0 and abs(cmp["Fc"]["final_model_pct_diff"]) < 5.0
+    assert rep["position_rel_error_pct_after"] <= 0.0011
+    assert rep["published_model_rel_error_pct"] < 0.0011
+    ref = rep["reference"]["pct_diff_vs_published"]
+    assert abs(ref["M"]) < 2.0 and abs(ref["Fv"]) < 5.0 and abs(ref["Fc"]) < 5.0
+    v = rep["validation"]
+    assert v["record"] == "DATA_EMPS_PULSES" and v["n_samples"] == 24841 and v["status"] == 0
+    assert v["published_model_rel_error_pct"] < 0.002  # measured 0.00156 %
+    assert v["position_rel_error_pct"] <= 0.002  # the fitted model; measured 0.00137 %
+    assert all(m["without_pulses_rel_error_pct"] > 0.05 for m in v["models"].values())
+    ident = rep["identifiability"]
+    assert ident["param_order"] == rep["free"] and ident["rank"] == len(rep["free"])
+    assert (run / "validation.png").stat().st_size > 10_000
+
+
+# ------------------------------------------------------------------------------------------ bad input
 @pytest.mark.integration
 @pytest.mark.parametrize("args,needle", [
     (["emps.path=/nonexistent/emps.csv"], "not found"),
     (["validation.path=/nonexistent/pulses.mat"], "not found"),
     (["emps.alpha=2"], "emps.alpha"),
+    (["emps.data_dir=/nonexistent/dir"], "not a directory"),
 ])
-def test_job_rejects_missing_files_and_bad_settings_in_one_line(tmp_path, args, needle):
+def test_job_rejects_missing_files_and_bad_settings_in_one_line(tmp_path, sim_files, args, needle):
     proc = run_job("jobs.run", "+experiment=emps", "tracking.enabled=false", f"hydra.run.dir={tmp_path / 'run'}",
-                   *args, cwd=tmp_path, timeout=120)
+                   f"emps.path={sim_files['est']}", *args, cwd=tmp_path, timeout=120)
     line = _one_line_error(proc)
     assert line.startswith("error: ") and needle in line
     assert not (tmp_path / "run" / "result.json").exists()
@@ -123,12 +156,25 @@ def test_job_rejects_missing_files_and_bad_settings_in_one_line(tmp_path, args, 
 # ------------------------------------------------------------------------------------------ settings, in process
 def test_settings_defaults_and_relative_paths(tmp_path):
     st = emps_settings({"emps": dict(EMPS_DEFAULTS)}, tmp_path)
-    assert st.path == DEFAULT_RECORD and st.samples is None and st.validation_path is None
+    assert st.path is None and st.data_dir is None and st.validate and st.validation_path is None
+    assert st.samples is None and st.sim["pulse_gain"] == 1.0
     assert st.candidates == ("coulomb_friction", "offset", "stribeck_friction", "asymmetric_friction")
-    st = emps_settings({"emps": {"path": "rec.csv", "samples": 6000, "candidates": ["coulomb_friction"]},
+    (tmp_path / "data").mkdir()
+    st = emps_settings({"emps": {"path": "rec.csv", "samples": 6000, "candidates": ["coulomb_friction"],
+                                 "data_dir": "data", "validate": False},
                         "validation": {"path": "val.mat"}, "identifiability": {"noise_std_m": 1e-8}}, tmp_path)
     assert st.path == (tmp_path / "rec.csv").resolve() and st.validation_path == (tmp_path / "val.mat").resolve()
+    assert st.data_dir == (tmp_path / "data").resolve() and not st.validate
     assert (st.samples, st.candidates, st.noise_std_m) == (6000, ("coulomb_friction",), 1e-8)
+
+
+def test_the_config_file_matches_the_defaults():
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.to_container(OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "experiment"
+                                                 / "emps.yaml"))
+    assert conf["emps"] == {**EMPS_DEFAULTS, "sim": EMPS_DEFAULTS["sim"]}
+    assert conf["validation"] == {"path": None}
 
 
 @pytest.mark.parametrize("emps,needle", [
@@ -142,7 +188,11 @@ def test_settings_defaults_and_relative_paths(tmp_path):
     ({"solver": "ga"}, "emps.solver"),
     ({"max_nfev": 0}, "emps.max_nfev"),
     ({"sim": {"eps": -1.0}}, "emps.sim"),
+    ({"sim": {"pulse_gain": "big"}}, "emps.sim.pulse_gain"),
+    ({"sim": {"pulse_sign": 1.0}}, "pulse_sign"),
     ({"sim": {"rtol": 1e-6}}, "rtol"),
+    ({"validate": "yes"}, "emps.validate"),
+    ({"data_dir": "/nonexistent/dir"}, "emps.data_dir"),
     ({"bogus": 1}, "bogus"),
 ])
 def test_settings_reject_bad_values_in_one_line(emps, needle):
@@ -157,3 +207,6 @@ def test_load_record_needs_a_known_format(tmp_path):
     (tmp_path / "rec.txt").write_text("t,vir,qm,qg\n")
     with pytest.raises(DataError, match="unknown format"):
         load_record(tmp_path / "rec.txt")
+    rec = simulated_record(PUBLISHED_THETA, 500, pulses=pulse_train(500, start=100, period=200, width=50))
+    back = load_record(write_record(rec, str(tmp_path / "r.mat")))
+    np.testing.assert_array_equal(back.pulses, rec.pulses)
