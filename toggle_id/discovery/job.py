@@ -62,6 +62,13 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     record, truth = workflow.build_record(cfg.get("data") or {})
     if record.x_B is None:
         raise DataError(f"record {record.name!r} has no measured x_B")
+    validation = None
+    vpath = (cfg.get("validation") or {}).get("path")
+    if vpath:  # a second record of the same machine: predicted, never fitted
+        from ..data import read_csv
+
+        vp = Path(vpath).expanduser()
+        validation = read_csv(vp if vp.is_absolute() else Path(project_root) / vp, x_B0=record.x_B0)
     if settings.noise_std is None and truth is not None:
         noise = float((cfg.get("data") or {}).get("noise_m", 0.0) or 0.0)
         settings.noise_std = noise if noise > 0 else None
@@ -95,6 +102,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                      **{f"param.{k}": v for k, v in rf.params.items()}})
 
         res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, reference=base_start,
+                       validation=validation,
                        on_refit=on_refit,
                        progress=(lambda msg: print(msg, flush=True)) if show else None)
         wall = time.perf_counter() - t0

@@ -17,19 +17,26 @@ from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, extend
 from .gauge import GAUGE_HELD, _force_like, gauge_fix, gauge_symmetries
-from .model import Model, _with, fit_free, parameter_uncertainty
+from .model import Fit, Model, _off_values, _with, fit_free, parameter_uncertainty
 from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
-from .stats import f_test
+from .localise import locate, signals_of
+from .noise import fit_noise
+from .validation import Judge
 
 log = logging.getLogger("toggle_id")
 
 
 def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None
                     ) -> tuple[dict, np.ndarray, dict]:
-    """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals."""
+    """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals.
+
+    Besides the classical tests of :func:`toggle_id.residuals.diagnose` (which assume white noise), the dict
+    holds the AR noise model of the residual (``noise_model``), the Ljung–Box test of the prewhitened residual
+    (``whiteness_prewhitened``) and the noise-aware structure test with its localisation (``localisation``,
+    :func:`.localise.locate`); ``verdict.structure_left`` is the latter's."""
     x, i_q, status = model.response(theta)
     rec = model.record
     r = rec.x_B - x
@@ -39,6 +46,15 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     d = R.diagnose(rec.t, r, rec.v_in, states, alpha=settings.alpha_diag, acf_lags=settings.acf_lags,
                    ccf_lags=settings.ccf_lags, ccf_step=settings.ccf_step, split_index=split_index,
                    noise_std=settings.noise_std)
+    noise = fit_noise(r, settings.noise_max_order)
+    d["noise_model"] = noise.to_dict()
+    d["whiteness_prewhitened"] = R.ljung_box(noise.whiten(r)[noise.order:], settings.acf_lags, settings.alpha_diag,
+                                             n_fitted=noise.order)
+    loc = locate(None, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
+                 alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
+    d["localisation"] = loc
+    d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
+    d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
 
 
@@ -57,9 +73,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              effects: Sequence[Effect] = EFFECTS, settings: DiscoverSettings | None = None,
              free: Sequence[str] | None = None, fixed: Mapping[str, float] | None = None,
              starts: Sequence[np.ndarray | Mapping[str, float]] = (),
-             reference: np.ndarray | Mapping[str, float] | None = None, on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
+             reference: np.ndarray | Mapping[str, float] | None = None, validation: Record | None = None,
+             on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
              ) -> DiscoveryResult:
-    """Run the discovery loop on ``record`` (see the module docstring).
+    """Run the discovery loop on ``record`` (see the package docstring).
 
     nominal: the nominal fit (an :class:`IdentificationResult`, an extended/physical vector or a name → value
         mapping; None: the assigned values) — the loop starts by polishing it on the whole record.
@@ -70,12 +87,14 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     reference: the values the reported parameters are brought closest to along the exact symmetries of the
         output (:func:`gauge_fix`; default the assigned values) — it fixes the otherwise arbitrary scale of the
         mechanism, and with it the magnitude of force-type effects.
+    validation: a second record of the same machine, never fitted: an effect must predict it better too.
     on_refit: called with every :class:`Refit` (e.g. to log an MLflow child run); progress: one-line messages.
     """
     settings = (settings or DiscoverSettings()).validate()
     say = progress or (lambda msg: log.info(msg))
     t_start = time.perf_counter()
     model = Model(record, PRECISE, settings.parallel)
+    judge = Judge(model, settings, validation)
     fixed = dict(fixed or {})
     for k in fixed:
         if k not in ALL_INDEX:
@@ -94,117 +113,58 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     split = split if 0 < split < record.n else None
     n = record.n
 
-    # 1. baseline: the nominal model polished on the whole record (from every start; the best is kept)
-    anchors = [theta] + [_with(_nominal_theta(st), fixed) for st in starts]
-    current, anchor, start_report = None, theta, []
-    for k, th0 in enumerate(anchors):
-        if not np.all(np.isfinite(model.residuals(th0[None, :])[0])):
-            start_report.append({"start": k, "error": "cannot be simulated on this record"})
-            continue
-        say(f"baseline polish of {len(free)} parameters on {n} samples (start {k + 1} of {len(anchors)})")
-        fit = fit_free(model, th0, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-        start_report.append({"start": k, "rmse_m": fit.rmse(n), "nfev": fit.info["nfev"]})
-        say(f"  rms {fit.rmse(n) * 1e6:.4g} µm ({fit.info['nfev']} evaluations, {fit.info['seconds']:.1f} s)")
-        if current is None or fit.sse < current.sse:
-            current, anchor = fit, th0
-    if current is None:
-        raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
-    current.info["starts"] = start_report
-    baseline = current
-
+    baseline, anchor = _baseline(model, theta, [_with(_nominal_theta(st), fixed) for st in starts], free,
+                                 settings, say)
+    noise0 = fit_noise(model.residuals(baseline.theta[None, :])[0], settings.noise_max_order)
+    say(f"noise model of the nominal residual: {noise0.describe()}")
+    current = baseline
     iterations: list[dict] = []
     added: list[dict] = []
     first_scores: list[CandidateScore] | None = None
-    accepted_names: set[str] = set()
     all_refits: list[Refit] = []
     for it in range(1, settings.max_effects + 1):
-        remaining = [e for e in pool if e.name not in accepted_names]
+        remaining = [e for e in pool if e.name not in {a["name"] for a in added}]
         if not remaining:
             break
-        points = [assess(model, "current fit", current.theta, current.free, remaining, settings)]
-        # second linearisation point: the nominal fit as given, with the effects added so far — the polished
-        # fit may have bent the nominal parameters far towards the missing effect (masses → 0, friction × 50),
-        # where the local picture of the remaining candidates is distorted
-        alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
-        if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
-            second = assess(model, "nominal start", alt, current.free, remaining, settings)
-            if second is not None:  # (None: the nominal start cannot be simulated with these effects)
-                points.append(second)
-        scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
-        for c in scores:
-            for pt in points[1:]:
-                c.profile_score_alt = pt.scores[c.name].profile_score
-        say("scores (profile | LM): " + ", ".join(f"{c.name} {c.profile_score:.3g} | {c.score:.3g}"
-                                                  for c in sorted(scores, key=lambda c: -c.profile_score)))
-        # screened at the fitted point (where the statistics mean what they say); every screened candidate is
-        # scouted (short polish with the effect freed, from each point) and the refits follow the scouts
-        screen = float(stats.chi2.isf(settings.screen_alpha, 1))
-        here = points[0].scores
-        # (a candidate the fitted point cannot see at all — silent there, e.g. a voltage limit above the fit's
-        # drive voltage — is judged by the scout from the other point instead)
-        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
-                    and (max(here[c.name].profile_score, here[c.name].score) > screen
-                         or (c.name not in points[0].profiles
-                             and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
-        scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
-                  for c in screened}
-        for c in scores:
-            c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
-        order = sorted(scouts.values(), key=lambda sc: sc.sse)
-        scores.sort(key=lambda c: (scouts[c.name].sse if c.name in scouts else np.inf, -c.profile_score))
+        step = _iteration(model, judge, current, anchor, free, remaining, settings, it, held, say, on_refit)
+        all_refits.extend(step["refits"])
         if first_scores is None:
-            first_scores = scores
-        say("scouts: " + (", ".join(f"{sc.name} {np.sqrt(sc.sse / n) * 1e6:.4g} µm" for sc in order) or "none"))
-        refits: list[Refit] = []
-        for sc in order[:settings.top_k]:
-            eff = EFFECTS_BY_NAME[sc.name]
-            rf = refit_candidate(model, current, eff, sc, settings, it, held)
-            if rf.accepted:
-                better_null = guard_null(model, current, rf, eff, settings)
-                if better_null is not None and better_null.sse < current.sse:
-                    say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
-                        f"{better_null.rmse(n) * 1e6:.4g} µm")
-                    current = better_null
-                    if not added:  # still the nominal model: the error "before" is this better fit's
-                        baseline = current
-                    for other in refits:  # earlier refits are compared with the better baseline too
-                        if other.accepted:
-                            F, p, dbic = f_test(current.sse, other.sse1, other.k, n, other.p1)
-                            other.sse0, other.F, other.p_value, other.delta_bic = current.sse, F, p, dbic
-                            other.accepted = p < settings.alpha and dbic < 0
-                            if not other.accepted:
-                                other.reason = "not significant against the re-polished nominal model"
-            say(f"  refit {eff.name}: rms {np.sqrt(rf.sse1 / n) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
-                f"ΔBIC {rf.delta_bic:.4g} → {'accepted' if rf.accepted else 'rejected'} ({rf.seconds:.1f} s)")
-            refits.append(rf)
-            all_refits.append(rf)
-            if on_refit is not None:
-                on_refit(rf)
-        winners = [rf for rf in refits if rf.accepted]
-        chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
-        iterations.append({"iteration": it, "rmse_m": current.rmse(n), "rank_J": points[0].proj.rank,
-                           "points": [pt.label for pt in points],
-                           "scores": [c.to_dict() for c in scores],
-                           "refits": [rf.to_dict(n) for rf in refits],
-                           "accepted": chosen.name if chosen else None})
+            first_scores = step["scores"]
+        if step["better_null"] is not None:
+            current = step["better_null"]
+            if not added:  # still the nominal model: the error "before" is this better fit's
+                baseline = current
+        chosen = step["chosen"]
+        iterations.append(step["record"])
         if chosen is None:
             break
-        accepted_names.add(chosen.name)
-        current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
-                           rounds=settings.rounds)
-        # second start: the nominal fit as given (before the baseline polish bent it towards the missing
-        # effect) with the effects' current values — the polished baseline may sit in another valley
-        effect_names = [nm for nm in chosen.fit.free if nm not in free]
-        alt = fit_free(model, _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names}),
-                       chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-        if alt.sse < current.sse:
-            say(f"  second start (nominal fit + effects) reached {alt.rmse(n) * 1e6:.4g} µm "
-                f"instead of {current.rmse(n) * 1e6:.4g} µm")
-            current = alt
+        current = _polish_with_effect(model, chosen, anchor, free, settings, say)
         added.append({"name": chosen.name, "iteration": it, "F": chosen.F, "p_value": chosen.p_value,
                       "delta_bic": chosen.delta_bic, "rmse_after_m": current.rmse(n),
-                      "params_at_acceptance": chosen.params})
+                      "params_at_acceptance": chosen.params, "evidence": chosen.evidence})
         say(f"added {chosen.name} {chosen.params}; rms {current.rmse(n) * 1e6:.4g} µm")
+
+    eliminated: list[dict] = []
+    if settings.backward and added:
+        current, added, eliminated = _backward(model, judge, current, added, held, settings, say)
+
+    # the noise-aware structure test decides whether the effects explain the residual or only compensate
+    diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
+    structure = bool(diag_after.get("verdict", {}).get("structure_left", False))
+    compensating: list[dict] = []
+    with_compensating = None
+    if structure and added:
+        say("structure remains after " + ", ".join(a["name"] for a in added) + ": they lower the error but do not "
+            "explain it (listed as compensating, not added)")
+        with_compensating = current
+        compensating = [dict(a, reason="lowers the error, but structure the noise model cannot explain remains "
+                                       "with it in the model") for a in added]
+        added = []
+        current = baseline
+        diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
+    compensating += [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
+                      "evidence": rf.evidence} for rf in all_refits
+                     if rf.lowers_error and not rf.accepted and rf.name not in {c["name"] for c in compensating}]
 
     # the representatives of the fits nearest the reference along the exact symmetries (same output)
     ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
@@ -212,10 +172,194 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     if settings.gauge:
         broken = {sym for a in added for sym in EFFECTS_BY_NAME[a["name"]].breaks}
         baseline.theta, gauge_before = gauge_fix(model, baseline.theta, baseline.free + held, ref)
-        current.theta, gauge_after = gauge_fix(model, current.theta, tuple(set(current.free) | set(held)), ref,
-                                               broken=broken)
-    uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ())) if added else {}
-    for a in added:  # the values of the final model (later refits move earlier effects' parameters too)
+        if current is not baseline:
+            current.theta, gauge_after = gauge_fix(model, current.theta, tuple(set(current.free) | set(held)), ref,
+                                                   broken=broken)
+        else:
+            gauge_after = gauge_before
+    noise_after = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
+    uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ()), noise_after) \
+        if added else {}
+    _describe_added(added, current, uncertainty, gauge_after)
+    diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split)
+    accepted_names = {a["name"] for a in added}
+    cands = []
+    for c in first_scores or []:
+        tried = [rf for rf in all_refits if rf.name == c.name]
+        cands.append({**c.to_dict(), "accepted": c.name in accepted_names, "refitted": bool(tried),
+                      "refit_p_value": min((rf.p_value for rf in tried), default=None),
+                      "verdict": ("accepted" if c.name in accepted_names else
+                                  "compensating" if c.name in {x["name"] for x in compensating} else "rejected"),
+                      "evidence": tried[-1].evidence if tried else {}})
+    rejected = [{"name": c["name"], "refitted": c["refitted"],
+                 "reason": (next((rf.reason for rf in reversed(all_refits) if rf.name == c["name"]), None)
+                            or ("eliminated: " + next(e["reason"] for e in eliminated if e["name"] == c["name"])
+                                if c["name"] in {e["name"] for e in eliminated} else
+                                "its scout explains less than the candidates refitted"))}
+                for c in cands if c["verdict"] == "rejected"]
+    unexplained = bool(diag_after.get("verdict", {}).get("structure_left", False))
+    conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating)
+    extra = {"symmetry_gauge": {"before": gauge_before, "after": gauge_after}, "identifiability_after": uncertainty,
+             "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,
+             "noise_model": {"before": noise0.to_dict(), "after": noise_after.to_dict()},
+             "localisation": diag_after.get("localisation"),
+             "validation_record": validation.name if validation is not None else None}
+    if with_compensating is not None:
+        extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
+    return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,
+                           candidates=cands, iterations=iterations, diagnostics_before=diag_before,
+                           diagnostics_after=diag_after, residual_before=r_before, residual_after=r_after,
+                           nominal=nominal.to_dict() if isinstance(nominal, IdentificationResult) else None,
+                           conclusion=conclusion, unexplained=unexplained, seconds=time.perf_counter() - t_start,
+                           n_simulations=model.n_sims, refits=all_refits, extra=extra)
+
+
+def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], free: Sequence[str],
+              settings: DiscoverSettings, say: Callable[[str], None]) -> tuple[Fit, np.ndarray]:
+    """The nominal model polished on the whole record from every start; the best and its start."""
+    n = model.n
+    current, anchor, report = None, theta, []
+    anchors = [theta, *others]
+    for k, th0 in enumerate(anchors):
+        if not np.all(np.isfinite(model.residuals(th0[None, :])[0])):
+            report.append({"start": k, "error": "cannot be simulated on this record"})
+            continue
+        say(f"baseline polish of {len(free)} parameters on {n} samples (start {k + 1} of {len(anchors)})")
+        fit = fit_free(model, th0, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+        report.append({"start": k, "rmse_m": fit.rmse(n), "nfev": fit.info["nfev"]})
+        say(f"  rms {fit.rmse(n) * 1e6:.4g} µm ({fit.info['nfev']} evaluations, {fit.info['seconds']:.1f} s)")
+        if current is None or fit.sse < current.sse:
+            current, anchor = fit, th0
+    if current is None:
+        raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
+    current.info["starts"] = report
+    return current, anchor
+
+
+def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, free: Sequence[str],
+               remaining: Sequence[Effect], settings: DiscoverSettings, it: int, held: Sequence[str],
+               say: Callable[[str], None], on_refit: Callable[[Refit], None] | None) -> dict:
+    """Scores, scouts and refits of one iteration; the candidate to add (or None)."""
+    n = model.n
+    noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
+    points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
+    # second linearisation point: the nominal fit as given, with the effects added so far — the polished fit may
+    # have bent the nominal parameters far towards the missing effect, where the local picture is distorted
+    alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
+    if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
+        second = assess(model, "nominal start", alt, current.free, remaining, settings, noise)
+        if second is not None:  # (None: the nominal start cannot be simulated with these effects)
+            points.append(second)
+    scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
+    for c in scores:
+        for pt in points[1:]:
+            c.profile_score_alt = pt.scores[c.name].profile_score
+    say("scores (profile | LM, prewhitened): " + ", ".join(
+        f"{c.name} {c.profile_score:.3g} | {c.score:.3g}" for c in sorted(scores, key=lambda c: -c.profile_score)))
+    screen = float(stats.chi2.isf(settings.screen_alpha, 1))
+    here = points[0].scores
+    if settings.scout_all:  # global screening: every candidate with a grid is scouted
+        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)]
+    else:
+        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
+                    and (max(here[c.name].profile_score, here[c.name].score) > screen
+                         or (c.name not in points[0].profiles
+                             and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
+    scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
+              for c in screened}
+    for c in scores:
+        c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
+    order = sorted(scouts.values(), key=lambda sc: sc.sse)
+    scores.sort(key=lambda c: (scouts[c.name].sse if c.name in scouts else np.inf, -c.profile_score))
+    say("scouts: " + (", ".join(f"{sc.name} {np.sqrt(sc.sse / n) * 1e6:.4g} µm" for sc in order) or "none"))
+    refits: list[Refit] = []
+    better_null: Fit | None = None
+    base = current
+    for i, sc in enumerate(order):
+        best = min((rf.sse1 for rf in refits if rf.accepted), default=None)
+        # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
+        # (no effect is accepted while a candidate that explains more has not been refitted)
+        if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best)):
+            break
+        eff = EFFECTS_BY_NAME[sc.name]
+        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held)
+        if rf.accepted:
+            null = guard_null(model, base, rf, eff, settings, judge)
+            if null is not None and null.sse < base.sse:
+                say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
+                    f"{null.rmse(n) * 1e6:.4g} µm")
+                base = better_null = null
+                for other in refits:  # earlier refits are judged against the better baseline too
+                    if other.accepted:
+                        other.judge(judge.evidence(base, other.fit), base.sse)
+                        if not other.accepted:
+                            other.reason = "against the re-polished nominal model: " + other.reason
+        ev = rf.evidence
+        say(f"  refit {eff.name}: rms {np.sqrt(rf.sse1 / n) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
+            f"ΔBIC {rf.delta_bic:.4g}, out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
+            f"{ev.get('cv_sse_w_after', np.nan):.4g} → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
+            f"({rf.seconds:.1f} s)")
+        refits.append(rf)
+        if on_refit is not None:
+            on_refit(rf)
+    winners = [rf for rf in refits if rf.accepted]
+    chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
+    record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
+              "noise_model": noise.to_dict(), "points": [pt.label for pt in points],
+              "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
+              "accepted": chosen.name if chosen else None}
+    return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record}
+
+
+def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: Sequence[str],
+                        settings: DiscoverSettings, say: Callable[[str], None]) -> Fit:
+    """The accepted refit polished in full, also from the nominal fit as given with the effects' values (the
+    polished baseline may sit in another valley); the better of the two."""
+    n = model.n
+    current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                       rounds=settings.rounds)
+    effect_names = [nm for nm in chosen.fit.free if nm not in free]
+    alt = fit_free(model, _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names}),
+                   chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+    if alt.sse < current.sse:
+        say(f"  second start (nominal fit + effects) reached {alt.rmse(n) * 1e6:.4g} µm "
+            f"instead of {current.rmse(n) * 1e6:.4g} µm")
+        current = alt
+    return current
+
+
+def _backward(model: Model, judge: Judge, current: Fit, added: list[dict], held: Sequence[str],
+              settings: DiscoverSettings, say: Callable[[str], None]) -> tuple[Fit, list[dict], list[dict]]:
+    """Backward elimination: drop any accepted effect the model without it (refitted) predicts as well out of
+    sample, or that is no longer significant against it; repeat until every effect is needed."""
+    added = list(added)
+    eliminated: list[dict] = []
+    changed = True
+    while changed and added:
+        changed = False
+        for a in reversed(added):
+            eff = EFFECTS_BY_NAME[a["name"]]
+            others = {s for b in added if b is not a for s in EFFECTS_BY_NAME[b["name"]].breaks}
+            rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
+            free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
+            start = _with(current.theta, _off_values(eff))
+            reduced = fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+            ev = judge.evidence(reduced, current)
+            a["backward"] = ev.to_dict()
+            say(f"backward: without {eff.name} rms {reduced.rmse(model.n) * 1e6:.4g} µm — "
+                f"{'kept' if ev.passed else 'dropped: ' + ev.reason}")
+            if not ev.passed:
+                eliminated.append({"name": a["name"], "reason": ev.reason, "evidence": ev.to_dict()})
+                added.remove(a)
+                current = reduced
+                changed = True
+                break
+    return current, added, eliminated
+
+
+def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_after: dict) -> None:
+    """The values of the final model for each added effect (later refits move earlier effects' parameters)."""
+    for a in added:
         eff = EFFECTS_BY_NAME[a["name"]]
         a["params"] = {nm: float(current.theta[ALL_INDEX[nm]]) for nm in eff.names}
         a["std_errors"] = {nm: (uncertainty.get("std_errors") or {}).get(nm) for nm in eff.names}
@@ -231,21 +375,3 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
             # x_B fixes a force only relative to the mechanism (every force scales with it, exactly): the ratio
             # to the contact stiffness is what the record determines, whatever representative is reported
             a["magnitude"]["per_K_l"] = a["params"][eff.magnitude.name] / k_l
-    diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split)
-    diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
-    cands = []
-    for c in first_scores or []:
-        tried = [rf for rf in all_refits if rf.name == c.name]
-        cands.append({**c.to_dict(), "accepted": c.name in accepted_names, "refitted": bool(tried),
-                      "refit_p_value": min((rf.p_value for rf in tried), default=None)})
-    structure = diag_after.get("verdict", {}).get("structure_left", False)
-    unexplained = bool(structure)
-    conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings)
-    return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,
-                           candidates=cands, iterations=iterations, diagnostics_before=diag_before,
-                           diagnostics_after=diag_after, residual_before=r_before, residual_after=r_after,
-                           nominal=nominal.to_dict() if isinstance(nominal, IdentificationResult) else None,
-                           conclusion=conclusion, unexplained=unexplained, seconds=time.perf_counter() - t_start,
-                           n_simulations=model.n_sims, refits=all_refits,
-                           extra={"symmetry_gauge": {"before": gauge_before, "after": gauge_after},
-                                  "identifiability_after": uncertainty})

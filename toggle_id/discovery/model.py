@@ -15,7 +15,11 @@ from ..identify import stage_bounds
 from ..polish import polish
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
+from .noise import NoiseModel
 from .settings import DiscoverSettings
+
+#: The white model used when no noise model is given (the residual's variance is estimated by ``analyze``).
+WHITE_ASSUMED = NoiseModel(note="white noise assumed")
 
 
 class Model:
@@ -228,13 +232,16 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
     return Fit(out, free, float(res.sse), info, res.jac, res.scaling)
 
 
-def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, held: Sequence[str] = ()) -> dict:
+def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, held: Sequence[str] = (),
+                          noise: NoiseModel | None = None) -> dict:
     """Identifiability report (:func:`toggle_id.identifiability.analyze`) of the free parameters at ``fit``:
     standard errors, 95 % intervals and whether each parameter is determined by the record (a parameter
     with a component along a null direction of the sensitivities is not, whatever its local curvature).
 
     ``held``: parameters treated as known — one per exact symmetry fixed by :func:`gauge_fix` (the
-    symmetry's scale is then the reference's, and e.g. a friction torque is determined relative to it)."""
+    symmetry's scale is then the reference's, and e.g. a friction torque is determined relative to it).
+    ``noise``: the AR noise model of the residual; sensitivities and residual are prewhitened by it (the
+    intervals of the prediction-error estimate), and the report names it."""
     from ..identifiability import analyze
 
     names = [nm for nm in fit.free if nm not in set(held)]
@@ -243,9 +250,12 @@ def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, he
         r = model.residuals(fit.theta[None, :])[0]
         mask, scale = _coords(names, fit.theta)
         x = np.array([fit.theta[ALL_INDEX[nm]] for nm in names])
-        noise = settings.noise_std ** 2 if settings.noise_std else None
-        out = analyze(J, r, names, x, log_mask=mask, scale=scale, noise_var=noise).to_dict()
+        nm = noise if noise is not None else WHITE_ASSUMED
+        known = settings.noise_std ** 2 if settings.noise_std and nm.white else None
+        out = analyze(nm.whiten_columns(J), nm.whiten(r), names, x, log_mask=mask, scale=scale,
+                      noise_var=known).to_dict()
         out["held_for_symmetries"] = list(held)
+        out["noise_model"] = nm.to_dict()
         return out
     except (ConfigError, DataError, np.linalg.LinAlgError, ValueError) as err:
         return {"error": str(err)}

@@ -12,7 +12,7 @@ from .gauge import freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free
 from .scoring import Point, refit_start
 from .settings import DiscoverSettings
-from .stats import f_test
+from .validation import Evidence, Judge
 
 
 @dataclass
@@ -36,6 +36,19 @@ class Refit:
     null_sse: float | None = None
     std_errors: dict = field(default_factory=dict)
     seconds: float = 0.0
+    evidence: dict = field(default_factory=dict)
+
+    def judge(self, ev: Evidence, base_sse: float) -> None:
+        """Take the verdict of ``ev`` (against a base fit of SSE ``base_sse``)."""
+        self.sse0 = base_sse
+        self.F, self.p_value, self.delta_bic = ev.F, ev.p_value, ev.delta_bic
+        self.accepted, self.reason = ev.passed, ev.reason
+        self.evidence = ev.to_dict()
+
+    @property
+    def lowers_error(self) -> bool:
+        """Significant in sample (F-test and BIC), whatever the out-of-sample checks say."""
+        return bool(self.evidence.get("checks", {}).get("f_test")) and bool(self.evidence.get("checks", {}).get("bic"))
 
     def to_dict(self, n: int) -> dict:
         return {"name": self.name, "iteration": self.iteration, "params": self.params, "std_errors": self.std_errors,
@@ -44,7 +57,7 @@ class Refit:
                 "added_params": self.k, "total_params": self.p1, "F": self.F, "p_value": self.p_value,
                 "delta_bic": self.delta_bic, "significant": self.accepted, "reason": self.reason,
                 "null_refit_sse_m2": self.null_sse, "search": self.search,
-                "polish": self.fit.info if self.fit else None, "seconds": self.seconds}
+                "polish": self.fit.info if self.fit else None, "seconds": self.seconds, "evidence": self.evidence}
 
 
 
@@ -90,11 +103,10 @@ def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Ef
 
 
 def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, settings: DiscoverSettings,
-                    iteration: int, held: Collection[str] = ()) -> Refit:
-    """Polish with the effect's parameters freed, continuing from the scout, then the F-test/BIC against
-    ``base``."""
+                    iteration: int, judge: Judge, held: Collection[str] = ()) -> Refit:
+    """Polish with the effect's parameters freed, continuing from the scout, then judged against ``base``
+    (:class:`~.validation.Judge`: prewhitened F-test and BIC, cross-validation, validation record)."""
     t0 = time.perf_counter()
-    n = model.n
     names = effect.names
     free = freed_with(base.free, effect, held)
     k = len(free) - len(base.free)  # the effect's parameters and any gauge parameter it frees
@@ -105,28 +117,23 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     fit = fit_free(model, scout.theta, free, settings.refit_nfev, settings.fd_rel_step,
                    rounds=settings.refit_rounds)
     params = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in names}
-    F, p, dbic = f_test(base.sse, fit.sse, k, n, p1)
-    passed = p < settings.alpha and dbic < 0
-    reason = "significant (F-test and BIC)" if passed else \
-        ("F-test not significant" if p >= settings.alpha else "BIC does not improve")
-    out = Refit(effect.name, iteration, fit, params, base.sse, fit.sse, k, p1, F, p, dbic, passed, reason,
-                scout.search, std_errors=_std_errors(fit, names, n))
+    out = Refit(effect.name, iteration, fit, params, base.sse, fit.sse, k, p1, 0.0, 1.0, float("inf"), False, "",
+                scout.search, std_errors=_std_errors(fit, names, model.n))
+    out.judge(judge.evidence(base, fit), base.sse)
     out.seconds = time.perf_counter() - t0 + scout.seconds
     return out
 
 
-def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: DiscoverSettings) -> Fit | None:
+def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: DiscoverSettings, judge: Judge
+               ) -> Fit | None:
     """Re-polish the model without the effect from the refit's parameters; if it beats the baseline the
-    refit is re-tested against it. Returns the better null fit (or None when it did not improve)."""
+    refit is judged again against it. Returns the better null fit (or None when it did not improve)."""
     start = _with(refit.fit.theta, _off_values(effect))
     null = fit_free(model, start, base.free, settings.null_nfev, settings.fd_rel_step, rounds=settings.rounds)
     refit.null_sse = null.sse
     if null.sse < base.sse:
-        F, p, dbic = f_test(null.sse, refit.sse1, refit.k, model.n, refit.p1)
-        refit.sse0, refit.F, refit.p_value, refit.delta_bic = null.sse, F, p, dbic
-        refit.accepted = p < settings.alpha and dbic < 0
+        refit.judge(judge.evidence(null, refit.fit), null.sse)
         if not refit.accepted:
-            refit.reason = ("a better nominal optimum explains the gain: " +
-                            ("F-test not significant" if p >= settings.alpha else "BIC does not improve"))
+            refit.reason = "a better nominal optimum explains the gain: " + refit.reason
         return null
     return None

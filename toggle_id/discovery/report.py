@@ -66,27 +66,33 @@ class DiscoveryResult:
                 "residual_tests_before": self.diagnostics_before, "residual_tests_after": self.diagnostics_after,
                 "conclusion": self.conclusion, "unexplained": self.unexplained, "iterations": self.iterations,
                 "baseline_polish": self.baseline.info, "nominal": self.nominal, "seconds": self.seconds,
-                "n_simulations": self.n_simulations, **self.extra}
+                "n_simulations": self.n_simulations, "accepted": [a["name"] for a in self.effects_added],
+                **self.extra}
 
 
-def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings) -> str:
-    """One plain sentence (or two) on what was found and what is left."""
-    def tests(d: dict) -> str:
-        w = d.get("whiteness", {})
-        u = d.get("input_correlation", {})
-        return (f"Ljung–Box p = {w.get('p_value', float('nan')):.3g}, "
-                f"input-correlation p = {u.get('p_value', float('nan')):.3g} (level {s.alpha_diag:g})")
+def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings,
+                compensating: list[dict] = ()) -> str:
+    """A few plain sentences on what was found, what only compensates, and what is left."""
+    def noise(d: dict) -> str:
+        nm = d.get("noise_model") or {}
+        return nm.get("kind", "white") + (f" (≈{nm['effective_samples']} independent samples of {nm['n']})"
+                                           if nm.get("order") else "")
 
+    rms = (f"RMS error {before.get('rms_m', float('nan')) * 1e6:.4g} → {after.get('rms_m', float('nan')) * 1e6:.4g} µm")
     if added:
         text = "added " + ", ".join(f"{a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.4g} "
-                                    f"{a['magnitude']['unit']})" for a in added)
-        text += f"; RMS error {before.get('rms_m', float('nan')) * 1e6:.4g} → {after.get('rms_m', float('nan')) * 1e6:.4g} µm."
+                                    f"{a['magnitude']['unit']})" for a in added) + f"; {rms}."
     else:
-        text = "no effect of the library is significant (F-test and BIC); the nominal model is kept."
+        text = "no effect of the library is supported in and out of sample; the nominal model is kept."
+    if compensating:
+        text += (" Compensating (lower the error without explaining it; not added): " +
+                 ", ".join(sorted({c['name'] for c in compensating})) + ".")
+    loc = after.get("localisation") or {}
     if unexplained:
-        text += (" Residual structure remains that no effect of the library explains: " + tests(after) + ".")
+        text += (" Structure remains that no effect of the library explains — " + loc.get("text", "") +
+                 f" (noise model {noise(after)}).")
     else:
-        text += " The residual is consistent with white noise independent of the input: " + tests(after) + "."
+        text += f" The residual is consistent with {noise(after)} noise independent of the states and the input."
     return text
 
 
@@ -108,6 +114,18 @@ def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings:
         fig = R.states_figure(r, states, record.v_in, dt=record.dt, alpha=settings.alpha_diag,
                               title=f"Residual against the states and the input ({label})")
         out.append(figures.save(fig, run_dir / f"residual_states_{label}.png"))
+    from .localise import figure as localisation_figure, signals_of
+
+    for label, fit, r, diag in (("before", res.baseline, res.residual_before, res.diagnostics_before),
+                                ("after", res.final, res.residual_after, res.diagnostics_after)):
+        loc = diag.get("localisation")
+        if not loc or not np.all(np.isfinite(r)):
+            continue
+        x, i_q, _ = model.response(fit.theta)
+        states = R.plant_states(record.t, x, i_q, x_off=float(fit.theta[ALL_INDEX["x_off"]]))
+        fig = localisation_figure(loc, r, signals_of(record.t, record.v_in, states),
+                                  title=f"Where the residual concentrates ({label}): {loc['text']}")
+        out.append(figures.save(fig, run_dir / f"localisation_{label}.png"))
     if np.all(np.isfinite(res.residual_before)) and np.all(np.isfinite(res.residual_after)):
         names = ", ".join(a["name"] for a in res.effects_added) or "no effect added"
         fig = R.comparison_figure(record.t, {"before (nominal)": res.residual_before, f"after ({names})":
@@ -120,9 +138,21 @@ def summary_text(res: DiscoveryResult) -> str:
     """Console summary: candidate table (first iteration), effects added, RMS before/after, conclusion."""
     from .. import console
 
-    rows = [[c["name"], c["score"], c["p_value"], "yes" if c["refitted"] else "", "yes" if c["accepted"] else "",
-             c["note"]] for c in res.candidates]
-    lines = [console.text_table(["effect", "score χ²(1)", "p", "refitted", "accepted", "note"], rows)]
+    def cv(c: dict) -> str:
+        ev = c.get("evidence") or {}
+        if "cv_sse_w_before" not in ev:
+            return ""
+        n = res.n
+        return f"{np.sqrt(ev['cv_sse_w_before'] / n) * 1e6:.3g} → {np.sqrt(ev['cv_sse_w_after'] / n) * 1e6:.3g}"
+
+    rows = [[c["name"], c["score"], (c.get("scout_rmse_m") or np.nan) * 1e6, "yes" if c["refitted"] else "",
+             cv(c), c.get("verdict", ""), c["note"]] for c in res.candidates]
+    lines = [console.text_table(["effect", "score χ²(1)", "scout rms µm", "refitted",
+                                 "out-of-sample rms_w µm", "verdict", "note"], rows)]
+    nm = res.extra.get("noise_model", {}).get("after", {})
+    if nm:
+        lines.append(f"noise model (final residual): {nm.get('kind')}, "
+                     f"≈{nm.get('effective_samples')} independent samples of {nm.get('n')}")
     for a in res.effects_added:
         se = a["std_errors"].get(a["magnitude"]["name"])
         lines.append(f"added {a['name']}: {a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
@@ -132,6 +162,11 @@ def summary_text(res: DiscoveryResult) -> str:
             lines.append(f"  a force-type magnitude: x_B fixes it only relative to the mechanism's common scale "
                          f"({a['magnitude']['name']}/K_l = {a['magnitude']['per_K_l']:.5g} per N/m; at the "
                          "reference scale above — fix one mechanical parameter, e.g. fixed.K_t, to pin it)")
+    for c in res.extra.get("compensating", []):
+        lines.append(f"compensating {c['name']}: {c['reason']}")
+    loc = res.diagnostics_after.get("localisation") or {}
+    if loc.get("structure_left"):
+        lines.append("where the residual concentrates: " + loc["text"])
     lines.append(f"RMS error before {res.rmse_before_m * 1e6:.4g} µm, after {res.rmse_after_m * 1e6:.4g} µm; "
                  f"{res.seconds:.1f} s, {res.n_simulations} simulations")
     lines.append(res.conclusion)

@@ -10,6 +10,7 @@ from scipy import stats
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..identify import stage_bounds
 from .model import Model, Projector, _coords, _off_values, _sse, _with, sensitivities
+from .noise import WHITE, NoiseModel
 from .settings import DiscoverSettings
 
 
@@ -41,14 +42,17 @@ class CandidateScore:
 
 
 def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effects: Sequence[Effect],
-                     absorbed_ratio: float = 1e-4, y0: np.ndarray | None = None) -> list[CandidateScore]:
+                     absorbed_ratio: float = 1e-4, y0: np.ndarray | None = None, noise: NoiseModel = WHITE
+                     ) -> list[CandidateScore]:
     """Score test of every effect in ``effects`` (see the module docstring), sorted by score (best first).
 
     ``theta``: current fit (the effects' parameters at their off values); ``r``: its residual (N,);
     ``proj``: range of the free parameters' sensitivities; ``y0``: the model output at ``theta`` when the caller
-    has it. One batched simulation for all probes.
+    has it; ``noise``: the statistics are on the residual and sensitivities prewhitened by it (``proj`` must
+    be of the whitened sensitivities). One batched simulation for all probes.
     """
     n = r.size
+    r = noise.whiten(r)
     rp = proj.perp(r)
     sigma2 = float(rp @ rp) / max(n - proj.rank, 1)  # = r·r/(N − rank) at a fitted point
     if y0 is None:
@@ -67,8 +71,8 @@ def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Proje
         if not np.all(np.isfinite(y)):
             cand = CandidateScore(e.name, 0.0, 1.0, dict(pr), None, float("nan"), 0.0, "probe simulation failed")
         else:
-            s = y - y0
-            s_norm = float(np.linalg.norm(s))
+            s = noise.whiten(y - y0)
+            s_norm = float(np.linalg.norm(y - y0))
             sp = proj.perp(s)
             sp_norm = float(np.linalg.norm(sp))
             ratio = sp_norm / s_norm if s_norm > 0 else 0.0
@@ -140,7 +144,7 @@ class Profile:
 
 
 def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effect: Effect,
-                   cand: CandidateScore, points: int = 14) -> Profile:
+                   cand: CandidateScore, points: int = 14, noise: NoiseModel = WHITE) -> Profile:
     """Grid search of ``effect`` at the current fit ``theta`` (residual ``r``) — see :class:`Profile`."""
     base = _with(theta, _off_values(effect))
     mag = effect.magnitude
@@ -153,12 +157,12 @@ def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Project
             rows.append(_with(base, setting))
             labels.append(setting)
     n = r.size
-    rp = proj.perp(r)
+    rp = proj.perp(noise.whiten(r))
     ref = float(rp @ rp)
     sigma2 = ref / max(n - proj.rank, 1)
     if not rows:
         return Profile(effect.name, 0.0, {}, [], np.zeros((0, n)), [], 0, "no grid")
-    Rr = model.residuals(np.array(rows))
+    Rr = noise.whiten(model.residuals(np.array(rows)))
     ok = np.all(np.isfinite(Rr), axis=1)
     perp = np.full(len(rows), np.inf)
     if ok.any():
@@ -215,18 +219,21 @@ class Point:
 
 
 def assess(model: Model, label: str, theta: np.ndarray, free: Sequence[str], effects: Sequence[Effect],
-           settings: DiscoverSettings) -> Point | None:
+           settings: DiscoverSettings, noise: NoiseModel = WHITE) -> Point | None:
     """Score test and profile of every effect in ``effects`` at ``theta`` (free parameters ``free``); None when
     ``theta`` cannot be simulated on the record."""
     y0 = model.outputs(theta[None, :])[0]
     if not np.all(np.isfinite(y0)):
         return None
     r = model.record.x_B - y0
-    J = sensitivities(model, theta, free, settings.jac_rel_step)
+    J = noise.whiten_columns(sensitivities(model, theta, free, settings.jac_rel_step))
     proj = Projector.of(J, settings.rank_rtol)
-    scores = score_candidates(model, theta, r, proj, effects, settings.absorbed_ratio, y0)
-    profiles = {c.name: profile_effect(model, theta, r, proj, EFFECTS_BY_NAME[c.name], c, settings.grid_points)
-                for c in scores if c.score > 0.0}
+    scores = score_candidates(model, theta, r, proj, effects, settings.absorbed_ratio, y0, noise)
+    # global screening: every candidate gets its grid (a threshold effect is silent at a small probe and a
+    # periodic one may be absorbed there, yet either can explain much at a larger magnitude)
+    profiles = {c.name: profile_effect(model, theta, r, proj, EFFECTS_BY_NAME[c.name], c, settings.grid_points,
+                                       noise)
+                for c in scores if c.score > 0.0 or settings.scout_all}
     for c in scores:
         if c.name in profiles:
             c.profile_score = profiles[c.name].score

@@ -33,6 +33,11 @@ class DiscoverSettings:
       rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
       as absorbed by the free parameters.
     - noise_std: known measurement noise (m), only reported as rms/noise; parallel: threaded simulation batches.
+    - noise_max_order: largest order of the AR noise model (0: white noise assumed); cv_folds, cv_block: folds
+      and block length (samples) of the time-block cross-validation; structure_bins: bins per signal of the
+      structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
+      its score (global screening; false: only those whose score passes ``screen_alpha``); backward: drop,
+      at the end, every accepted effect the others make unnecessary.
     """
 
     top_k: int = 3
@@ -60,6 +65,12 @@ class DiscoverSettings:
     absorbed_ratio: float = 1e-4
     noise_std: float | None = None
     parallel: bool = True
+    noise_max_order: int = 8
+    cv_folds: int = 5
+    cv_block: int = 100
+    structure_bins: int = 12
+    scout_all: bool = True
+    backward: bool = True
 
     def validate(self) -> DiscoverSettings:
         """Raise ConfigError naming the first bad value; normalise ``candidates``."""
@@ -79,7 +90,7 @@ class DiscoverSettings:
         if not isinstance(self.max_effects, int) or self.max_effects < 0:
             raise ConfigError(f"discover.max_effects must be a non-negative integer, got {self.max_effects!r}")
         for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "scout_nfev",
-                     "grid_points", "rounds", "refit_rounds"):
+                     "grid_points", "rounds", "refit_rounds", "cv_block", "structure_bins"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise ConfigError(f"discover.{name} must be a positive integer, got {v!r}")
@@ -87,6 +98,14 @@ class DiscoverSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0.0 < float(v) < 1.0):
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
+        if not isinstance(self.noise_max_order, int) or isinstance(self.noise_max_order, bool) or \
+                self.noise_max_order < 0:
+            raise ConfigError(f"discover.noise_max_order must be a non-negative integer, got {self.noise_max_order!r}")
+        if not isinstance(self.cv_folds, int) or isinstance(self.cv_folds, bool) or self.cv_folds < 2:
+            raise ConfigError(f"discover.cv_folds must be an integer ≥ 2, got {self.cv_folds!r}")
+        for name in ("scout_all", "backward"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std > 0):
             raise ConfigError(f"discover.noise_std must be a positive number of metres or null, got {self.noise_std!r}")
         if self.candidates is not None:

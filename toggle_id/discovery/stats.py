@@ -1,12 +1,27 @@
-"""Statistics of the discovery engine."""
+"""Statistics of the discovery engine, all on prewhitened signals (:mod:`.noise`).
+
+- :func:`f_test`: F statistic, p-value and ΔBIC of nested least-squares fits from their (whitened) SSEs.
+- :func:`compare`: the same for two residuals, whitened by one noise model (that of the larger model: under
+  "the effect is real" its residual is the noise, under "it is not" the two residuals are alike).
+- :func:`block_cv`: time-block cross-validation of a fit, linearised at the fitted point.
+- :func:`structure_test`: is the whitened residual predicted by functions of the states or the input?
+  A regression on prewhitened piecewise-constant bases (one family per signal) — the specification test that
+  separates "the model misses something" from "the noise is coloured".
+"""
 from __future__ import annotations
+
+from collections.abc import Mapping
 
 import numpy as np
 from scipy import stats
 
+from .noise import NoiseModel, fit_noise, whitened_sse
+
+
 def f_test(sse0: float, sse1: float, k: int, n: int, p1: int) -> tuple[float, float, float]:
     """F statistic and p-value of adding ``k`` parameters (model with ``p1`` in all, ``n`` residuals) and
-    ΔBIC = n·ln(SSE1/SSE0) + k·ln n (negative: the larger model is preferred)."""
+    ΔBIC = n·ln(SSE1/SSE0) + k·ln n (negative: the larger model is preferred). With prewhitened SSEs (and
+    ``p1`` counting the noise model's coefficients) the test is valid for coloured noise."""
     dof2 = max(n - p1, 1)
     if not (np.isfinite(sse1) and sse1 > 0) or not np.isfinite(sse0):
         return 0.0, 1.0, float("inf")
@@ -15,3 +30,99 @@ def f_test(sse0: float, sse1: float, k: int, n: int, p1: int) -> tuple[float, fl
     dbic = float(n * np.log(sse1 / sse0) + k * np.log(n))
     return float(F), p, dbic
 
+
+def compare(noise: NoiseModel, r0: np.ndarray, r1: np.ndarray, k: int, p1: int) -> dict:
+    """Nested comparison of residual ``r0`` (smaller model) and ``r1`` (``k`` more parameters, ``p1`` in all),
+    both whitened by ``noise``. Returns {sse0_w, sse1_w, F, p_value, delta_bic, n}."""
+    s0, s1 = whitened_sse(noise, np.vstack([r0, r1]))
+    n = int(np.asarray(r1).size)
+    F, p, dbic = f_test(float(s0), float(s1), k, n, p1 + noise.order)
+    return {"sse0_w": float(s0), "sse1_w": float(s1), "F": F, "p_value": p, "delta_bic": dbic, "n": n}
+
+
+def fold_of(n: int, block: int, folds: int) -> np.ndarray:
+    """Fold index per sample: contiguous blocks of ``block`` samples dealt to ``folds`` folds in turn, so every
+    fold spans the whole record (every phase — free motion, clamping — is in every training set)."""
+    return (np.arange(n) // max(int(block), 1)) % max(int(folds), 2)
+
+
+def block_cv(noise: NoiseModel, r: np.ndarray, J: np.ndarray, block: int = 100, folds: int = 5,
+             rcond: float = 1e-8) -> dict:
+    """Out-of-sample error of a fit by time-block cross-validation, linearised at the fitted point.
+
+    ``r`` (N,): the fit's residual; ``J`` (N, p): the sensitivities of the model output to its free parameters
+    there. For each fold, the parameters are re-estimated on the other folds (one Gauss–Newton step on the
+    whitened residual and sensitivities, exact for a model linear in its parameters) and the fold is
+    predicted. Returns {cv_sse_w, cv_rms_w, in_sse_w, folds, block}; the whitened units make the two models of a
+    comparison commensurable.
+    """
+    e = noise.whiten(r)
+    Jw = noise.whiten_columns(J) if J.size else np.zeros((e.size, 0))
+    fold = fold_of(e.size, block, folds)
+    total = 0.0
+    for k in range(max(int(folds), 2)):
+        test = fold == k
+        if Jw.shape[1]:
+            delta = np.linalg.lstsq(Jw[~test], e[~test], rcond=rcond)[0]
+            pred = e[test] - Jw[test] @ delta
+        else:
+            pred = e[test]
+        total += float(pred @ pred)
+    return {"cv_sse_w": total, "cv_rms_w": float(np.sqrt(total / e.size)), "in_sse_w": float(e @ e),
+            "folds": int(folds), "block": int(block)}
+
+
+def piecewise_basis(v: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indicator columns of ``bins`` quantile bins of ``v`` (N, B) and the bin edges; constant bins dropped."""
+    v = np.asarray(v, float)
+    edges = np.unique(np.quantile(v, np.linspace(0.0, 1.0, bins + 1)))
+    if edges.size < 3:
+        return np.zeros((v.size, 0)), edges
+    idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, edges.size - 2)
+    B = np.zeros((v.size, edges.size - 1))
+    B[np.arange(v.size), idx] = 1.0
+    return B, edges
+
+
+def lagged_basis(u: np.ndarray, max_lag: int = 50, step: int = 5) -> np.ndarray:
+    """Columns u(t − τ), τ = 0, step, …, max_lag (the first τ samples repeat u(0)), centred."""
+    u = np.asarray(u, float) - float(np.mean(u))
+    cols = [np.r_[np.full(tau, u[0]), u[:u.size - tau]] for tau in range(0, max_lag + 1, max(int(step), 1))]
+    return np.column_stack(cols)
+
+
+def structure_test(noise: NoiseModel | None, r: np.ndarray, bases: Mapping[str, np.ndarray],
+                   skip: int | None = None, max_order: int = 8) -> dict:
+    """Regression of the whitened residual on each whitened basis (one family per signal).
+
+    Under "the residual is the noise of ``noise``" the explained sum of squares over the whitened residual's
+    variance is χ²(rank) for each family (a basis fixed in advance, prewhitened like the residual). Returns
+    {family: {statistic, dof, p_value, share, coef}}: ``coef`` are the basis coefficients (for bin indicators:
+    the residual's level per bin), ``share`` the fraction of the whitened residual the family explains.
+    ``skip`` leading samples (the filter's transient, default its order) are left out. ``noise`` None: each
+    family is tested under the noise model of its own alternative — AR(p) fitted to the residual with the
+    family's best fit removed — so that structure is not mistaken for colour of the noise (an AR model fitted
+    to a residual that holds a smooth deterministic error absorbs it and the test loses its power).
+    """
+    r = np.asarray(r, float)
+    out: dict = {}
+    for name, B in bases.items():
+        B = np.asarray(B, float)
+        if B.ndim != 2 or B.shape[0] != r.size or B.shape[1] < 1 or not np.all(np.isfinite(B)):
+            continue
+        nm = noise
+        if nm is None:  # the noise of the larger model: the residual with this family's structure removed
+            nm = fit_noise(r - B @ np.linalg.lstsq(B, r, rcond=1e-10)[0], max_order)
+        k0 = nm.order if skip is None else int(skip)
+        e = nm.whiten(r)[k0:]
+        n = e.size
+        s2 = float(e @ e) / max(n, 1)
+        Bw = nm.whiten_columns(B)[k0:]
+        coef, _, rank, _ = np.linalg.lstsq(Bw, e, rcond=1e-10)
+        fitted = Bw @ coef
+        ess = float(fitted @ fitted)
+        dof = max(int(rank), 1)
+        stat = ess / s2 if s2 > 0 else 0.0
+        out[name] = {"statistic": stat, "dof": dof, "p_value": float(stats.chi2.sf(stat, dof)),
+                     "share": ess / (s2 * n) if s2 > 0 else 0.0, "coef": coef.tolist(), "noise": nm.to_dict()}
+    return out

@@ -1,0 +1,119 @@
+"""Whether a refitted effect is supported: in sample (prewhitened F-test and BIC), out of sample (time-block
+cross-validation, and a second record when the user gives one), and after the others (backward elimination).
+
+The noise model of a comparison is the larger model's (:func:`.noise.fit_noise` on the candidate's residual):
+when the effect is real, that residual is the noise; when it is not, the two residuals are alike. The smaller
+model's residual, which holds the effect's structure, would pass for coloured noise and hide it.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..record import Record
+from .model import Fit, Model, sensitivities
+from .noise import NoiseModel, fit_noise
+from .settings import DiscoverSettings
+from .stats import block_cv, compare
+
+
+@dataclass
+class Evidence:
+    """The case for a larger model against a smaller one (see the module docstring)."""
+
+    noise: NoiseModel
+    F: float
+    p_value: float
+    delta_bic: float
+    cv0: float
+    cv1: float
+    sse0_w: float
+    sse1_w: float
+    validation0: float | None = None
+    validation1: float | None = None
+    checks: dict = field(default_factory=dict)
+
+    @property
+    def passed(self) -> bool:
+        return all(self.checks.values())
+
+    @property
+    def reason(self) -> str:
+        if self.passed:
+            return "significant in sample (prewhitened F-test and BIC) and better out of sample"
+        names = {"f_test": "F-test not significant", "bic": "BIC does not improve",
+                 "cross_validation": "no better out of sample (time-block cross-validation)",
+                 "validation_record": "does not predict the validation record better"}
+        return "; ".join(v for k, v in names.items() if k in self.checks and not self.checks[k])
+
+    def to_dict(self) -> dict:
+        return {"noise_model": self.noise.to_dict(), "F": self.F, "p_value": self.p_value,
+                "delta_bic": self.delta_bic, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
+                "cv_sse_w_before": self.cv0, "cv_sse_w_after": self.cv1,
+                "validation_sse_before_m2": self.validation0, "validation_sse_after_m2": self.validation1,
+                "checks": dict(self.checks), "passed": self.passed, "reason": self.reason}
+
+
+class Judge:
+    """Judges larger models against smaller ones on one record (and an optional validation record), caching
+    each fit's residual and sensitivities."""
+
+    def __init__(self, model: Model, settings: DiscoverSettings, validation: Record | None = None) -> None:
+        self.model = model
+        self.s = settings
+        self.validation = Model(validation, model.settings, model.parallel) if validation is not None else None
+        self._cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        self._val: dict[bytes, float] = {}
+
+    def _key(self, fit: Fit) -> bytes:
+        return fit.theta.tobytes() + ",".join(fit.free).encode()
+
+    def residual_and_jacobian(self, fit: Fit) -> tuple[np.ndarray, np.ndarray]:
+        key = self._key(fit)
+        if key not in self._cache:
+            r = self.model.residuals(fit.theta[None, :])[0]
+            J = sensitivities(self.model, fit.theta, fit.free, self.s.jac_rel_step)
+            self._cache[key] = (r, J)
+        return self._cache[key]
+
+    def validation_sse(self, fit: Fit) -> float | None:
+        if self.validation is None:
+            return None
+        key = self._key(fit)
+        if key not in self._val:
+            r = self.validation.residuals(fit.theta[None, :])[0]
+            self._val[key] = float(r @ r) if np.all(np.isfinite(r)) else float("inf")
+        return self._val[key]
+
+    def evidence(self, small: Fit, large: Fit) -> Evidence:
+        """The case for ``large`` (more free parameters) against ``small``."""
+        r0, J0 = self.residual_and_jacobian(small)
+        r1, J1 = self.residual_and_jacobian(large)
+        k = max(len(large.free) - len(small.free), 1)
+        if not (np.all(np.isfinite(r1)) and np.all(np.isfinite(r0))):
+            nm = NoiseModel(note="a residual is not finite")
+            return Evidence(nm, 0.0, 1.0, float("inf"), np.inf, np.inf, np.inf, np.inf,
+                            checks={"f_test": False})
+        noise = fit_noise(r1, self.s.noise_max_order)
+        c = compare(noise, r0, r1, k, len(large.free))
+        cv0 = block_cv(noise, r0, J0, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
+        cv1 = block_cv(noise, r1, J1, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
+        ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], cv0, cv1, c["sse0_w"], c["sse1_w"])
+        ev.checks = {"f_test": c["p_value"] < self.s.alpha, "bic": c["delta_bic"] < 0, "cross_validation": cv1 < cv0}
+        if self.validation is not None:
+            ev.validation0, ev.validation1 = self.validation_sse(small), self.validation_sse(large)
+            ev.checks["validation_record"] = bool(ev.validation1 < ev.validation0)
+        return ev
+
+
+def in_sample_summary(ev: Evidence, n: int) -> dict:
+    """In- and out-of-sample error of the two models of a comparison, per sample (whitened units, m)."""
+    return {"in_sample_rms_w_before": float(np.sqrt(ev.sse0_w / n)), "in_sample_rms_w_after": float(np.sqrt(ev.sse1_w / n)),
+            "out_of_sample_rms_w_before": float(np.sqrt(ev.cv0 / n)), "out_of_sample_rms_w_after": float(np.sqrt(ev.cv1 / n))}
+
+
+def names_without(free: Sequence[str], drop: Sequence[str]) -> tuple[str, ...]:
+    d = set(drop)
+    return tuple(nm for nm in free if nm not in d)
