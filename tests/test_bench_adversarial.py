@@ -1,0 +1,135 @@
+"""The adversarial record set (jobs/bench_adversarial.py): what it writes, that the names hide the truth, the
+calibration table covers it, and how the discover runs are judged and resumed."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jobs import bench_adversarial as B
+from toggle_id.data import read_csv
+from toggle_id.effects import EFFECTS
+from toggle_id.params import ASSIGNED, INDEX, PARAM_NAMES
+from toggle_id.simulate import PRECISE, extend, simulate
+
+
+def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
+    cats = [s.category for s in B.SPECS]
+    assert len(B.SPECS) >= 18
+    assert cats.count("library") == 10 and cats.count("pair") == 2 and cats.count("outside") >= 2
+    assert {s.effects[0] for s in B.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
+    noise = {(s.noise_m, s.noise_ar, s.quantum_m) for s in B.SPECS if s.category == "noise"}
+    assert noise == {(1e-6, 0.0, 0.0), (1e-6, 0.5, 0.0), (1e-6, 0.9, 0.0), (0.0, 0.0, 1e-6)}
+    assert {s.outside for s in B.SPECS if s.category == "outside"} == {"bump", "saturation"}
+    assert {s.command for s in B.SPECS} == {"simulation", "experiment", "cycling"}
+    # every calibrated magnitude is there, with a measured ratio near its target
+    for s in B.SPECS:
+        assert set(B.CALIBRATED.get(s.key, {})) == set(s.calibrate), s.key
+        for value, ratio in B.CALIBRATED.get(s.key, {}).values():
+            assert value > 0 and ratio == pytest.approx(s.target, rel=0.05), s.key
+    # names are unique and say nothing about the content
+    names = list(B.NAMES.values())
+    assert len(set(names)) == len(names) and all(n.startswith("rec") and n[3:].isdigit() for n in names)
+    assert names != sorted(names)  # nor does the order
+
+
+def test_generator_writes_the_records_and_the_manifest(tmp_path):
+    assert B.main(["--out", str(tmp_path), "--only", "noise_white,noise_quantised", "--duration", "1.0"]) == 0
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    assert {r["key"] for r in man["records"]} == {"noise_white", "noise_quantised"}
+    assert sorted(p.name for p in tmp_path.glob("*.csv")) == sorted(r["file"] for r in man["records"])
+    for r in man["records"]:
+        rec = read_csv(tmp_path / r["file"])
+        assert rec.n == 1001 == r["samples"] and r["effects"] == [] and not r["outside"]
+        theta = np.array([r["params"][n] for n in PARAM_NAMES])
+        factors = np.abs(np.log(theta / ASSIGNED))
+        assert 0.15 <= r["perturbation"]["sigma_log"] <= 0.40 and factors.max() > 0.05
+        base = B.base_record(r["command"]["sweep"], 1.0)  # the sweep in continuous time, as simulated
+        clean = simulate(extend(theta), base, PRECISE).x_B[0]  # the truth reproduces the record within its noise
+        err = rec.x_B - clean
+        if r["key"] == "noise_quantised":
+            assert r["noise"]["sigma_m"] == 0.0 and r["noise"]["quantum_m"] == 1e-6
+            assert np.max(np.abs(rec.x_B / 1e-6 - np.round(rec.x_B / 1e-6))) < 1e-6
+            assert np.max(np.abs(err)) <= 0.5e-6 * (1 + 1e-6)
+        else:
+            assert np.std(err) == pytest.approx(1e-6, rel=0.1) and r["noise"]["model"] == "white"
+    # deterministic: the same records again
+    before = {p.name: p.read_bytes() for p in tmp_path.glob("*.csv")}
+    B.main(["--out", str(tmp_path), "--only", "noise_quantised", "--duration", "1.0"])
+    assert {p.name: p.read_bytes() for p in tmp_path.glob("*.csv")} == before
+    assert len(json.loads((tmp_path / "manifest.json").read_text())["records"]) == 2  # merged, not replaced
+
+
+def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp_path):
+    B.main(["--out", str(tmp_path), "--only", "outside_saturation_simulation,dead_time", "--duration", "0.5"])
+    man = {r["key"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
+    sat, dt = man["outside_saturation_simulation"], man["dead_time"]
+    assert sat["outside"]["saturating_torque_constant"]["i_sat"] == B.CALIBRATED[sat["key"]]["i_sat"][0]
+    assert "outside_plant" in sat["simulator"] and sat["calibration"]["target_ratio"] == 3.0
+    assert dt["effect_params"]["dead_time"]["tau_d"] == B.CALIBRATED["dead_time"]["tau_d"][0]
+    assert dt["jobs_simulate"].startswith("python -m jobs.simulate") and "effects.tau_d=" in dt["jobs_simulate"]
+    for r in man.values():
+        assert read_csv(tmp_path / r["file"]).n == 501
+
+
+def test_a_truth_the_command_cannot_drive_is_redrawn():
+    theta = ASSIGNED.copy()
+    assert B._valid_truth(theta, "cycling")
+    fast = theta.copy()
+    fast[INDEX["K_i"]] *= 3.0  # opens beyond x_B = 0
+    assert not B._valid_truth(fast, "cycling")
+    out = theta.copy()
+    out[INDEX["K_l"]] = 1.2e8  # outside the feasible domain of MODEL.md §6
+    assert not B._valid_truth(out, "simulation")
+
+
+def _entry(category, effects=(), name="rec99"):
+    return {"name": name, "category": category, "effects": list(effects), "outside": {},
+            "noise": {"sigma_m": 1e-6, "ar": 0.0, "quantum_m": 0.0, "effective_sigma_m": 1e-6},
+            "command": {"kind": "sweep", "sweep": "simulation"}, "sha256": "abc"}
+
+
+@pytest.mark.parametrize("category,truth,added,unexplained,expected", [
+    ("library", ["dead_time"], ["dead_time"], False, "exact"),
+    ("library", ["dead_time"], ["dead_time", "backlash"], False, "spurious"),
+    ("pair", ["dead_time", "coulomb_friction_motor"], ["dead_time"], False, "missed"),
+    ("library", ["dead_time"], ["backlash"], True, "spurious+missed"),
+    ("noise", [], [], False, "exact"),
+    ("noise", [], ["sensor_offset"], False, "spurious"),
+    ("outside", [], [], True, "unexplained-correct"),
+    ("outside", [], [], False, "missed"),
+    ("outside", [], ["stribeck_friction"], True, "spurious"),
+])
+def test_verdicts(category, truth, added, unexplained, expected):
+    report = {"effects_added": [{"name": n} for n in added], "unexplained": unexplained,
+              "rmse_before_m": 2e-6, "rmse_after_m": 1e-6}
+    assert B.verdict(_entry(category, truth), report) == expected
+
+
+def test_result_rows_read_the_new_keys_when_present_and_do_without_them():
+    report = {"effects_added": [{"name": "dead_time"}], "rmse_before_m": 2.5e-6, "rmse_after_m": 1.0e-6,
+              "compensating": [{"name": "constant_load_force"}], "rejected": ["backlash"],
+              "noise_model": {"order": 1}, "unexplained": False}
+    row = B.result_row(_entry("library", ["dead_time"]), report, 12.0, "/x/discovery.json")
+    assert row["accepted"] == ["dead_time"] and row["compensating"] == ["constant_load_force"]
+    assert row["rejected"] == ["backlash"] and row["noise_model"] == {"order": 1}
+    assert row["before_sigma"] == pytest.approx(2.5) and row["verdict"] == "exact"
+    bare = B.result_row(_entry("noise"), {"effects_added": []}, 1.0, "r")
+    assert bare["compensating"] == [] and bare["rmse_before_um"] is None and bare["verdict"] == "exact"
+    rows = [row, bare, {"record": "rec98", "category": "outside", "verdict": "error", "wall_s": 3.0, "error": "x"}]
+    s = B.summarise(rows)
+    assert (s["exact_in_library"], s["in_library"], s["nothing_accepted_quiet"], s["quiet"], s["errors"]) == \
+        (1, 1, 1, 1, 1)
+    md = B.results_markdown(rows, s)
+    assert "Exact effect set on 1 of 1 in-library records; nothing accepted on 1 of 1" in md
+
+
+def test_a_record_judged_before_on_the_same_file_is_not_run_again(tmp_path: Path):
+    entry = _entry("noise")
+    done = tmp_path / "runs" / entry["name"]
+    done.mkdir(parents=True)
+    (done / "result_row.json").write_text(json.dumps({"record": entry["name"], "verdict": "exact",
+                                                      "csv_sha256": "abc"}))
+    assert B.run_one(entry, tmp_path, [], None, 1.0, log=lambda *_: None)["verdict"] == "exact"
