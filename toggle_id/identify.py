@@ -277,14 +277,27 @@ def polish_stage(problem: FitProblem | JointProblem, ga: RGA, lower: np.ndarray,
 
 def identifiability_report(problem: FitProblem | JointProblem, x: np.ndarray, noise_var: float | None = None
                            ) -> dict:
-    """Sensitivity/uncertainty report of ``problem`` at ``x`` (see :mod:`toggle_id.identifiability`)."""
+    """Sensitivity/uncertainty report of ``problem`` at ``x`` (see :mod:`toggle_id.identifiability`).
+
+    The residual's correlation is estimated (an AR(p) noise model, :func:`toggle_id.discovery.noise.fit_noise`)
+    and the sensitivities and residual are prewhitened by it before the analysis, so that the standard errors
+    and intervals count the independent samples the record really has; the report names the noise model. A
+    known ``noise_var`` (the marginal variance σ²) is turned into the innovation variance of that model."""
+    from .discovery.noise import fit_noise
+
     J, E = log_jacobian_model(problem, x, return_error=True)
     r = problem.residuals(x[None, :], PRECISE)[0]
     if not np.all(np.isfinite(J)) or not np.all(np.isfinite(r)):
         return {"error": "simulation failed near the optimum; no sensitivity report"}
+    noise = fit_noise(r)
+    if not noise.white:
+        J, E, r = noise.whiten_columns(J), noise.whiten_columns(E), noise.whiten(r)
+        if noise_var is not None:
+            noise_var = noise_var / noise.variance_ratio
     rtol = numerical_rank_rtol(J, E)
     rep = analyze(J, r, list(problem.free), x, log_mask=x > 0, noise_var=noise_var, rank_rtol=rtol)
     out = rep.to_dict()
+    out["noise_model"] = noise.to_dict()
     out["jacobian_error_norm"] = float(np.linalg.norm(E, 2))
     return out
 

@@ -23,7 +23,7 @@ from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
 from .localise import locate, signals_of
-from .noise import fit_noise
+from .noise import WHITE, fit_noise
 from .validation import Judge
 
 log = logging.getLogger("toggle_id")
@@ -113,6 +113,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     split = split if 0 < split < record.n else None
     n = record.n
 
+    model.noise = WHITE
     baseline, anchor = _baseline(model, theta, [_with(_nominal_theta(st), fixed) for st in starts], free,
                                  settings, say)
     noise0 = fit_noise(model.residuals(baseline.theta[None, :])[0], settings.noise_max_order)
@@ -130,10 +131,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         all_refits.extend(step["refits"])
         if first_scores is None:
             first_scores = step["scores"]
-        if step["better_null"] is not None:
-            current = step["better_null"]
-            if not added:  # still the nominal model: the error "before" is this better fit's
-                baseline = current
+        current = step["base"]  # the nominal (+ added) model refitted under the iteration's noise model
+        if step["better_null"] is not None and not added:  # a better nominal optimum: the error "before" is its
+            baseline = current
         chosen = step["chosen"]
         iterations.append(step["record"])
         if chosen is None:
@@ -272,11 +272,11 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     order = sorted(scouts.values(), key=lambda sc: sc.sse)
     scores.sort(key=lambda c: (scouts[c.name].sse if c.name in scouts else np.inf, -c.profile_score))
     say("scouts: " + (", ".join(f"{sc.name} {np.sqrt(sc.sse / n) * 1e6:.4g} µm" for sc in order) or "none"))
+    base = current
     refits: list[Refit] = []
     better_null: Fit | None = None
-    base = current
     for i, sc in enumerate(order):
-        best = min((rf.sse1 for rf in refits if rf.accepted), default=None)
+        best = min((rf.fit.rmse(n) ** 2 * n for rf in refits if rf.accepted), default=None)
         # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
         # (no effect is accepted while a candidate that explains more has not been refitted)
         if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best)):
@@ -291,11 +291,11 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                 base = better_null = null
                 for other in refits:  # earlier refits are judged against the better baseline too
                     if other.accepted:
-                        other.judge(judge.evidence(base, other.fit), base.sse)
+                        other.judge(judge.judge_pair(base, other.fit), base.sse)
                         if not other.accepted:
                             other.reason = "against the re-polished nominal model: " + other.reason
         ev = rf.evidence
-        say(f"  refit {eff.name}: rms {np.sqrt(rf.sse1 / n) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
+        say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
             f"ΔBIC {rf.delta_bic:.4g}, out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
             f"{ev.get('cv_sse_w_after', np.nan):.4g} → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
             f"({rf.seconds:.1f} s)")
@@ -305,10 +305,11 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     winners = [rf for rf in refits if rf.accepted]
     chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
     record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
-              "noise_model": noise.to_dict(), "points": [pt.label for pt in points],
+              "noise_model_of_current_residual": noise.to_dict(), "points": [pt.label for pt in points],
               "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
               "accepted": chosen.name if chosen else None}
-    return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record}
+    return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
+            "base": base}
 
 
 def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: Sequence[str],
@@ -344,7 +345,7 @@ def _backward(model: Model, judge: Judge, current: Fit, added: list[dict], held:
             free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
             start = _with(current.theta, _off_values(eff))
             reduced = fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-            ev = judge.evidence(reduced, current)
+            ev = judge.judge_pair(reduced, current)
             a["backward"] = ev.to_dict()
             say(f"backward: without {eff.name} rms {reduced.rmse(model.n) * 1e6:.4g} µm — "
                 f"{'kept' if ev.passed else 'dropped: ' + ev.reason}")

@@ -18,12 +18,15 @@ from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
 from .noise import NoiseModel
 from .settings import DiscoverSettings
 
-#: The white model used when no noise model is given (the residual's variance is estimated by ``analyze``).
+#: White noise: ordinary least squares, and the model of the uncertainty when no other is given.
 WHITE_ASSUMED = NoiseModel(note="white noise assumed")
 
 
 class Model:
-    """Simulations of one record in the PRECISE tier: residuals, batched, with failures as NaN rows."""
+    """Simulations of one record in the PRECISE tier: residuals, batched, with failures as NaN rows.
+
+    ``noise``: the noise model the fits minimise under (prediction-error fits: the residual prewhitened by
+    it; white noise is ordinary output-error least squares). Set it, the loop does, before fitting."""
 
     def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True) -> None:
         if record.x_B is None:
@@ -32,6 +35,7 @@ class Model:
         self.settings = settings
         self.parallel = parallel
         self.n_sims = 0
+        self.noise = WHITE_ASSUMED
 
     @property
     def n(self) -> int:
@@ -49,6 +53,10 @@ class Model:
     def residuals(self, thetas: np.ndarray) -> np.ndarray:
         """(P, N) measured − model [m]."""
         return self.record.x_B[None, :] - self.outputs(thetas)
+
+    def fit_residuals(self, thetas: np.ndarray) -> np.ndarray:
+        """(P, N) residuals prewhitened by :attr:`noise` (what a fit minimises)."""
+        return self.noise.whiten(self.residuals(thetas))
 
     def response(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """x_B [m], i_q [A] and the status of one vector."""
@@ -165,9 +173,12 @@ class Fit:
     info: dict = field(default_factory=dict)
     jac_u: np.ndarray | None = None
     scaling: Any = None
+    raw_sse: float | None = None
+    noise: Any = None
 
     def rmse(self, n: int) -> float:
-        return float(np.sqrt(self.sse / n))
+        """RMS of the (raw) residual [m]."""
+        return float(np.sqrt((self.sse if self.raw_sse is None else self.raw_sse) / n))
 
 
 def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-4,
@@ -214,14 +225,14 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
         return T
 
     def resid(x: np.ndarray) -> np.ndarray:
-        return model.residuals(thetas_of(x[None, :]))[0]
+        return model.fit_residuals(thetas_of(x[None, :]))[0]
 
     def jac(x: np.ndarray) -> np.ndarray:
         h = fd_rel_step * np.maximum(np.abs(x), typ)
         h = np.where(x + h > hi, -h, h)
         X = np.repeat(x[None, :], len(free) + 1, axis=0)
         X[1:] += np.diag(h)
-        Rr = model.residuals(thetas_of(X))
+        Rr = model.fit_residuals(thetas_of(X))
         return (Rr[1:] - Rr[0]).T / h
 
     t0 = time.perf_counter()
@@ -229,7 +240,8 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
     out = thetas_of(res.x[None, :])[0]
     info = {"sse_before": float(res.sse0), "sse_after": float(res.sse), "improved": bool(res.improved),
             "nfev": int(res.nfev), "message": str(res.message), "seconds": time.perf_counter() - t0}
-    return Fit(out, free, float(res.sse), info, res.jac, res.scaling)
+    raw = float(_sse(model.residuals(out[None, :]))[0]) if not model.noise.white else float(res.sse)
+    return Fit(out, free, float(res.sse), info, res.jac, res.scaling, raw, model.noise)
 
 
 def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, held: Sequence[str] = (),

@@ -12,6 +12,7 @@ from .gauge import freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free
 from .scoring import Point, refit_start
 from .settings import DiscoverSettings
+from .stats import f_test
 from .validation import Evidence, Judge
 
 
@@ -53,7 +54,9 @@ class Refit:
     def to_dict(self, n: int) -> dict:
         return {"name": self.name, "iteration": self.iteration, "params": self.params, "std_errors": self.std_errors,
                 "sse_before_m2": self.sse0, "sse_after_m2": self.sse1, "rmse_before_m": float(np.sqrt(self.sse0 / n)),
-                "rmse_after_m": float(np.sqrt(self.sse1 / n)) if np.isfinite(self.sse1) else None,
+                "rmse_after_m": self.fit.rmse(n) if self.fit is not None and np.isfinite(self.sse1) else None,
+                "sse_is_prewhitened": bool(self.fit is not None and self.fit.noise is not None
+                                           and not self.fit.noise.white),
                 "added_params": self.k, "total_params": self.p1, "F": self.F, "p_value": self.p_value,
                 "delta_bic": self.delta_bic, "significant": self.accepted, "reason": self.reason,
                 "null_refit_sse_m2": self.null_sse, "search": self.search,
@@ -116,10 +119,14 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
                      False, "no simulable start for the effect", scout.search, seconds=time.perf_counter() - t0)
     fit = fit_free(model, scout.theta, free, settings.refit_nfev, settings.fd_rel_step,
                    rounds=settings.refit_rounds)
+    if f_test(base.sse, fit.sse, k, model.n, p1)[1] < settings.alpha:
+        # significant as least squares: converge it before it is judged (a refit stopped half-way leaves a
+        # structured residual — a coloured noise model — and a cross-validation linearised far from its optimum)
+        fit = fit_free(model, fit.theta, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
     params = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in names}
     out = Refit(effect.name, iteration, fit, params, base.sse, fit.sse, k, p1, 0.0, 1.0, float("inf"), False, "",
                 scout.search, std_errors=_std_errors(fit, names, model.n))
-    out.judge(judge.evidence(base, fit), base.sse)
+    out.judge(judge.judge_pair(base, fit), base.sse)
     out.seconds = time.perf_counter() - t0 + scout.seconds
     return out
 
@@ -132,7 +139,7 @@ def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: 
     null = fit_free(model, start, base.free, settings.null_nfev, settings.fd_rel_step, rounds=settings.rounds)
     refit.null_sse = null.sse
     if null.sse < base.sse:
-        refit.judge(judge.evidence(null, refit.fit), null.sse)
+        refit.judge(judge.judge_pair(null, refit.fit), null.sse)
         if not refit.accepted:
             refit.reason = "a better nominal optimum explains the gain: " + refit.reason
         return null

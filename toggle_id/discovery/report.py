@@ -54,12 +54,13 @@ class DiscoveryResult:
                     "effects": {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]},
                     "free": list(fit.free)}
 
+        sse0, sse1 = self.rmse_before_m ** 2 * self.n, self.rmse_after_m ** 2 * self.n  # raw residuals
         return {"record": self.record, "n_samples": self.n,
                 "effects_added": self.effects_added, "candidates": self.candidates,
                 "rmse_before_m": self.rmse_before_m, "rmse_after_m": self.rmse_after_m,
-                "fitness_before": 1.0 / self.baseline.sse if self.baseline.sse > 0 else float("inf"),
-                "fitness_after": 1.0 / self.final.sse if self.final.sse > 0 else float("inf"),
-                "sse_before_m2": self.baseline.sse, "sse_after_m2": self.final.sse,
+                "fitness_before": 1.0 / sse0 if sse0 > 0 else float("inf"),
+                "fitness_after": 1.0 / sse1 if sse1 > 0 else float("inf"),
+                "sse_before_m2": sse0, "sse_after_m2": sse1,
                 "params_before": params_of(self.baseline), "params_after": params_of(self.final),
                 "final_params": {**params_of(self.final)["physical"],
                                  **{nm: float(self.final.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]}},

@@ -1,9 +1,13 @@
 """Whether a refitted effect is supported: in sample (prewhitened F-test and BIC), out of sample (time-block
 cross-validation, and a second record when the user gives one), and after the others (backward elimination).
 
-The noise model of a comparison is the larger model's (:func:`.noise.fit_noise` on the candidate's residual):
-when the effect is real, that residual is the noise; when it is not, the two residuals are alike. The smaller
-model's residual, which holds the effect's structure, would pass for coloured noise and hide it.
+The loop fits by ordinary least squares. A comparison (:meth:`Judge.judge_pair`) takes its noise model from
+the residual of the *larger* model: when the effect is real that residual is the noise; when it is not, the two
+residuals are alike. (The smaller model's residual, which holds the effect's structure, would pass for coloured
+noise and hide it.) When that noise model is white the two least-squares fits are compared as they are; when it
+is coloured both are refitted the prediction-error way under it (least squares on the prewhitened residual,
+``Model.noise``), so that the F-test on the two whitened SSEs has its textbook distribution — two least-squares
+fits judged by whitened SSEs would not: either may sit anywhere in the directions the colour hides.
 """
 from __future__ import annotations
 
@@ -13,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..record import Record
-from .model import Fit, Model, sensitivities
+from .model import Fit, Model, fit_free, sensitivities
 from .noise import NoiseModel, fit_noise
 from .settings import DiscoverSettings
 from .stats import block_cv, compare
@@ -87,8 +91,25 @@ class Judge:
             self._val[key] = float(r @ r) if np.all(np.isfinite(r)) else float("inf")
         return self._val[key]
 
-    def evidence(self, small: Fit, large: Fit) -> Evidence:
-        """The case for ``large`` (more free parameters) against ``small``."""
+    def judge_pair(self, small: Fit, large: Fit) -> Evidence:
+        """The case for ``large`` against ``small`` (both least-squares fits) under the noise model of
+        ``large``'s residual; both refitted under it first when it is coloured (see the module docstring)."""
+        r1, _ = self.residual_and_jacobian(large)
+        noise = fit_noise(r1, self.s.noise_max_order) if np.all(np.isfinite(r1)) else NoiseModel()
+        if noise.white:
+            return self.evidence(small, large, noise)
+        before = self.model.noise
+        self.model.noise = noise
+        try:
+            small_w = fit_free(self.model, small.theta, small.free, self.s.null_nfev, self.s.fd_rel_step)
+            large_w = fit_free(self.model, large.theta, large.free, self.s.null_nfev, self.s.fd_rel_step)
+        finally:
+            self.model.noise = before
+        return self.evidence(small_w, large_w, noise)
+
+    def evidence(self, small: Fit, large: Fit, noise: NoiseModel | None = None) -> Evidence:
+        """The case for ``large`` (more free parameters) against ``small``, both fitted under ``noise``
+        (default: the model's current noise model)."""
         r0, J0 = self.residual_and_jacobian(small)
         r1, J1 = self.residual_and_jacobian(large)
         k = max(len(large.free) - len(small.free), 1)
@@ -96,7 +117,7 @@ class Judge:
             nm = NoiseModel(note="a residual is not finite")
             return Evidence(nm, 0.0, 1.0, float("inf"), np.inf, np.inf, np.inf, np.inf,
                             checks={"f_test": False})
-        noise = fit_noise(r1, self.s.noise_max_order)
+        noise = self.model.noise if noise is None else noise
         c = compare(noise, r0, r1, k, len(large.free))
         cv0 = block_cv(noise, r0, J0, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
         cv1 = block_cv(noise, r1, J1, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
