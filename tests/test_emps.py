@@ -33,7 +33,7 @@ from toggle_id.emps import (
     simulate_emps,
     theta_from_dict,
 )
-from toggle_id.emps.fit import FAIL_RESIDUAL, f_test_pvalue
+from toggle_id.emps.fit import FAIL_RESIDUAL, judge_effect
 from toggle_id.emps.model import INDEX, LOWER, OFF, UPPER, initial_state
 from toggle_id.emps.synthetic import back_and_forth, pulse_train, simulated_record, write_record
 from toggle_id.errors import ConfigError, DataError
@@ -248,6 +248,9 @@ def test_bad_settings_raise_config_error(sim):
         theta_from_dict({"mass": 1.0})
     with pytest.raises(ConfigError):
         run_emps_loop(sim.slice(0, 500), candidates=["no_such_effect"])
+    for bad in ({"noise_max_order": -1}, {"cv_block": 0}, {"cv_folds": 1}, {"cv_folds": 2.0}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            run_emps_loop(sim.slice(0, 500), **bad)
     with pytest.raises(ConfigError):
         fit_output_error(sim.slice(0, 500), ["M"], PUBLISHED_THETA, solver="newton")
     with pytest.raises(ConfigError):
@@ -322,10 +325,66 @@ def test_output_error_fit_recovers_published_structure(rec):
     assert fit.params["Fc"] == pytest.approx(PUBLISHED["Fc"], rel=0.1)
 
 
-def test_f_test_pvalue():
-    assert f_test_pvalue(1.0, 2, 1.0, 3, 1000) == 1.0
-    assert f_test_pvalue(1.0, 2, 0.5, 3, 1000) < 1e-10
-    assert 0.01 < f_test_pvalue(1.0, 2, 0.999, 3, 1000) < 1.0
+def _fit(residual: np.ndarray, J: np.ndarray, free: tuple[str, ...]):
+    """An OEFitResult holding only what :func:`judge_effect` reads (residual, Jacobian, correlations)."""
+    from toggle_id.emps.fit import OEFitResult
+
+    n = residual.size
+    cov = np.linalg.inv(J.T @ J)
+    d = np.sqrt(np.diag(cov))
+    return OEFitResult(theta=PUBLISHED_THETA.copy(), free=free, sse=float(residual @ residual), n=n,
+                       rel_error_pct=0.0, corr=cov / np.outer(d, d), residual=residual, jacobian=J)
+
+
+def _ar1(n: int, rho: float, sigma: float, seed: int) -> np.ndarray:
+    from scipy.signal import lfilter
+
+    return lfilter([1.0], [1.0, -rho], np.random.default_rng(seed).normal(0.0, sigma, n))
+
+
+def test_judge_effect_is_noise_aware():
+    """Linear stand-ins for output-error fits under AR(1) noise (ρ = 0.95, ≈ N/39 independent samples): a
+    regressor made of slow blocks that explains noise-sized wiggles passes the naive F-test but not the
+    prewhitened one; a real effect passes every check; a collinear one fails the identifiability gate."""
+    from scipy.stats import f as f_dist
+
+    n, rho, sigma = 20000, 0.95, 1e-6
+    t = np.linspace(0.0, 1.0, n)
+    base = np.column_stack([np.sin(2 * np.pi * t), np.ones(n)])
+    effect = np.sign(np.sin(2 * np.pi * 7 * t))
+    rejected_naive = rejected_white = 0
+    for seed in range(10):
+        noise = _ar1(n, rho, sigma, seed)
+        slow = np.random.default_rng(100 + seed).normal(size=n // 1000).repeat(1000)  # 20 blocks of 1 s
+        y = noise.copy()
+        r0 = y - base @ np.linalg.lstsq(base, y, rcond=None)[0]
+        X = np.column_stack([base, slow])
+        r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
+        small, large = _fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c"))
+        ev = judge_effect(small, large, alpha=0.01)
+        F_naive = (small.sse - large.sse) / (large.sse / (n - 3))
+        rejected_naive += f_dist.sf(F_naive, 1, n - 3) >= 0.01
+        rejected_white += not ev["passed"]
+        assert ev["noise_model"]["order"] >= 1 and abs(ev["noise_model"]["coefficients"][0] - rho) < 0.05
+        assert ev["noise_model"]["effective_samples"] < n / 20
+    assert rejected_white >= 9 and rejected_naive <= 5  # the naive test is fooled at least half of the time
+
+    y = _ar1(n, rho, sigma, 1) + 2 * sigma * effect  # a real effect: every check passes
+    r0 = y - base @ np.linalg.lstsq(base, y, rcond=None)[0]
+    X = np.column_stack([base, effect])
+    r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
+    ev = judge_effect(_fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c")), alpha=0.01)
+    assert ev["passed"] and all(ev["checks"].values()) and ev["p_value"] < 1e-6 and ev["delta_bic"] < 0
+    assert ev["out_of_sample_rms_w_after"] < ev["out_of_sample_rms_w_before"]
+    assert ev["in_sample_rms_w_after"] < ev["in_sample_rms_w_before"]
+    json.dumps(ev)
+    ev = judge_effect(_fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c")), alpha=0.01,
+                      max_corr=0.5 * ev["max_corr"])
+    assert not ev["passed"] and ev["checks"] == {"f_test": True, "bic": True, "cross_validation": True,
+                                                 "identifiable": False}
+    assert "not identifiable" in ev["reason"]
+    white = judge_effect(_fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c")), noise_max_order=0)
+    assert white["noise_model"]["kind"] == "white" and white["F"] > ev["F"]
 
 
 # ---------------------------------------------------------------------------------------------------- discovery loop
@@ -337,6 +396,10 @@ def test_loop_finds_the_simulated_friction_and_predicts_a_pulsed_record(sim):
     report = run_emps_loop(sim.slice(0, 5000), val, reference_fit=False,
                            candidates=["coulomb_friction", "offset", "asymmetric_friction"])
     assert [e["name"] for e in report["effects_added"]] == ["coulomb_friction", "offset"]
+    for c in report["candidates"]:  # every verdict by the prewhitened tests and the cross-validation
+        assert {"noise_model", "F", "p_value", "delta_bic", "in_sample_rms_w_after", "out_of_sample_rms_w_after",
+                "verdict", "reason"} <= set(c)
+    assert report["noise_model"]["n"] == 5000
     for name in ("M", "Fv", "Fc", "offset"):
         assert report["identified"][name] == pytest.approx(PUBLISHED[name], rel=2e-3)
     v = report["validation"]

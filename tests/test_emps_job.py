@@ -120,6 +120,17 @@ def test_job_on_the_benchmark_records(tmp_path):
     rep = _report(proc, run)
     assert rep["data"]["estimation"]["sha256_verified"] and rep["data"]["validation"]["sha256_verified"]
     assert rep["n_samples"] == 24841 and rep["effects_added"][0]["name"] == "coulomb_friction"
+    # the effects are judged with the noise-aware statistics: AR noise of the larger model's residual, far fewer
+    # independent samples than N, every accepted one passing all four checks
+    coulomb = next(c for c in rep["candidates"] if c["name"] == "coulomb_friction" and c["accepted"])
+    assert coulomb["noise_model"]["order"] >= 1 and coulomb["noise_model"]["effective_samples"] < 24841 / 5
+    assert coulomb["out_of_sample_rms_w_after"] < coulomb["out_of_sample_rms_w_before"]
+    for c in rep["candidates"]:
+        assert c["accepted"] == (c["verdict"] == "accepted") and (c["verdict"] == "rejected") != c["passed"]
+        if c["accepted"]:
+            assert c["p_value"] < rep["alpha"] and c["delta_bic"] < 0 and all(c["checks"].values())
+    assert rep["noise_model"]["n"] == 24841 and 0 < rep["noise_model"]["effective_samples"] < 24841
+    assert "noise model of the final residual" in (run / "table.txt").read_text()
     cmp = rep["comparison"]
     assert abs(cmp["M"]["final_model_pct_diff"]) < 2.0
     assert abs(cmp["Fv"]["final_model_pct_diff"]) < 5.0 and abs(cmp["Fc"]["final_model_pct_diff"]) < 5.0
@@ -158,6 +169,7 @@ def test_settings_defaults_and_relative_paths(tmp_path):
     st = emps_settings({"emps": dict(EMPS_DEFAULTS)}, tmp_path)
     assert st.path is None and st.data_dir is None and st.validate and st.validation_path is None
     assert st.samples is None and st.sim["pulse_gain"] == 1.0
+    assert (st.noise_max_order, st.cv_block, st.cv_folds) == (8, 100, 5)
     assert st.candidates == ("coulomb_friction", "offset", "stribeck_friction", "asymmetric_friction")
     (tmp_path / "data").mkdir()
     st = emps_settings({"emps": {"path": "rec.csv", "samples": 6000, "candidates": ["coulomb_friction"],
@@ -187,6 +199,11 @@ def test_the_config_file_matches_the_defaults():
     ({"candidates": "offset"}, "emps.candidates"),
     ({"solver": "ga"}, "emps.solver"),
     ({"max_nfev": 0}, "emps.max_nfev"),
+    ({"noise_max_order": -1}, "emps.noise_max_order"),
+    ({"noise_max_order": 2.5}, "emps.noise_max_order"),
+    ({"cv_block": 0}, "emps.cv_block"),
+    ({"cv_folds": 1}, "emps.cv_folds"),
+    ({"cv_folds": "five"}, "emps.cv_folds"),
     ({"sim": {"eps": -1.0}}, "emps.sim"),
     ({"sim": {"pulse_gain": "big"}}, "emps.sim.pulse_gain"),
     ({"sim": {"pulse_sign": 1.0}}, "pulse_sign"),

@@ -6,7 +6,8 @@ plain configuration. The job validates its settings, finds the benchmark's recor
 each file checked by its sha256) or takes the user's own file (``emps.path``), and loads them before any work
 starts. It then runs the output-error effect-discovery loop on the estimation record
 (:func:`toggle_id.emps.run_emps_loop`: nominal M, Fv fit, then Coulomb friction, offset, Stribeck, asymmetry as the
-data support them), analyses the identifiability of the final model (:func:`toggle_id.identifiability.analyze`),
+data support them, each judged like the toggle plant's effects: AR noise model of the larger model's residual,
+prewhitened F-test and ΔBIC, time-block cross-validation), analyses the identifiability of the final model (:func:`toggle_id.identifiability.analyze`),
 compares M, Fv, Fc and offset with the benchmark's published IDIM-LS values, predicts the validation record
 (``DATA_EMPS_PULSES.mat``, its pulses entering at the controller output; nothing is fitted on it), logs everything
 to MLflow (parent run ``emps``, one child run per fit), draws the figures, prints a short table and writes
@@ -47,7 +48,8 @@ COMPARED = ("M", "Fv", "Fc", "offset")
 #: Keys of the ``emps`` config node and their defaults (also used when run_emps is called from Python).
 EMPS_DEFAULTS: dict[str, Any] = {
     "data_dir": None, "path": None, "validate": True, "samples": None, "candidates": None, "alpha": 0.01,
-    "max_effects": None, "max_corr": 0.99, "solver": "polish", "max_nfev": 50, "reference_fit": True,
+    "max_effects": None, "max_corr": 0.99, "noise_max_order": 8, "cv_block": 100, "cv_folds": 5,
+    "solver": "polish", "max_nfev": 50, "reference_fit": True,
     "sim": {"eps": 1e-4, "h_lambda": 0.5, "n_sub_max": 5000, "pulse_gain": 1.0},
 }
 
@@ -81,6 +83,9 @@ class EmpsJobSettings:
     alpha: float
     max_effects: int | None
     max_corr: float
+    noise_max_order: int
+    cv_block: int
+    cv_folds: int
     solver: str
     max_nfev: int
     reference_fit: bool
@@ -168,6 +173,15 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     max_corr = _number("emps.max_corr", node["max_corr"])
     if not 0 < max_corr <= 1:
         raise ConfigError(f"emps.max_corr must lie in (0, 1], got {max_corr}")
+    noise_max_order = _number("emps.noise_max_order", node["noise_max_order"], integer=True)
+    if noise_max_order < 0:
+        raise ConfigError(f"emps.noise_max_order must be >= 0 (0: white noise assumed), got {noise_max_order}")
+    cv_block = _number("emps.cv_block", node["cv_block"], integer=True)
+    if cv_block < 1:
+        raise ConfigError(f"emps.cv_block must be >= 1 sample, got {cv_block}")
+    cv_folds = _number("emps.cv_folds", node["cv_folds"], integer=True)
+    if cv_folds < 2:
+        raise ConfigError(f"emps.cv_folds must be >= 2, got {cv_folds}")
     if node["solver"] not in SOLVERS:
         raise ConfigError(f"emps.solver must be one of {list(SOLVERS)}, got {node['solver']!r}")
     max_nfev = _number("emps.max_nfev", node["max_nfev"], integer=True)
@@ -190,7 +204,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     if not isinstance(tracking, Mapping):
         raise ConfigError(f"tracking must be a mapping, got {tracking!r}")
     return EmpsJobSettings(path=path, data_dir=data_dir, validate=node["validate"], samples=samples, candidates=tuple(cands), alpha=alpha,
-                           max_effects=max_effects, max_corr=max_corr, solver=node["solver"], max_nfev=max_nfev,
+                           max_effects=max_effects, max_corr=max_corr, noise_max_order=noise_max_order,
+                           cv_block=cv_block, cv_folds=cv_folds, solver=node["solver"], max_nfev=max_nfev,
                            reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
                            identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise)
 
@@ -423,6 +438,25 @@ def validation_lines(report: Mapping) -> list[str]:
     return lines
 
 
+def candidate_lines(report: Mapping) -> list[str]:
+    """Console lines of the discovery: every candidate refit with its noise model, prewhitened F-test, ΔBIC,
+    whitened RMS in and out of sample and its verdict; then the final residual's noise model."""
+    lines = []
+    for c in report.get("candidates") or []:
+        lines.append(f"  round {c['round']} {c['name']}: {c['noise_model']['kind']} noise "
+                     f"(≈{c['noise_model']['effective_samples']} independent samples), F {c['F']:.4g}, "
+                     f"p {c['p_value']:.3g}, ΔBIC {c['delta_bic']:.4g}, whitened rms {c['in_sample_rms_w_before'] * 1e6:.4g}"
+                     f" → {c['in_sample_rms_w_after'] * 1e6:.4g} µm in sample, {c['out_of_sample_rms_w_before'] * 1e6:.4g}"
+                     f" → {c['out_of_sample_rms_w_after'] * 1e6:.4g} µm cross-validated: {c['verdict']}"
+                     + ("" if c["verdict"] == "accepted" else f" ({c['reason']})"))
+    nm = report.get("noise_model")
+    if nm:
+        lines.insert(0, "discovery (prewhitened F-test p < alpha, ΔBIC < 0, lower cross-validated whitened SSE, "
+                        "identifiable):")
+        lines.append(f"noise model of the final residual: {nm.get('description', nm.get('kind'))}")
+    return lines
+
+
 def console_text(report: Mapping) -> str:
     """A short table: published vs identified M, Fv, Fc, offset, the other fitted parameters, errors, timing."""
     from . import console
@@ -452,6 +486,7 @@ def console_text(report: Mapping) -> str:
              + (f", OE ref {report['reference']['rel_error_pct']:.4g} %" if report.get("reference") else "")]
     if "error" in (report.get("idim_ls") or {}):
         lines.append(f"IDIM-LS: {report['idim_ls']['error']}")
+    lines.extend(candidate_lines(report))
     lines.extend(validation_lines(report))
     ident = report.get("identifiability") or {}
     if "rank" in ident:
@@ -476,11 +511,18 @@ def _log_children(tracker: Tracker, report: Mapping) -> None:
         with tracker.run(f"round{c['round']}_{c['name']}", nested=True,
                          tags={"fit": "candidate", "effect": c["name"], "round": c["round"],
                                "accepted": c["accepted"]}):
-            tracker.log_params({"effect": c["name"], "round": c["round"]})
-            tracker.log_metrics({"delta_bic": c["score"], "p_value": c["p_value"], "max_corr": c["max_corr"],
-                                 "sse_ratio": c["sse_ratio"], "rel_error_pct": c["rel_error_pct"],
-                                 "seconds": c["seconds"], "accepted": float(c["accepted"]),
-                                 **{f"param.{k}": v for k, v in c["params"].items()}})
+            tracker.log_params({"effect": c["name"], "round": c["round"], "verdict": c["verdict"],
+                                "noise_model": c["noise_model"]["kind"], "reason": c["reason"][:500]})
+            metrics = {"F": c["F"], "p_value": c["p_value"], "delta_bic": c["delta_bic"], "max_corr": c["max_corr"],
+                       "in_sample_rms_w_before": c["in_sample_rms_w_before"],
+                       "in_sample_rms_w_after": c["in_sample_rms_w_after"],
+                       "out_of_sample_rms_w_before": c["out_of_sample_rms_w_before"],
+                       "out_of_sample_rms_w_after": c["out_of_sample_rms_w_after"],
+                       "noise.effective_samples": c["noise_model"]["effective_samples"],
+                       "sse_ratio": c["sse_ratio"], "rel_error_pct": c["rel_error_pct"],
+                       "seconds": c["seconds"], "accepted": float(c["accepted"]),
+                       **{f"param.{k}": v for k, v in c["params"].items()}}
+            tracker.log_metrics({k: v for k, v in metrics.items() if v is not None and math.isfinite(v)})
     ref = report.get("reference")
     if ref:
         with tracker.run("reference", tags={"fit": "reference"}, nested=True):
@@ -496,6 +538,8 @@ def _parent_metrics(report: Mapping) -> dict:
          "position_rel_error_pct_after": report["position_rel_error_pct_after"],
          "published_model_rel_error_pct": report["published_model_rel_error_pct"],
          "n_effects": len(report["effects_added"]), "wall_seconds": report["wall_seconds"],
+         "noise.order": report["noise_model"]["order"],
+         "noise.effective_samples": report["noise_model"]["effective_samples"],
          **{f"param.{k}": report["identified"][k] for k in report["free"]},
          **{f"pct_diff.{k}": v for k, v in report["pct_diff_vs_published"].items() if v is not None}}
     v = report.get("validation") or {}
@@ -550,7 +594,8 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
         idim = idim_reference(record)
         report = run_emps_loop(record, validation, candidates=st.candidates, alpha=st.alpha, max_nfev=st.max_nfev,
                                max_effects=st.max_effects, max_corr=st.max_corr, solver=st.solver,
-                               reference_fit=st.reference_fit, sim_options=st.sim)
+                               reference_fit=st.reference_fit, noise_max_order=st.noise_max_order,
+                               cv_block=st.cv_block, cv_folds=st.cv_folds, sim_options=st.sim)
         final = theta_from_dict(report["identified"])
         nominal = theta_from_dict(report["nominal"]["identified"])
         report["data"] = sources

@@ -5,8 +5,9 @@
 - :mod:`.model`: parameters, the effect registry :data:`EFFECTS`, the batched numba closed-loop simulator
   :func:`simulate_emps` (kernel :func:`simulate_kernel`);
 - :mod:`.idim`: the benchmark's IDIM-LS recipe :func:`idim_ls`;
-- :mod:`.fit`: output-error residual/Jacobian/fit, the greedy effect-discovery loop :func:`run_emps_loop` and the
-  prediction of a held-out record :func:`predict_validation`.
+- :mod:`.fit`: output-error residual/Jacobian/fit, the greedy effect-discovery loop :func:`run_emps_loop` (each
+  effect judged by :func:`judge_effect` with the discovery engine's noise-aware statistics) and the prediction of
+  a held-out record :func:`predict_validation`.
 
 The names below are imported on first use, so that finding and checking the records (:mod:`.data`) does not wait
 for numba.
@@ -20,8 +21,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "data": ("CITATION", "ENV_DIR", "ESTIMATION_FILE", "GTAU", "KP", "KV", "SHA256", "VALIDATION_FILE",
              "BenchmarkFiles", "EmpsRecord", "EmpsRecordsNotFound", "find_benchmark_files", "load_emps_csv",
              "load_emps_mat", "loader_cache_dir"),
-    "fit": ("OEFitResult", "fit_output_error", "make_jacobian", "make_residual", "predict_validation",
-            "run_emps_loop"),
+    "fit": ("OEFitResult", "fit_output_error", "judge_effect", "make_jacobian", "make_residual",
+            "predict_validation", "run_emps_loop"),
     "idim": ("idim_ls",),
     "model": ("EFFECTS", "NOMINAL_NAMES", "PARAM_NAMES", "PUBLISHED", "PUBLISHED_THETA", "Effect", "EmpsSimResult",
               "controller_law", "position_rel_error_pct", "simulate_emps", "simulate_kernel", "theta_from_dict",

@@ -7,10 +7,16 @@ scipy's ``least_squares`` on the raw parameters or by :func:`toggle_id.polish.po
 space for M only: the offset is negative and effect parameters start at zero).
 
 :func:`run_emps_loop` fits the nominal model (M, Fv), then adds effects from :data:`~toggle_id.emps.model.EFFECTS`
-greedily: every round it refits the current model plus each eligible remaining candidate, and accepts the best
-(lowest BIC) among those that pass an F-test on the SSE (p < alpha), lower the BIC and stay identifiable
-(|correlation| ≤ max_corr). The residuals are strongly autocorrelated (closed loop, 1 kHz), so with N ≈ 25 000
-the F-test and BIC are lenient: they rank candidates well but accept small improvements.
+greedily, judged by the discovery engine's statistics and acceptance rule (:mod:`toggle_id.discovery.noise`,
+:mod:`toggle_id.discovery.stats`, as the toggle plant's :mod:`toggle_id.discovery.validation`). The residuals of
+a 1 kHz closed loop are strongly autocorrelated, so counting N ≈ 25 000 independent samples would make any test
+far too lenient; instead every comparison describes the noise by an AR(p) model fitted (Yule–Walker, order by
+BIC) to the *larger* model's residual and computes its statistics on prewhitened signals. A candidate is
+accepted only if the prewhitened F-test gives p < alpha, the prewhitened ΔBIC < 0, the time-block
+cross-validated whitened SSE drops (both fits linearised at their optimum with their own Jacobians) and its
+new parameters stay identifiable (|correlation| ≤ max_corr); among those that pass, the one with the lowest
+prewhitened SSE is taken, all of a round's residuals whitened by one noise model (that of the refit that explains
+the most, as the toggle plant ranks its refits).
 """
 from __future__ import annotations
 
@@ -20,6 +26,8 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from ..discovery.noise import NoiseModel, fit_noise, whitened_sse
+from ..discovery.stats import block_cv, compare
 from ..errors import ConfigError, DataError
 from .data import EmpsRecord
 from .idim import idim_ls
@@ -34,6 +42,7 @@ from .model import (
     PUBLISHED_ASYM_PM,
     PUBLISHED_THETA,
     UPPER,
+    Effect,
     as_theta_batch,
     position_rel_error_pct,
     simulate_emps,
@@ -134,7 +143,8 @@ def make_jacobian(record: EmpsRecord, free: Sequence[str], theta_base: np.ndarra
 @dataclass
 class OEFitResult:
     """Result of an output-error fit: full θ (8,), the free names, SSE (m²), samples N, relative position error (%),
-    approximate standard deviations of the free parameters (from JᵀJ, white-residual assumption), optimiser info."""
+    approximate standard deviations of the free parameters (from JᵀJ, white-residual assumption), optimiser info,
+    and the residual (N,) and its Jacobian ∂r/∂x (N, p) w.r.t. the free parameters at the optimum."""
 
     theta: np.ndarray
     free: tuple[str, ...]
@@ -147,30 +157,13 @@ class OEFitResult:
     success: bool = False
     message: str = ""
     seconds: float = 0.0
+    residual: np.ndarray | None = field(default=None, repr=False)
+    jacobian: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def params(self) -> dict[str, float]:
         """All parameters as a plain dict."""
         return theta_to_dict(self.theta)
-
-    def bic(self) -> float:
-        """Gaussian BIC N·ln(SSE/N) + k·ln N with k = number of free parameters."""
-        return bic(self.sse, self.n, len(self.free))
-
-
-def bic(sse: float, n: int, k: int) -> float:
-    """N·ln(SSE/N) + k·ln N."""
-    return float(n * np.log(max(sse, 1e-300) / n) + k * np.log(n))
-
-
-def f_test_pvalue(sse0: float, k0: int, sse1: float, k1: int, n: int) -> float:
-    """p-value of the nested-model F-test: F = ((SSE0 − SSE1)/(k1 − k0)) / (SSE1/(N − k1)); 1.0 if SSE did not drop."""
-    from scipy.stats import f as f_dist
-
-    if k1 <= k0 or sse1 >= sse0 or n <= k1:
-        return 1.0
-    stat = ((sse0 - sse1) / (k1 - k0)) / (sse1 / (n - k1))
-    return float(f_dist.sf(stat, k1 - k0, n - k1))
 
 
 #: Parameters the 'polish' solver may move in log space (strictly positive lower bound); offset, Coulomb and the
@@ -233,6 +226,62 @@ def max_abs_corr(corr: np.ndarray | None, new: Sequence[int]) -> float:
     return worst
 
 
+#: Names of the acceptance checks of :func:`judge_effect` and the reason given when one fails.
+CHECK_REASONS = {"f_test": "prewhitened F-test not significant (p ≥ alpha)",
+                 "bic": "prewhitened BIC does not improve (ΔBIC ≥ 0)",
+                 "cross_validation": "no better out of sample (time-block cross-validation)",
+                 "identifiable": "a new parameter is not identifiable (|correlation| > max_corr)"}
+
+
+def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01, max_corr: float = 0.99,
+                 noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5) -> dict:
+    """The case for ``large`` (the free parameters of ``small`` plus new ones, the new ones last) against ``small``,
+    by the rule of the toggle plant's :class:`toggle_id.discovery.validation.Judge`.
+
+    The noise model is an AR(p ≤ ``noise_max_order``) fitted to the larger model's residual
+    (:func:`~toggle_id.discovery.noise.fit_noise`); both residuals are whitened by it for the nested F-test and
+    ΔBIC (:func:`~toggle_id.discovery.stats.compare`, the noise coefficients counted as parameters), and each fit
+    is cross-validated over time blocks with its own Jacobian (:func:`~toggle_id.discovery.stats.block_cv`). The
+    checks: ``f_test`` (p < ``alpha``), ``bic`` (ΔBIC < 0), ``cross_validation`` (the cross-validated whitened SSE
+    drops) and ``identifiable`` (each new parameter's |correlation| with the others ≤ ``max_corr``). Returns a plain
+    dict: ``noise_model``, ``F``, ``p_value``, ``delta_bic``, ``sse_w_before``/``after`` (m²), ``cv_sse_w_before``/
+    ``after``, ``in_sample_rms_w_before``/``after`` and ``out_of_sample_rms_w_before``/``after`` (whitened, m),
+    ``max_corr``, ``checks``, ``passed``, ``reason``.
+    """
+    k0, k1 = len(small.free), len(large.free)
+    k = max(k1 - k0, 1)
+    r0, r1 = small.residual, large.residual
+    n = int(np.asarray(r1).size)
+    corr_new = max_abs_corr(large.corr, range(k0, k1))
+    if r0 is None or r1 is None or not (np.all(np.isfinite(r0)) and np.all(np.isfinite(r1))):
+        noise = NoiseModel(note="a residual is missing or not finite")
+        c = {"F": 0.0, "p_value": 1.0, "delta_bic": float("inf"), "sse0_w": float("inf"), "sse1_w": float("inf")}
+        cv0 = cv1 = float("inf")
+    else:
+        noise = fit_noise(r1, noise_max_order)
+        c = compare(noise, r0, r1, k, k1)
+        cv0 = block_cv(noise, r0, small.jacobian, cv_block, cv_folds)["cv_sse_w"]
+        cv1 = block_cv(noise, r1, large.jacobian, cv_block, cv_folds)["cv_sse_w"]
+    checks = {"f_test": bool(c["p_value"] < alpha), "bic": bool(c["delta_bic"] < 0),
+              "cross_validation": bool(cv1 < cv0), "identifiable": bool(corr_new <= max_corr)}
+    passed = all(checks.values())
+    reason = ("significant in sample (prewhitened F-test and BIC), better out of sample (time-block "
+              "cross-validation) and identifiable" if passed else
+              "; ".join(v for key, v in CHECK_REASONS.items() if not checks[key]))
+
+    def rms(sse: float) -> float:
+        return float(np.sqrt(sse / n)) if n else float("nan")
+
+    return {"noise_model": noise.to_dict(), "noise_description": noise.describe(), "F": float(c["F"]),
+            "p_value": float(c["p_value"]), "delta_bic": float(c["delta_bic"]),
+            "sse_w_before": float(c["sse0_w"]), "sse_w_after": float(c["sse1_w"]),
+            "cv_sse_w_before": float(cv0), "cv_sse_w_after": float(cv1),
+            "in_sample_rms_w_before": rms(c["sse0_w"]), "in_sample_rms_w_after": rms(c["sse1_w"]),
+            "out_of_sample_rms_w_before": rms(cv0), "out_of_sample_rms_w_after": rms(cv1),
+            "cv_block": int(cv_block), "cv_folds": int(cv_folds), "max_corr": float(corr_new),
+            "checks": checks, "passed": passed, "reason": reason}
+
+
 def fit_output_error(record: EmpsRecord, free: Sequence[str], theta0: np.ndarray | Mapping[str, float],
                      lower: np.ndarray | None = None, upper: np.ndarray | None = None, *, max_nfev: int = 50,
                      rel_step: float = 1e-5, solver: str = "polish",
@@ -260,11 +309,12 @@ def fit_output_error(record: EmpsRecord, free: Sequence[str], theta0: np.ndarray
     theta[idx] = x
     sse = float(r @ r)
     n = record.n
-    std, corr = _covariance(jac(x), sse, n, free)
+    J = jac(x)
+    std, corr = _covariance(J, sse, n, free)
     return OEFitResult(theta=theta, free=tuple(free), sse=sse, n=n,
                        rel_error_pct=float(100 * np.sqrt(sse) / np.linalg.norm(record.qm)), std=std, corr=corr,
-                       nfev=nfev,
-                       success=success, message=message, seconds=time.perf_counter() - t_start)
+                       nfev=nfev, success=success, message=message, seconds=time.perf_counter() - t_start,
+                       residual=r, jacobian=J)
 
 
 def _pct_diff(value: float, reference: float) -> float:
@@ -334,23 +384,52 @@ def predict_validation(validation: EmpsRecord, models: Mapping[str, np.ndarray],
     return report
 
 
+def _rank_passing(refits: Sequence[tuple[dict, OEFitResult, Effect]],
+                  noise_max_order: int) -> tuple[tuple[dict, OEFitResult, Effect] | None, dict]:
+    """The refit to accept among those whose checks all passed: the lowest prewhitened SSE, every residual of the
+    round whitened by one noise model, as the toggle plant ranks its refits (:mod:`toggle_id.discovery.loop`):
+    the AR model of the residual of the refit that explains the most (lowest raw SSE). Each candidate's own noise
+    model (the one its tests use) would not do for the ranking: a residual that keeps more structure gets a noise
+    model that predicts it and a smaller whitened SSE. Sets ``sse_w_round`` on every entry; returns the chosen
+    (entry, fit, effect) or None, and {lead, noise_model} of the round."""
+    finite = [rf for rf in refits if rf[1].residual is not None and np.all(np.isfinite(rf[1].residual))]
+    if not finite:
+        return None, {"lead": None, "noise_model": None}
+    lead = min(finite, key=lambda rf: rf[1].sse)
+    noise = fit_noise(lead[1].residual, noise_max_order)
+    for entry, fit, _ in refits:
+        ok = fit.residual is not None and np.all(np.isfinite(fit.residual))
+        entry["sse_w_round"] = float(whitened_sse(noise, fit.residual)[0]) if ok else float("inf")
+    passing = [rf for rf in refits if rf[0]["passed"]]
+    chosen = min(passing, key=lambda rf: rf[0]["sse_w_round"]) if passing else None
+    return chosen, {"lead": lead[2].name, "noise_model": noise.to_dict()}
+
+
 def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
                   max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
-                  reference_fit: bool = True,
+                  reference_fit: bool = True, noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
                   sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
 
     Each round refits all parameters of the current model plus one candidate (from its registry default) for every
-    remaining candidate whose ``requires`` are in the model, and accepts the lowest-BIC candidate among those with
-    F-test p < ``alpha``, ΔBIC < 0 and every new parameter identifiable (|correlation| with each other free
-    parameter ≤ ``max_corr``; e.g. the offset and the Coulomb asymmetry differ only at standstill); it stops when
-    none passes. Keys of the report:
+    remaining candidate whose ``requires`` are in the model, and judges each refit against the current model with
+    :func:`judge_effect` (AR(p ≤ ``noise_max_order``) noise model of the refit's residual; prewhitened F-test
+    p < ``alpha``, prewhitened ΔBIC < 0, a lower time-block cross-validated whitened SSE with blocks of
+    ``cv_block`` samples dealt to ``cv_folds`` folds, and every new parameter identifiable: |correlation| with
+    each other free parameter ≤ ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at
+    standstill). Of the candidates that pass, the one with the lowest prewhitened SSE is accepted, the round's
+    residuals all whitened by one noise model (:func:`_rank_passing`); the loop stops when none passes. Keys of
+    the report:
 
     - ``position_rel_error_pct_before`` (nominal M, Fv fit), ``position_rel_error_pct_after`` (final model), %;
-    - ``effects_added`` [{name, params}], ``candidates`` [{round, name, score = ΔBIC (negative = better),
-      p_value, max_corr, sse_ratio, rel_error_pct, params, accepted, seconds}], ``free`` (final free parameters);
-    - ``nominal``: the nominal fit {free, identified (M, Fv), rel_error_pct};
+    - ``effects_added`` [{name, params, round, F, p_value, delta_bic}], ``free`` (final free parameters);
+    - ``candidates`` [{round, name, noise_model, F, p_value, delta_bic, in_sample_rms_w_before/after,
+      out_of_sample_rms_w_before/after, checks, max_corr, verdict (accepted | passed, not the best | rejected),
+      reason, sse_w_round, sse_ratio, rel_error_pct, params, accepted, seconds, …}] (see :func:`judge_effect`);
+    - ``rounds`` [{round, lead, noise_model, accepted}]: the noise model each round's ranking whitened by;
+    - ``nominal``: the nominal fit {free, identified (M, Fv), rel_error_pct, noise_model};
+    - ``noise_model``: the AR noise model of the final model's residual (its effective sample size included);
     - ``identified`` (all 8 parameters), ``std`` (approximate σ of the free ones, white-residual assumption);
     - ``published``, ``pct_diff_vs_published`` (M, Fv, Fc, offset; None where not in the final model) and, if the
       asymmetry was added, ``pct_diff_vs_published_asym`` and ``asymmetric_values`` (Fv±, Fc±);
@@ -359,7 +438,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
       rel. error and % differences vs the PDF;
     - ``validation`` (if given): the held-out record predicted by the final, published and reference models
       (:func:`predict_validation`; nothing is fitted on it);
-    - ``seconds``, ``n_samples``, ``alpha``, ``solver``.
+    - ``seconds``, ``n_samples``, ``alpha``, ``max_corr``, ``noise_max_order``, ``cv_block``, ``cv_folds``,
+      ``solver``.
     """
     t0 = time.perf_counter()
     names = list(EFFECTS) if candidates is None else list(candidates)
@@ -370,9 +450,15 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         raise ConfigError(f"alpha must lie in (0, 1), got {alpha}")
     if not (0 < max_corr <= 1):
         raise ConfigError(f"max_corr must lie in (0, 1], got {max_corr}")
+    for label, value, least in (("noise_max_order", noise_max_order, 0), ("cv_block", cv_block, 1),
+                                ("cv_folds", cv_folds, 2)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise ConfigError(f"{label} must be a whole number >= {least}, got {value!r}")
     _check_solver(solver)
     n = record.n
     fit_kw = dict(max_nfev=max_nfev, solver=solver, sim_options=sim_options)
+    judge_kw = {"alpha": alpha, "max_corr": max_corr, "noise_max_order": int(noise_max_order),
+                "cv_block": int(cv_block), "cv_folds": int(cv_folds)}
 
     # nominal model: IDIM-LS (M, Fv only) start, then output error
     theta = OFF.copy()
@@ -391,10 +477,11 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     tried: list[dict] = []
     remaining = list(names)
     rnd = 0
+    rounds: list[dict] = []
     while remaining and (max_effects is None or len(added) < max_effects):
         rnd += 1
-        best = None
         in_model = {a["name"] for a in added}
+        refits: list[tuple[dict, OEFitResult, Effect]] = []
         for name in remaining:
             eff = EFFECTS[name]
             if any(req not in in_model for req in eff.requires):
@@ -403,25 +490,35 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
             for p, d in zip(eff.params, eff.default):
                 th[INDEX[p]] = d
             fit = fit_output_error(record, free + list(eff.params), th, **fit_kw)
-            k0, k1 = len(free), len(free) + len(eff.params)
-            p_value = f_test_pvalue(current.sse, k0, fit.sse, k1, n)
-            d_bic = fit.bic() - current.bic()
-            corr_new = max_abs_corr(fit.corr, range(k0, k1))
-            entry = {"round": rnd, "name": name, "score": float(d_bic), "p_value": p_value, "max_corr": corr_new,
-                     "sse_ratio": float(fit.sse / current.sse), "rel_error_pct": fit.rel_error_pct,
+            ev = judge_effect(current, fit, **judge_kw)
+            entry = {"round": rnd, "name": name, **ev, "sse_ratio": float(fit.sse / current.sse),
+                     "rel_error_pct": fit.rel_error_pct,
                      "params": {p: float(fit.theta[INDEX[p]]) for p in eff.params}, "accepted": False,
-                     "seconds": fit.seconds}
+                     "verdict": "passed" if ev["passed"] else "rejected", "seconds": fit.seconds}
             tried.append(entry)
-            if p_value < alpha and d_bic < 0 and corr_new <= max_corr and (best is None or d_bic < best[0]["score"]):
-                best = (entry, fit, eff)
-        if best is None:
+            refits.append((entry, fit, eff))
+        if not refits:
             break
-        entry, fit, eff = best
+        chosen, ranking = _rank_passing(refits, noise_max_order)
+        rounds.append({"round": rnd, **ranking, "accepted": chosen[2].name if chosen else None})
+        if chosen is None:
+            break
+        entry, fit, eff = chosen
         entry["accepted"] = True
-        added.append({"name": eff.name, "params": dict(entry["params"])})
+        entry["verdict"] = "accepted"
+        for other, _, _ in refits:
+            if other["passed"] and other is not entry:
+                other["verdict"] = "passed, not the best"
+                other["reason"] = (f"passed every check, but {eff.name} has the lower prewhitened SSE under the "
+                                   f"round's noise model ({entry['sse_w_round']:.4g} against "
+                                   f"{other['sse_w_round']:.4g} m²); judged again next round")
+        added.append({"name": eff.name, "params": dict(entry["params"]), "round": rnd, "F": entry["F"],
+                      "p_value": entry["p_value"], "delta_bic": entry["delta_bic"]})
         free += list(eff.params)
         current = fit
         remaining.remove(eff.name)
+    noise_final = fit_noise(current.residual, noise_max_order)
+    noise_nominal = fit_noise(nominal.residual, noise_max_order)
 
     sim_kw = dict(sim_options or {})
     pub_sim = simulate_emps(PUBLISHED_THETA, record, **sim_kw)
@@ -433,9 +530,11 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "position_rel_error_pct_after": float(current.rel_error_pct),
         "effects_added": added,
         "candidates": tried,
+        "rounds": rounds,
         "free": list(free),
         "nominal": {"free": list(NOMINAL_NAMES), "identified": {k: nominal.params[k] for k in NOMINAL_NAMES},
-                    "rel_error_pct": float(before)},
+                    "rel_error_pct": float(before), "noise_model": noise_nominal.to_dict()},
+        "noise_model": {**noise_final.to_dict(), "description": noise_final.describe()},
         "identified": current.params,
         "std": dict(current.std),
         "published": dict(PUBLISHED),
@@ -443,6 +542,9 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "published_model_rel_error_pct": float(position_rel_error_pct(record.qm, pub_sim.q[0])),
         "alpha": float(alpha),
         "max_corr": float(max_corr),
+        "noise_max_order": int(noise_max_order),
+        "cv_block": int(cv_block),
+        "cv_folds": int(cv_folds),
         "solver": solver,
     }
     if "asymmetric" in cmp:
