@@ -474,10 +474,29 @@ def _names(items) -> list[str]:
     return out
 
 
+def accepted_effects(report: dict) -> list[str]:
+    """The effects the loop added (``effects_added``, or the list of names ``accepted``)."""
+    return _names(report.get("effects_added", report.get("accepted")))
+
+
+def noise_model_brief(noise_model) -> str | None:
+    """'white' / 'AR(2)' / 'AR(1) ρ 0.49' of the residual's noise model after the loop, if the report has one."""
+    if not isinstance(noise_model, dict):
+        return None if noise_model is None else str(noise_model)
+    nm = noise_model.get("after", noise_model)
+    if not isinstance(nm, dict):
+        return str(nm)
+    order = nm.get("order")
+    if not order:
+        return str(nm.get("kind", "white"))
+    rho = nm.get("ar1_rho")
+    return f"AR({order})" + (f" ρ {rho:.2f}" if isinstance(rho, (int, float)) else "")
+
+
 def verdict(entry: dict, report: dict) -> str:
     """exact / spurious / missed / unexplained-correct (and combinations) for one record's discovery.json."""
     truth = set(entry["effects"])
-    accepted = set(_names(report.get("effects_added")))
+    accepted = set(accepted_effects(report))
     unexplained = bool(report.get("unexplained"))
     if entry["category"] == "outside":
         if accepted:
@@ -500,10 +519,12 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
     return {
         "record": entry["name"], "category": entry["category"], "command": entry["command"].get("sweep")
         or entry["command"]["kind"], "truth": entry["effects"] or list(entry["outside"]) or [],
-        "noise": noise, "accepted": _names(report.get("effects_added")),
+        "noise": noise, "accepted": accepted_effects(report),
         "compensating": _names(report.get("compensating")), "rejected": _names(report.get("rejected")),
         "unexplained": bool(report.get("unexplained")),
-        "noise_model": report.get("noise_model"), "localisation": report.get("localisation"),
+        "noise_model": noise_model_brief(report.get("noise_model")),
+        "structure_left": (report.get("localisation") or {}).get("structure_left")
+        if isinstance(report.get("localisation"), dict) else None,
         "rmse_before_um": None if before is None else before * 1e6,
         "rmse_after_um": None if after is None else after * 1e6,
         "before_sigma": None if before is None else before / sig, "after_sigma": None if after is None else after / sig,
@@ -512,12 +533,21 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
 
 
 def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, timeout: float, log=print) -> dict:
-    """Run the discover job on one record (skipped if it already succeeded on the same CSV); its result row."""
+    """Run the discover job on one record (skipped if it already succeeded on the same CSV with the same
+    overrides); its result row."""
     run_dir = out / "runs" / entry["name"]
     row_path = run_dir / "result_row.json"
     if row_path.exists():
         row = json.loads(row_path.read_text())
-        if row.get("verdict") != "error" and row.get("csv_sha256") == entry.get("sha256"):
+        if (row.get("verdict") != "error" and row.get("csv_sha256") == entry.get("sha256")
+                and row.get("overrides", []) == list(extra)):
+            report = Path(row.get("report") or "")
+            if report.is_file():  # judged again from its report (the judging may have changed, not the run)
+                row = {**result_row(entry, json.loads(report.read_text()), row["wall_s"], str(report)),
+                       "overrides": list(extra)}
+                from toggle_id.checkpoint import atomic_write_json
+
+                atomic_write_json(row_path, row)
             log(f"{entry['name']}: done before ({row['verdict']})")
             return row
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -546,6 +576,7 @@ def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, ti
                "error": f"exit {code}: {tail}", "csv_sha256": entry.get("sha256")}
     else:
         row = result_row(entry, json.loads(Path(report_path).read_text()), wall, report_path)
+    row["overrides"] = list(extra)
     from toggle_id.checkpoint import atomic_write_json
 
     atomic_write_json(row_path, row)
@@ -553,7 +584,7 @@ def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, ti
     return row
 
 
-def _fmt(v, spec=".3g") -> str:
+def _fmt(v, spec=".4g") -> str:
     return "–" if v is None else format(v, spec)
 
 
@@ -568,17 +599,19 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def results_markdown(rows: list[dict], summary: dict) -> str:
-    head = ("| record | kind | command | truth | noise | accepted | compensating | RMS before → after (µm) | "
-            "before → after (σ) | verdict | wall (s) |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    head = ("| record | kind | command | truth | noise | accepted | compensating | noise model found | "
+            "RMS before → after (µm) | before → after (σ) | verdict | wall (s) |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|")
     body = []
     for r in rows:
         if r["verdict"] == "error":
-            body.append(f"| {r['record']} | {r['category']} | | | | | | | | error: {r.get('error', '')[:120]} | "
+            body.append(f"| {r['record']} | {r['category']} | | | | | | | | | error: {r.get('error', '')[:120]} | "
                         f"{r['wall_s']:.0f} |")
             continue
         body.append(f"| {r['record']} | {r['category']} | {r['command']} | {', '.join(r['truth']) or 'none'} | "
                     f"{r['noise']} | {', '.join(r['accepted']) or 'none'}{' (unexplained)' if r['unexplained'] else ''}"
-                    f" | {', '.join(r['compensating']) or '–'} | {_fmt(r['rmse_before_um'])} → "
+                    f" | {', '.join(r['compensating']) or '–'} | {r.get('noise_model') or '–'} | "
+                    f"{_fmt(r['rmse_before_um'])} → "
                     f"{_fmt(r['rmse_after_um'])} | {_fmt(r['before_sigma'])} → {_fmt(r['after_sigma'])} | "
                     f"{r['verdict']} | {r['wall_s']:.0f} |")
     s = summary

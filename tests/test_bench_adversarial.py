@@ -111,13 +111,17 @@ def test_verdicts(category, truth, added, unexplained, expected):
 def test_result_rows_read_the_new_keys_when_present_and_do_without_them():
     report = {"effects_added": [{"name": "dead_time"}], "rmse_before_m": 2.5e-6, "rmse_after_m": 1.0e-6,
               "compensating": [{"name": "constant_load_force"}], "rejected": ["backlash"],
-              "noise_model": {"order": 1}, "unexplained": False}
+              "noise_model": {"after": {"kind": "ar", "order": 1, "ar1_rho": 0.487}}, "unexplained": False,
+              "localisation": {"structure_left": False}}
     row = B.result_row(_entry("library", ["dead_time"]), report, 12.0, "/x/discovery.json")
     assert row["accepted"] == ["dead_time"] and row["compensating"] == ["constant_load_force"]
-    assert row["rejected"] == ["backlash"] and row["noise_model"] == {"order": 1}
+    assert row["rejected"] == ["backlash"] and row["noise_model"] == "AR(1) ρ 0.49"
+    assert row["structure_left"] is False
     assert row["before_sigma"] == pytest.approx(2.5) and row["verdict"] == "exact"
     bare = B.result_row(_entry("noise"), {"effects_added": []}, 1.0, "r")
     assert bare["compensating"] == [] and bare["rmse_before_um"] is None and bare["verdict"] == "exact"
+    assert bare["noise_model"] is None and bare["structure_left"] is None
+    assert B.accepted_effects({"accepted": ["dead_time"]}) == ["dead_time"]  # the list of names alone
     rows = [row, bare, {"record": "rec98", "category": "outside", "verdict": "error", "wall_s": 3.0, "error": "x"}]
     s = B.summarise(rows)
     assert (s["exact_in_library"], s["in_library"], s["nothing_accepted_quiet"], s["quiet"], s["errors"]) == \
@@ -133,3 +137,25 @@ def test_a_record_judged_before_on_the_same_file_is_not_run_again(tmp_path: Path
     (done / "result_row.json").write_text(json.dumps({"record": entry["name"], "verdict": "exact",
                                                       "csv_sha256": "abc"}))
     assert B.run_one(entry, tmp_path, [], None, 1.0, log=lambda *_: None)["verdict"] == "exact"
+    (done / "result_row.json").write_text(json.dumps({"record": entry["name"], "verdict": "exact",
+                                                      "csv_sha256": "abc", "overrides": ["discover.nominal=base"]}))
+    assert B.run_one(entry, tmp_path, ["discover.nominal=base"], None, 1.0, log=lambda *_: None)["verdict"] == "exact"
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_run_judges_one_record_with_the_discover_job(tmp_path):
+    """The whole plumbing on one short record: the discover job as a subprocess, its report, the verdict, the
+    result files, and a second call that reuses the result."""
+    over = ["--override", "discover.nominal=base", "--override", "evaluator=serial", "--override",
+            "discover.candidates=[sensor_offset,constant_load_force]", "--override", "discover.max_effects=1"]
+    args = ["--out", str(tmp_path), "--only", "noise_white", "--duration", "1.0", "--run", *over]
+    assert B.main(args) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    (row,) = res["rows"]
+    assert row["record"] == B.NAMES["noise_white"] and row["verdict"] == "exact" and row["accepted"] == []
+    assert row["rmse_after_um"] == pytest.approx(1.0, rel=0.15) and Path(row["report"]).is_file()
+    assert "nothing accepted on 1 of 1" in (tmp_path / "results.md").read_text()
+    wall = row["wall_s"]
+    assert B.main(args) == 0  # resumed: not run again
+    assert json.loads((tmp_path / "results.json").read_text())["rows"][0]["wall_s"] == wall
