@@ -28,7 +28,7 @@ def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects(
     for s in B.SPECS:
         assert set(B.CALIBRATED.get(s.key, {})) == set(s.calibrate), s.key
         for value, ratio in B.CALIBRATED.get(s.key, {}).values():
-            assert value > 0 and ratio == pytest.approx(s.target, rel=0.05), s.key
+            assert value > 0 and ratio == pytest.approx(s.target, rel=0.12), s.key
     # names are unique and say nothing about the content
     names = list(B.NAMES.values())
     assert len(set(names)) == len(names) and all(n.startswith("rec") and n[3:].isdigit() for n in names)
