@@ -39,13 +39,14 @@ def signals_of(t: np.ndarray, v_in: np.ndarray, states: Mapping[str, np.ndarray]
     return out
 
 
-def _describe(name: str, centres: np.ndarray, levels: np.ndarray, ends: tuple[float, float]) -> dict:
-    """Where the conditional means of one family concentrate, in words and numbers."""
+def _describe(name: str, edges: np.ndarray, levels: np.ndarray) -> dict:
+    """Where the conditional means of one family concentrate, in words and numbers (bins by their edges)."""
     label, _, scale, unit = SIGNALS.get(name, (name, "", 1.0, ""))
+    centres = 0.5 * (edges[:-1] + edges[1:])
     dev = levels - np.median(levels)
     j = int(np.argmax(np.abs(dev)))
     big = np.flatnonzero(np.abs(dev) >= 0.5 * abs(dev[j]))
-    lo, hi = float(centres[big.min()]), float(centres[big.max()])
+    lo, hi = float(edges[big.min()]), float(edges[big.max() + 1])
     sign = "+" if dev[j] > 0 else "−"
     at_low, at_high = big.min() == 0, big.max() == centres.size - 1
     if at_high and not at_low and big.size >= 2:
@@ -53,7 +54,7 @@ def _describe(name: str, centres: np.ndarray, levels: np.ndarray, ends: tuple[fl
     elif at_low and not at_high and big.size >= 2:
         where = f"grows towards low {label}, below {hi * scale:.3g} {unit}"
     else:
-        where = f"a bump near {label} ≈ {centres[j] * scale:.3g} {unit} ({lo * scale:.3g}–{hi * scale:.3g} {unit})"
+        where = f"a bump near {label} ≈ {centres[j] * scale:.3g} {unit} (bins {lo * scale:.3g}–{hi * scale:.3g} {unit})"
     return {"where": where, "peak_at": float(centres[j]), "range": [lo, hi], "peak_level_m": float(dev[j]),
             "text": f"{where}, residual level {sign}{abs(dev[j]) * 1e6:.3g} µm"}
 
@@ -66,15 +67,16 @@ def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.nda
     where, text}}, strongest, text}. ``structure_left`` when a tested family's p-value is below
     alpha / (number of tested families).
     """
-    bases, centres = {}, {}
+    bases, centres, edges_of = {}, {}, {}
     for name, v in signals.items():
         B, edges = piecewise_basis(v, bins)
         if B.shape[1] >= 2:
             bases[name] = B
+            edges_of[name] = edges
             centres[name] = 0.5 * (edges[:-1] + edges[1:])
     if "x_B" in bases and "xdot_B" in signals:  # friction-like: a force localised on the stroke, against the motion
         bases["x_B_dir"] = bases["x_B"] * np.sign(signals["xdot_B"])[:, None]
-        centres["x_B_dir"] = centres["x_B"]
+        centres["x_B_dir"], edges_of["x_B_dir"] = centres["x_B"], edges_of["x_B"]
     if "v_in" in signals:
         bases["v_in_lags"] = lagged_basis(signals["v_in"], lags, lag_step)
     res = structure_test(noise, r, bases)
@@ -87,9 +89,9 @@ def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.nda
         fam["significant"] = bool(name in tested and d["p_value"] < level)
         if name in centres:
             levels = np.asarray(d["coef"], float)
-            v = np.asarray(signals["x_B" if name == "x_B_dir" else name], float)
-            fam.update({"centres": centres[name].tolist(), "levels_m": levels.tolist()})
-            fam.update(_describe(name, centres[name], levels, (float(v.min()), float(v.max()))))
+            fam.update({"centres": centres[name].tolist(), "edges": edges_of[name].tolist(),
+                        "levels_m": levels.tolist()})
+            fam.update(_describe(name, edges_of[name], levels))
         families[name] = fam
     sig = sorted((k for k in tested if families[k]["significant"]), key=lambda k: families[k]["p_value"])
     strongest = sig[0] if sig else None
