@@ -1,0 +1,138 @@
+"""The discovery engine's statistics on plain arrays: noise model, prewhitened tests, cross-validation, the
+structure test and its localisation — against independent references and known distributions."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal, stats
+
+from toggle_id.discovery.localise import locate
+from toggle_id.discovery.noise import NoiseModel, autocovariance, fit_noise, whitened_sse
+from toggle_id.discovery.stats import block_cv, compare, fold_of, lagged_basis, piecewise_basis, structure_test
+
+N = 5001
+
+
+def ar1(rho: float, n: int = N, sigma: float = 1.0, seed: int = 0) -> np.ndarray:
+    """Stationary AR(1) with marginal σ, generated independently of the module (scipy.signal.lfilter)."""
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal(n) * sigma * np.sqrt(1 - rho ** 2)
+    zi = np.array([rho * rng.standard_normal() * sigma])
+    return signal.lfilter([1.0], [1.0, -rho], w, zi=zi)[0]
+
+
+def trajectory(n: int = N) -> dict[str, np.ndarray]:
+    t = np.arange(n) / 1000.0
+    x = 0.02 + 0.015 * (1 - np.cos(2 * np.pi * t / t[-1])) + 0.002 * np.sin(7 * t)
+    return {"x_B": x, "xdot_B": np.gradient(x, t), "i_q": 100 * np.sin(3 * t),
+            "v_in": 0.05 + 0.01 * np.sin((0.5 + 7.9 * t) * t), "t": t}
+
+
+# ------------------------------------------------------------------------------------------ noise model
+@pytest.mark.parametrize("rho", [0.5, 0.9])
+def test_ar1_noise_is_recovered_and_whitened(rho):
+    e = ar1(rho, sigma=1e-6, seed=1)
+    nm = fit_noise(e)
+    assert nm.order >= 1 and nm.a[0] == pytest.approx(rho, abs=0.05)
+    assert np.sqrt(nm.sigma2) == pytest.approx(1e-6, rel=0.1)
+    assert nm.effective_fraction == pytest.approx((1 - rho) / (1 + rho), rel=0.35)
+    w = nm.whiten(e)[nm.order:]
+    lag1 = np.corrcoef(w[:-1], w[1:])[0, 1]
+    assert abs(lag1) < 3 / np.sqrt(N)
+    d = nm.to_dict()
+    assert d["kind"].startswith("AR(") and d["effective_samples"] < N
+
+
+def test_white_noise_gives_the_white_model_and_leaves_signals_alone():
+    e = np.random.default_rng(2).standard_normal(N)
+    nm = fit_noise(e)
+    assert nm.white and nm.effective_fraction == 1.0
+    x = np.arange(10.0)
+    assert nm.whiten(x) is not None and np.array_equal(nm.whiten(x), x)
+    assert whitened_sse(nm, e)[0] == pytest.approx(float(e @ e))
+
+
+def test_autocovariance_matches_the_direct_sum():
+    e = np.random.default_rng(3).standard_normal(300)
+    c = autocovariance(e, 5)
+    d = e - e.mean()
+    assert np.allclose(c, [d[: d.size - k] @ d[k:] / d.size for k in range(6)])
+
+
+def test_a_nonfinite_residual_gives_white_with_a_note():
+    nm = fit_noise(np.r_[np.ones(50), np.nan])
+    assert nm.white and "white" in nm.note
+
+
+# ------------------------------------------------------------------------------------------ tests
+def test_prewhitened_f_test_is_calibrated_under_ar1_noise():
+    """A regressor that is pure (smooth) nonsense: the white F-test rejects far too often under AR(1) ρ = 0.9
+    noise, the prewhitened one at about its level."""
+    t = np.arange(N) / 1000.0
+    x = np.sin(2 * np.pi * t / 2.3)  # a slow signal the noise can mimic
+    naive, white = 0, 0
+    for seed in range(60):
+        e = ar1(0.9, seed=seed)
+        c = float(x @ e) / float(x @ x)
+        r1 = e - c * x
+        nm = fit_noise(r1)
+        res = compare(nm, e, r1, 1, 1)
+        white += res["p_value"] < 0.01
+        F = (e @ e - r1 @ r1) / (r1 @ r1 / (N - 1))
+        naive += stats.f.sf(F, 1, N - 1) < 0.01
+    assert naive >= 20 and white <= 4
+
+
+def test_block_cv_equals_exact_cross_validation_for_a_linear_model():
+    rng = np.random.default_rng(4)
+    X = rng.standard_normal((400, 3))
+    y = X @ np.array([1.0, -2.0, 0.5]) + 0.1 * rng.standard_normal(400)
+    beta = np.linalg.lstsq(X, y, rcond=None)[0]
+    r = y - X @ beta
+    out = block_cv(NoiseModel(), r, X, block=20, folds=4)
+    fold = fold_of(400, 20, 4)
+    exact = 0.0
+    for k in range(4):
+        b = np.linalg.lstsq(X[fold != k], y[fold != k], rcond=None)[0]
+        exact += float(np.sum((y[fold == k] - X[fold == k] @ b) ** 2))
+    assert out["cv_sse_w"] == pytest.approx(exact, rel=1e-9)
+    assert out["cv_sse_w"] > out["in_sse_w"]
+
+
+def test_every_fold_spans_the_record():
+    f = fold_of(1000, 100, 5)
+    for k in range(5):
+        idx = np.flatnonzero(f == k)
+        assert idx.min() < 500 < idx.max()
+
+
+def test_bases():
+    B, edges = piecewise_basis(np.linspace(0, 1, 120), 12)
+    assert B.shape == (120, 12) and np.all(B.sum(axis=1) == 1) and edges.size == 13
+    assert piecewise_basis(np.ones(10), 4)[0].shape[1] == 0
+    L = lagged_basis(np.arange(10.0), 4, 2)
+    assert L.shape == (10, 3) and L[5, 1] == L[3, 0]
+
+
+def test_structure_test_rejects_at_its_level_for_coloured_noise_and_finds_a_bump():
+    sig = trajectory()
+    hits = {0.0: 0, 0.9: 0}
+    for rho in hits:
+        for seed in range(40):
+            e = ar1(rho, sigma=1e-6, seed=100 + seed)
+            hits[rho] += locate(None, e, sig)["structure_left"]
+    assert hits[0.0] <= 3 and hits[0.9] <= 3
+    bump = 2e-6 * np.exp(-((sig["x_B"] - 0.03) / 0.002) ** 2) * np.sign(sig["xdot_B"])
+    loc = locate(None, ar1(0.0, sigma=1e-6, seed=7) + bump, sig)
+    assert loc["structure_left"] and loc["strongest"] in ("x_B_dir", "x_B")
+    fam = loc["families"][loc["strongest"]]
+    lo, hi = fam["range"]
+    assert lo - 0.004 <= 0.03 <= hi + 0.004
+    assert "slider B position" in loc["text"]
+
+
+def test_structure_test_families_report_their_own_noise_model():
+    sig = trajectory(2000)
+    e = ar1(0.5, n=2000, seed=9)
+    out = structure_test(None, e, {"x_B": piecewise_basis(sig["x_B"], 8)[0]})
+    assert out["x_B"]["noise"]["order"] >= 1 and out["x_B"]["dof"] == 8
