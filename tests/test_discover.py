@@ -275,3 +275,64 @@ def test_no_false_positive_on_the_five_second_record():
     print(f"\n[every-effect] none: added {[a['name'] for a in res.effects_added]}, rms {res.rmse_before_m * 1e6:.3g} -> "
           f"{res.rmse_after_m * 1e6:.3g} um, {res.seconds:.0f} s")
     assert res.effects_added == [] and not res.unexplained
+
+
+# ---------------------------------------------------------------------------------------------- measured-data classes
+def _noise_record(rho: float = 0.0, quantum: float = 0.0, sigma: float = NOISE, seed: int = 11):
+    """A 5-s record without effects (parameters perturbed 5 %) with AR(1) noise ``rho`` or an encoder quantum."""
+    from toggle_id.workflow import build_record
+
+    rng = np.random.default_rng(seed)
+    params = {n: float(v) for n, v in zip(PARAM_NAMES, ASSIGNED * np.exp(0.05 * rng.standard_normal(15)))}
+    rec, truth = build_record({"source": "simulated", "sweep": "simulation", "duration": 5.0, "params": params,
+                               "effects": {}, "noise_m": sigma, "noise_ar": rho, "quantum_m": quantum,
+                               "noise_seed": seed})
+    return rec, truth[:15] * np.exp(0.03 * rng.standard_normal(15))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rho,quantum,sigma", [(0.5, 0.0, NOISE), (0.9, 0.0, NOISE), (0.0, 1e-6, 0.0)],
+                         ids=["ar1_0.5", "ar1_0.9", "quantised_1um"])
+def test_coloured_or_quantised_noise_is_not_an_effect(rho, quantum, sigma):
+    rec, start = _noise_record(rho, quantum, sigma)
+    res = D.discover(rec, nominal=start, settings=D.DiscoverSettings())
+    d = res.to_dict()
+    print(f"\n[noise] rho={rho} quantum={quantum}: added {d['accepted']}, compensating "
+          f"{[c['name'] for c in d['compensating']]}, noise {d['noise_model']['after']['kind']}, {res.seconds:.0f} s")
+    assert res.effects_added == [] and not res.unexplained
+    if rho > 0:
+        assert d["noise_model"]["after"]["order"] >= 1
+
+
+@pytest.mark.slow
+def test_an_effect_outside_the_library_is_unexplained_and_localised():
+    """A friction bump on the slider's stroke (independent scipy plant, tests/outside_plant.py): no library effect
+    may be accepted; the residual's structure is placed on the slider's position."""
+    from outside_plant import Outside, simulate_outside
+
+    rng = np.random.default_rng(21)
+    truth = ASSIGNED * np.exp(0.05 * rng.standard_normal(15))
+    rec = Record.from_sweep("simulation", 5.0, name="bump")
+    x, _, _ = simulate_outside(truth, rec, Outside(bump=(300.0, 0.045, 0.004)))
+    rec.x_B = x + NOISE * rng.standard_normal(rec.n)
+    start = truth * np.exp(0.03 * rng.standard_normal(15))
+    res = D.discover(rec, nominal=start, settings=D.DiscoverSettings())
+    d = res.to_dict()
+    loc = d["localisation"]
+    print(f"\n[outside] added {d['accepted']}, compensating {[c['name'] for c in d['compensating']]}, "
+          f"rms {res.rmse_before_m * 1e6:.3g} -> {res.rmse_after_m * 1e6:.3g} um; {loc['text']}")
+    assert res.effects_added == [] and res.unexplained
+    assert loc["strongest"] in ("x_B", "x_B_dir", "xdot_B")
+    assert any(loc["families"][k]["significant"] for k in ("x_B", "x_B_dir"))
+    lo, hi = loc["families"]["x_B_dir"]["range"]
+    assert lo - 0.004 <= 0.045 <= hi + 0.004
+
+
+@pytest.mark.slow
+def test_two_effects_at_once():
+    rec, truth, start = make_record({"c_B": 4000.0, "x_off": 2e-5}, duration=5.0, seed=4)
+    res = D.discover(rec, nominal=start, settings=D.DiscoverSettings(noise_std=NOISE))
+    names = sorted(a["name"] for a in res.effects_added)
+    print(f"\n[two effects] added {names}, rms {res.rmse_before_m * 1e6:.3g} -> {res.rmse_after_m * 1e6:.3g} um")
+    assert names == ["sensor_offset", "viscous_friction_slider"]
+    assert res.rmse_after_m < 1.05 * NOISE and not res.unexplained
