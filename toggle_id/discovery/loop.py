@@ -131,7 +131,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         all_refits.extend(step["refits"])
         if first_scores is None:
             first_scores = step["scores"]
-        current = step["base"]  # the nominal (+ added) model refitted under the iteration's noise model
+        current = step["base"]  # the current model, or a better optimum of it found by a guard re-polish
         if step["better_null"] is not None and not added:  # a better nominal optimum: the error "before" is its
             baseline = current
         chosen = step["chosen"]
@@ -191,11 +191,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                       "verdict": ("accepted" if c.name in accepted_names else
                                   "compensating" if c.name in {x["name"] for x in compensating} else "rejected"),
                       "evidence": tried[-1].evidence if tried else {}})
+    why_out = {e["name"]: "eliminated (backward): " + e["reason"] for e in eliminated}
+    for rf in all_refits:
+        why_out.setdefault(rf.name, rf.reason)
     rejected = [{"name": c["name"], "refitted": c["refitted"],
-                 "reason": (next((rf.reason for rf in reversed(all_refits) if rf.name == c["name"]), None)
-                            or ("eliminated: " + next(e["reason"] for e in eliminated if e["name"] == c["name"])
-                                if c["name"] in {e["name"] for e in eliminated} else
-                                "its scout explains less than the candidates refitted"))}
+                 "reason": why_out.get(c["name"], "its scout explains less than the candidates refitted")}
                 for c in cands if c["verdict"] == "rejected"]
     unexplained = bool(diag_after.get("verdict", {}).get("structure_left", False))
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating)
