@@ -56,3 +56,19 @@ def wait_until_dead(actor, timeout: float = 60.0) -> None:
             break
         time.sleep(0.05)
     pytest.fail(f"the killed actor still answers after {timeout:g} s")
+
+
+# ------------------------------------------------------------------------------------------ EMPS benchmark records
+def _emps_files():
+    """The benchmark's EMPS records where the job would find them, or (None, the job's one-line reason)."""
+    from toggle_id.emps import EmpsRecordsNotFound, find_benchmark_files
+
+    try:
+        return find_benchmark_files(require_validation=True), None
+    except EmpsRecordsNotFound as err:
+        return None, str(err)
+
+
+EMPS_FILES, EMPS_MISSING = _emps_files()
+#: Tests on the real EMPS records: skipped, with the job's one-line reason, only when the records are absent.
+needs_records = pytest.mark.skipif(EMPS_FILES is None, reason=EMPS_MISSING or "")

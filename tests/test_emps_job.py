@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import run_job
 
-from toggle_id.emps import PUBLISHED, PUBLISHED_THETA, EmpsRecordsNotFound, find_benchmark_files, theta_from_dict
+from toggle_id.emps import PUBLISHED, PUBLISHED_THETA, theta_from_dict
 from toggle_id.emps.synthetic import back_and_forth, pulse_train, simulated_record, write_record
 from toggle_id.emps_job import EMPS_DEFAULTS, emps_settings, load_record
 from toggle_id.errors import ConfigError, DataError
@@ -25,15 +25,7 @@ REPORT_KEYS = {"position_rel_error_pct_before", "position_rel_error_pct_after", 
                "validation", "reference", "wall_seconds", "figures", "mlflow_run_id", "n_samples", "data"}
 
 
-def _benchmark():
-    try:
-        return find_benchmark_files(require_validation=True), None
-    except EmpsRecordsNotFound as err:
-        return None, str(err)
-
-
-FILES, MISSING = _benchmark()
-needs_records = pytest.mark.skipif(FILES is None, reason=MISSING or "")
+from conftest import needs_records  # noqa: E402
 
 
 def _one_line_error(proc) -> str:
