@@ -107,9 +107,14 @@ def test_every_fold_spans_the_record():
 
 
 def test_bases():
-    B, edges = piecewise_basis(np.linspace(0, 1, 120), 12)
-    assert B.shape == (120, 12) and np.all(B.sum(axis=1) == 1) and edges.size == 13
+    B, edges = piecewise_basis(np.linspace(0, 1, 240), 12)
+    assert B.shape == (240, 12) and np.all(B.sum(axis=1) == 1) and edges.size == 13
     assert piecewise_basis(np.ones(10), 4)[0].shape[1] == 0
+    # a record that sits mostly at one end keeps equal widths over the stroke; sparse bins are merged
+    v = np.r_[np.linspace(0.02, 0.056, 360), np.full(4600, 0.0575)]
+    B, edges = piecewise_basis(v, 12)
+    counts = B.sum(axis=0)
+    assert counts.min() >= 20 and B.shape[1] >= 10 and np.all(np.diff(edges) > 0)
     L = lagged_basis(np.arange(10.0), 4, 2)
     assert L.shape == (10, 3) and L[5, 1] == L[3, 0]
 

@@ -11,6 +11,7 @@ correction over them; time is shown, not tested: structure in time alone is what
 """
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Mapping
 
 import numpy as np
@@ -118,8 +119,8 @@ def figure(locate_result: dict, r: np.ndarray, signals: Mapping[str, np.ndarray]
         v = np.asarray(signals["x_B" if name == "x_B_dir" else name], float) * scale
         rr = np.asarray(r) * (np.sign(signals["xdot_B"]) if name == "x_B_dir" else 1.0)
         ax.plot(v, rr * 1e6, ".", ms=1, alpha=0.25, color="0.4")
-        ax.step(np.asarray(fam["centres"]) * scale, np.asarray(fam["levels_m"]) * 1e6, where="mid", lw=2,
-                color="C3" if fam["significant"] else "C0", label="level per bin (prewhitened fit)")
+        ax.stairs(np.asarray(fam["levels_m"]) * 1e6, np.asarray(fam["edges"]) * scale, lw=2,
+                  color="C3" if fam["significant"] else "C0", label="level per bin (prewhitened fit)")
         tag = "" if not fam["tested"] else (f"p = {fam['p_value']:.2g}" + (" — structure" if fam["significant"]
                                                                            else ""))
         ax.set_title(f"{label}: {tag}", fontsize=9, loc="left")
@@ -127,5 +128,5 @@ def figure(locate_result: dict, r: np.ndarray, signals: Mapping[str, np.ndarray]
         ax.set_ylabel("residual [µm]")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8)
-    fig.suptitle(title or locate_result["text"], fontsize=10)
+    fig.suptitle(textwrap.fill(title or locate_result["text"], 140), fontsize=9)
     return fig

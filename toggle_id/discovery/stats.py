@@ -72,10 +72,28 @@ def block_cv(noise: NoiseModel, r: np.ndarray, J: np.ndarray, block: int = 100, 
             "folds": int(folds), "block": int(block)}
 
 
-def piecewise_basis(v: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indicator columns of ``bins`` quantile bins of ``v`` (N, B) and the bin edges; constant bins dropped."""
+def piecewise_basis(v: np.ndarray, bins: int, min_count: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Indicator columns (N, B) of ``bins`` equal-width bins over the range of ``v``, and the bin edges; a bin
+    with fewer than ``min_count`` samples is merged into its neighbour (equal widths, not equal counts: a slider
+    that spends most of the record clamped still gets its stroke resolved)."""
     v = np.asarray(v, float)
-    edges = np.unique(np.quantile(v, np.linspace(0.0, 1.0, bins + 1)))
+    lo, hi = float(np.min(v)), float(np.max(v))
+    if not hi > lo:
+        return np.zeros((v.size, 0)), np.array([lo, hi])
+    edges = list(np.linspace(lo, hi, bins + 1))
+    while len(edges) > 2:
+        counts = np.histogram(v, np.array(edges))[0]
+        j = int(np.argmin(counts))
+        if counts[j] >= min_count:
+            break
+        # merge the sparsest bin into its smaller neighbour (drop the edge between them)
+        if j == 0:
+            del edges[1]
+        elif j == len(counts) - 1:
+            del edges[-2]
+        else:
+            del edges[j if counts[j - 1] <= counts[j + 1] else j + 1]
+    edges = np.array(edges)
     if edges.size < 3:
         return np.zeros((v.size, 0)), edges
     idx = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, edges.size - 2)
