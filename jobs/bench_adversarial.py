@@ -530,6 +530,8 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         "rmse_after_um": None if after is None else after * 1e6,
         "before_sigma": None if before is None else before / sig, "after_sigma": None if after is None else after / sig,
         "verdict": verdict(entry, report), "wall_s": wall, "report": report_path, "csv_sha256": entry.get("sha256"),
+        "localisation": (report.get("localisation") or {}).get("text")
+        if isinstance(report.get("localisation"), dict) and report["localisation"].get("structure_left") else None,
     }
 
 
@@ -594,6 +596,7 @@ def summarise(rows: list[dict]) -> dict:
     quiet = [r for r in rows if r["category"] in ("noise", "outside") and r["verdict"] != "error"]
     outside = [r for r in quiet if r["category"] == "outside"]
     return {"exact_in_library": sum(r["verdict"] == "exact" for r in lib), "in_library": len(lib),
+            "exact_at_noise": sum(r["verdict"] == "exact" and (r["after_sigma"] or np.inf) <= 1.5 for r in lib),
             "nothing_accepted_quiet": sum(not r["accepted"] for r in quiet), "quiet": len(quiet),
             "unexplained_outside": sum(r["verdict"] == "unexplained-correct" for r in outside), "outside": len(outside),
             "errors": sum(r["verdict"] == "error" for r in rows), "records": len(rows)}
@@ -617,10 +620,15 @@ def results_markdown(rows: list[dict], summary: dict) -> str:
                     f"{r['verdict']} | {r['wall_s']:.0f} |")
     s = summary
     text = [head, *body, "",
-            f"Exact effect set on {s['exact_in_library']} of {s['in_library']} in-library records; nothing accepted on "
+            f"Exact effect set on {s['exact_in_library']} of {s['in_library']} in-library records "
+            f"({s['exact_at_noise']} of them with the RMS after ≤ 1.5 σ); nothing accepted on "
             f"{s['nothing_accepted_quiet']} of {s['quiet']} noise-only and outside records; outside records called "
             f"unexplained with nothing accepted: {s['unexplained_outside']} of {s['outside']}"
             + (f"; {s['errors']} run(s) failed" if s["errors"] else "") + "."]
+    where = [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}): {r['localisation']}" for r in rows
+             if r.get("localisation")]
+    if where:
+        text += ["", "Where the residual concentrates (records with structure left):", *where]
     return "\n".join(text)
 
 

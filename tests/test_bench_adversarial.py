@@ -127,7 +127,7 @@ def test_result_rows_read_the_new_keys_when_present_and_do_without_them():
     assert (s["exact_in_library"], s["in_library"], s["nothing_accepted_quiet"], s["quiet"], s["errors"]) == \
         (1, 1, 1, 1, 1)
     md = B.results_markdown(rows, s)
-    assert "Exact effect set on 1 of 1 in-library records; nothing accepted on 1 of 1" in md
+    assert "Exact effect set on 1 of 1 in-library records (1 of them with the RMS after ≤ 1.5 σ); nothing accepted on 1 of 1" in md
 
 
 def test_a_record_judged_before_on_the_same_file_is_not_run_again(tmp_path: Path):
