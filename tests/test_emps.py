@@ -248,7 +248,8 @@ def test_bad_settings_raise_config_error(sim):
         theta_from_dict({"mass": 1.0})
     with pytest.raises(ConfigError):
         run_emps_loop(sim.slice(0, 500), candidates=["no_such_effect"])
-    for bad in ({"noise_max_order": -1}, {"cv_block": 0}, {"cv_folds": 1}, {"cv_folds": 2.0}):
+    for bad in ({"noise_max_order": -1}, {"cv_block": 0}, {"cv_folds": 1}, {"cv_folds": 2.0},
+                {"structure_bins": 1}, {"structure_alpha": 1.0}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             run_emps_loop(sim.slice(0, 500), **bad)
     with pytest.raises(ConfigError):
@@ -345,8 +346,12 @@ def _ar1(n: int, rho: float, sigma: float, seed: int) -> np.ndarray:
 def test_judge_effect_is_noise_aware():
     """Linear stand-ins for output-error fits under AR(1) noise (ρ = 0.95, ≈ N/39 independent samples): a
     regressor made of slow blocks that explains noise-sized wiggles passes the naive F-test but not the
-    prewhitened one; a real effect passes every check; a collinear one fails the identifiability gate."""
+    prewhitened one; a real effect passes every check; a collinear one fails the identifiability gate. The verdict
+    is the discovery engine's Evidence, the gate one of its checks."""
     from scipy.stats import f as f_dist
+
+    from toggle_id.discovery.validation import Evidence
+    from toggle_id.emps.fit import new_params_corr
 
     n, rho, sigma = 20000, 0.95, 1e-6
     t = np.linspace(0.0, 1.0, n)
@@ -364,27 +369,34 @@ def test_judge_effect_is_noise_aware():
         ev = judge_effect(small, large, alpha=0.01)
         F_naive = (small.sse - large.sse) / (large.sse / (n - 3))
         rejected_naive += f_dist.sf(F_naive, 1, n - 3) >= 0.01
-        rejected_white += not ev["passed"]
-        assert ev["noise_model"]["order"] >= 1 and abs(ev["noise_model"]["coefficients"][0] - rho) < 0.05
-        assert ev["noise_model"]["effective_samples"] < n / 20
+        assert isinstance(ev, Evidence)
+        rejected_white += not ev.passed
+        assert ev.noise.order >= 1 and abs(ev.noise.a[0] - rho) < 0.05
+        assert ev.noise.to_dict()["effective_samples"] < n / 20
     assert rejected_white >= 9 and rejected_naive <= 5  # the naive test is fooled at least half of the time
 
     y = _ar1(n, rho, sigma, 1) + 2 * sigma * effect  # a real effect: every check passes
     r0 = y - base @ np.linalg.lstsq(base, y, rcond=None)[0]
     X = np.column_stack([base, effect])
     r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
-    ev = judge_effect(_fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c")), alpha=0.01)
-    assert ev["passed"] and all(ev["checks"].values()) and ev["p_value"] < 1e-6 and ev["delta_bic"] < 0
-    assert ev["out_of_sample_rms_w_after"] < ev["out_of_sample_rms_w_before"]
-    assert ev["in_sample_rms_w_after"] < ev["in_sample_rms_w_before"]
-    json.dumps(ev)
-    ev = judge_effect(_fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c")), alpha=0.01,
-                      max_corr=0.5 * ev["max_corr"])
-    assert not ev["passed"] and ev["checks"] == {"f_test": True, "bic": True, "cross_validation": True,
-                                                 "identifiable": False}
-    assert "not identifiable" in ev["reason"]
-    white = judge_effect(_fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c")), noise_max_order=0)
-    assert white["noise_model"]["kind"] == "white" and white["F"] > ev["F"]
+    small, large = _fit(r0, base, ("a", "b")), _fit(r1, X, ("a", "b", "c"))
+    ev = judge_effect(small, large, alpha=0.01)
+    assert ev.passed and all(ev.checks.values()) and ev.p_value < 1e-6 and ev.delta_bic < 0
+    assert ev.cv1 < ev.cv0 and ev.sse1_w < ev.sse0_w
+    assert ev.reason.startswith("significant in sample")
+    d = ev.to_dict()
+    json.dumps(d)
+    assert d["checks"] == ev.checks and d["passed"] and d["p_value"] == ev.p_value
+    corr = new_params_corr(small, large)
+    assert 0 < corr < 1
+    ev = judge_effect(small, large, alpha=0.01, max_corr=0.5 * corr)
+    assert not ev.passed and ev.checks == {"f_test": True, "bic": True, "cross_validation": True,
+                                           "identifiable": False}
+    assert ev.reason == "a new parameter is not identifiable (|correlation| > max_corr)"
+    white = judge_effect(small, large, noise_max_order=0)
+    assert white.noise.white and white.F > ev.F
+    broken = judge_effect(small, _fit(np.full(n, np.nan), X, ("a", "b", "c")))
+    assert not broken.passed and broken.checks["f_test"] is False and broken.noise.white
 
 
 # ---------------------------------------------------------------------------------------------------- discovery loop
@@ -396,6 +408,8 @@ def test_loop_finds_the_simulated_friction_and_predicts_a_pulsed_record(sim):
     report = run_emps_loop(sim.slice(0, 5000), val, reference_fit=False,
                            candidates=["coulomb_friction", "offset", "asymmetric_friction"])
     assert [e["name"] for e in report["effects_added"]] == ["coulomb_friction", "offset"]
+    assert [c["name"] for c in report["rejected"]] == ["asymmetric_friction"] and report["compensating"] == []
+    assert all(a["evidence"]["passed"] and a["reason"] for a in report["effects_added"])
     for c in report["candidates"]:  # every verdict by the prewhitened tests and the cross-validation
         assert {"noise_model", "F", "p_value", "delta_bic", "in_sample_rms_w_after", "out_of_sample_rms_w_after",
                 "verdict", "reason"} <= set(c)
@@ -422,6 +436,9 @@ def test_loop_finds_coulomb_on_short_record(rec):
     assert report["validation"]["position_rel_error_pct"] < report["validation"]["published_model_rel_error_pct"]
     assert {c["name"] for c in report["candidates"] if c["round"] == 1} == {"coulomb_friction", "offset"}
     assert sum(c["accepted"] for c in report["candidates"]) == len(names)
+    listed = [c["name"] for key in ("effects_added", "compensating", "rejected") for c in report[key]]
+    assert sorted(listed) == sorted(EFFECTS)
+    assert isinstance(report["structure_left"], bool) and report["localisation"]["text"]
     json.dumps(report)
 
 

@@ -22,7 +22,8 @@ from toggle_id.errors import ConfigError, DataError
 
 REPORT_KEYS = {"position_rel_error_pct_before", "position_rel_error_pct_after", "effects_added", "candidates",
                "identified", "published", "pct_diff_vs_published", "comparison", "idim_ls", "identifiability",
-               "validation", "reference", "wall_seconds", "figures", "mlflow_run_id", "n_samples", "data"}
+               "validation", "reference", "wall_seconds", "figures", "mlflow_run_id", "n_samples", "data",
+               "compensating", "rejected", "structure_left", "localisation"}
 
 
 from conftest import needs_records  # noqa: E402
@@ -80,10 +81,13 @@ def test_job_on_simulated_records_end_to_end(sim_files, tmp_path):
     assert set(v["models"]) == {"final", "published", "reference"}
     assert v["position_rel_error_pct"] < 0.5 * v["published_model_rel_error_pct"]  # the truth has Fv_asym
     assert v["models"]["final"]["without_pulses_rel_error_pct"] > 10 * v["position_rel_error_pct"]
-    for name in ("response.png", "friction.png", "validation.png"):
+    for name in ("response.png", "friction.png", "validation.png", "localisation.png"):
         assert (run / name).stat().st_size > 10_000
     table = (run / "table.txt").read_text()
     assert "validation sim_validation" in table and "pulses at the controller output" in table
+    assert "effects accepted: coulomb_friction (round 1)" in table and "structure left" in table
+    listed = [c["name"] for key in ("effects_added", "compensating", "rejected") for c in rep[key]]
+    assert sorted(listed) == sorted({c["name"] for c in rep["candidates"]})
     from mlflow import MlflowClient
 
     client = MlflowClient(uri)
@@ -138,6 +142,13 @@ def test_job_on_the_benchmark_records(tmp_path):
     ident = rep["identifiability"]
     assert ident["param_order"] == rep["free"] and ident["rank"] == len(rep["free"])
     assert (run / "validation.png").stat().st_size > 10_000
+    # the three lists and the structure test of the final residual (measured closed loop: reported, not asserted)
+    listed = [c["name"] for key in ("effects_added", "compensating", "rejected") for c in rep[key]]
+    assert sorted(listed) == sorted(["coulomb_friction", "offset", "stribeck_friction", "asymmetric_friction"])
+    assert all({"name", "reason", "evidence"} <= set(c) for key in ("effects_added", "compensating", "rejected")
+               for c in rep[key])
+    assert isinstance(rep["structure_left"], bool) and rep["localisation"]["text"]
+    assert (run / "localisation.png").stat().st_size > 10_000
 
 
 # ------------------------------------------------------------------------------------------ bad input
@@ -196,6 +207,8 @@ def test_the_config_file_matches_the_defaults():
     ({"cv_block": 0}, "emps.cv_block"),
     ({"cv_folds": 1}, "emps.cv_folds"),
     ({"cv_folds": "five"}, "emps.cv_folds"),
+    ({"structure_bins": 1}, "emps.structure_bins"),
+    ({"structure_alpha": 0.0}, "emps.structure_alpha"),
     ({"sim": {"eps": -1.0}}, "emps.sim"),
     ({"sim": {"pulse_gain": "big"}}, "emps.sim.pulse_gain"),
     ({"sim": {"pulse_sign": 1.0}}, "pulse_sign"),

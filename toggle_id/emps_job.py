@@ -7,7 +7,11 @@ each file checked by its sha256) or takes the user's own file (``emps.path``), a
 starts. It then runs the output-error effect-discovery loop on the estimation record
 (:func:`toggle_id.emps.run_emps_loop`: nominal M, Fv fit, then Coulomb friction, offset, Stribeck, asymmetry as the
 data support them, each judged like the toggle plant's effects: AR noise model of the larger model's residual,
-prewhitened F-test and ΔBIC, time-block cross-validation), analyses the identifiability of the final model (:func:`toggle_id.identifiability.analyze`),
+prewhitened F-test and ΔBIC, time-block cross-validation, all through the discovery engine's ``Evidence``; reported
+as the toggle loop's three lists ``effects_added``, ``compensating`` and ``rejected``), tests the final model's
+position residual for structure the noise model cannot explain and says where it concentrates (position, position
+signed by the direction of motion, velocity; ``localisation.png``), analyses the identifiability of the final model
+(:func:`toggle_id.identifiability.analyze`),
 compares M, Fv, Fc and offset with the benchmark's published IDIM-LS values, predicts the validation record
 (``DATA_EMPS_PULSES.mat``, its pulses entering at the controller output; nothing is fitted on it), logs everything
 to MLflow (parent run ``emps``, one child run per fit), draws the figures, prints a short table and writes
@@ -19,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,7 +54,7 @@ COMPARED = ("M", "Fv", "Fc", "offset")
 EMPS_DEFAULTS: dict[str, Any] = {
     "data_dir": None, "path": None, "validate": True, "samples": None, "candidates": None, "alpha": 0.01,
     "max_effects": None, "max_corr": 0.99, "noise_max_order": 8, "cv_block": 100, "cv_folds": 5,
-    "solver": "polish", "max_nfev": 50, "reference_fit": True,
+    "structure_bins": 12, "structure_alpha": 0.01, "solver": "polish", "max_nfev": 50, "reference_fit": True,
     "sim": {"eps": 1e-4, "h_lambda": 0.5, "n_sub_max": 5000, "pulse_gain": 1.0},
 }
 
@@ -93,6 +98,8 @@ class EmpsJobSettings:
     validation_path: Path | None = None
     identifiability: bool = True
     noise_std_m: float | None = None
+    structure_bins: int = 12
+    structure_alpha: float = 0.01
 
 
 def _number(name: str, value: Any, *, integer: bool = False) -> float | int:
@@ -182,6 +189,12 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     cv_folds = _number("emps.cv_folds", node["cv_folds"], integer=True)
     if cv_folds < 2:
         raise ConfigError(f"emps.cv_folds must be >= 2, got {cv_folds}")
+    structure_bins = _number("emps.structure_bins", node["structure_bins"], integer=True)
+    if structure_bins < 2:
+        raise ConfigError(f"emps.structure_bins must be >= 2, got {structure_bins}")
+    structure_alpha = _number("emps.structure_alpha", node["structure_alpha"])
+    if not 0 < structure_alpha < 1:
+        raise ConfigError(f"emps.structure_alpha must lie in (0, 1), got {structure_alpha}")
     if node["solver"] not in SOLVERS:
         raise ConfigError(f"emps.solver must be one of {list(SOLVERS)}, got {node['solver']!r}")
     max_nfev = _number("emps.max_nfev", node["max_nfev"], integer=True)
@@ -207,7 +220,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
                            max_effects=max_effects, max_corr=max_corr, noise_max_order=noise_max_order,
                            cv_block=cv_block, cv_folds=cv_folds, solver=node["solver"], max_nfev=max_nfev,
                            reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
-                           identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise)
+                           identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise,
+                           structure_bins=structure_bins, structure_alpha=structure_alpha)
 
 
 def load_record(path: str | Path) -> EmpsRecord:
@@ -457,6 +471,54 @@ def candidate_lines(report: Mapping) -> list[str]:
     return lines
 
 
+#: Short names of the localisation's signals in the console.
+_SIGNAL_WORDS = {"q": "position", "q_dir": "position × direction", "qdot": "velocity", "force": "drive force",
+                 "vir": "controller output", "t": "time"}
+
+
+def verdict_lines(report: Mapping) -> list[str]:
+    """Console lines of the three lists (accepted, compensating, rejected, each with its reason) and of the
+    structure test of the final position residual: whether structure is left, where, and each family's p-value."""
+    lines = []
+    added = report.get("effects_added") or []
+    lines.append("effects accepted: " + (", ".join(f"{a['name']} (round {a['round']})" for a in added) or "none"))
+    for label, key in (("compensating (significant in sample only, never added)", "compensating"),
+                       ("rejected", "rejected")):
+        items = report.get(key) or []
+        lines.append(f"{label}:" + (" none" if not items else ""))
+        lines.extend(f"  {c['name']}: {c['reason']}" for c in items)
+    from .discovery.localise import SIGNALS
+
+    loc = report.get("localisation") or {}
+    if "families" not in loc:
+        if loc:
+            lines.append(f"structure test: {loc.get('text', loc.get('error'))}")
+        return lines
+    fams = loc["families"]
+    ps = ", ".join(f"{_SIGNAL_WORDS.get(k, k)} {f['p_value']:.2g}" + ("" if f["tested"] else " (shown)")
+                   for k, f in fams.items())
+    level = f"p < {loc['level_per_family']:.2g} per tested family"
+    if loc["structure_left"]:
+        where = loc["text"].removeprefix("structure left: ")
+        lines.append(f"structure left in the final position residual ({level}): {where}. The noise model cannot "
+                     "explain it: something outside the EMPS library (friction law, drive, controller) remains; "
+                     "see localisation.png. Residual level per bin (µm, r = qm − q_sim):")
+        for k in loc["significant"]:
+            f = fams[k]
+            if "levels_m" not in f:
+                continue
+            _, _, scale, unit = SIGNALS.get(k, (k, "", 1.0, ""))
+            e = np.asarray(f["edges"]) * scale
+            lines.append(f"  {_SIGNAL_WORDS.get(k, k)} [{unit}] (p {f['p_value']:.2g}): "
+                         + ", ".join(f"{e[i]:.4g}…{e[i + 1]:.4g} {lv * 1e6:+.2g}"
+                                     for i, lv in enumerate(f["levels_m"])))
+    else:
+        lines.append(f"no structure left in the final position residual ({level}): the whitened residual is not "
+                     "predicted by position (also signed by the direction of motion) or velocity")
+    lines.append(f"  p-values: {ps}")
+    return lines
+
+
 def console_text(report: Mapping) -> str:
     """A short table: published vs identified M, Fv, Fc, offset, the other fitted parameters, errors, timing."""
     from . import console
@@ -487,6 +549,7 @@ def console_text(report: Mapping) -> str:
     if "error" in (report.get("idim_ls") or {}):
         lines.append(f"IDIM-LS: {report['idim_ls']['error']}")
     lines.extend(candidate_lines(report))
+    lines.extend(verdict_lines(report))
     lines.extend(validation_lines(report))
     ident = report.get("identifiability") or {}
     if "rank" in ident:
@@ -537,11 +600,17 @@ def _parent_metrics(report: Mapping) -> dict:
     m = {"position_rel_error_pct_before": report["position_rel_error_pct_before"],
          "position_rel_error_pct_after": report["position_rel_error_pct_after"],
          "published_model_rel_error_pct": report["published_model_rel_error_pct"],
-         "n_effects": len(report["effects_added"]), "wall_seconds": report["wall_seconds"],
+         "n_effects": len(report["effects_added"]), "n_compensating": len(report.get("compensating") or []),
+         "n_rejected": len(report.get("rejected") or []), "wall_seconds": report["wall_seconds"],
          "noise.order": report["noise_model"]["order"],
          "noise.effective_samples": report["noise_model"]["effective_samples"],
          **{f"param.{k}": report["identified"][k] for k in report["free"]},
          **{f"pct_diff.{k}": v for k, v in report["pct_diff_vs_published"].items() if v is not None}}
+    if report.get("structure_left") is not None:
+        m["structure_left"] = float(report["structure_left"])
+        for k, fam in report["localisation"]["families"].items():
+            if fam["p_value"] > 0:
+                m[f"localisation.{k}.log10_p"] = float(np.log10(fam["p_value"]))
     v = report.get("validation") or {}
     if "models" in v:
         m["validation.position_rel_error_pct"] = v["position_rel_error_pct"]
@@ -595,7 +664,8 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
         report = run_emps_loop(record, validation, candidates=st.candidates, alpha=st.alpha, max_nfev=st.max_nfev,
                                max_effects=st.max_effects, max_corr=st.max_corr, solver=st.solver,
                                reference_fit=st.reference_fit, noise_max_order=st.noise_max_order,
-                               cv_block=st.cv_block, cv_folds=st.cv_folds, sim_options=st.sim)
+                               cv_block=st.cv_block, cv_folds=st.cv_folds, structure_bins=st.structure_bins,
+                               structure_alpha=st.structure_alpha, sim_options=st.sim)
         final = theta_from_dict(report["identified"])
         nominal = theta_from_dict(report["nominal"]["identified"])
         report["data"] = sources
@@ -617,6 +687,17 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
             models["OE fit of the published structure"] = theta_from_dict(report["reference"]["identified"])
         fig_paths.append(figures.save(friction_figure(record, models, float(final[INDEX["M"]]), st.sim["eps"]),
                                       run_dir / "friction.png"))
+        loc = report.get("localisation") or {}
+        if "families" in loc:  # what the final model leaves in its position residual, and where
+            from .discovery.localise import figure as localisation_figure
+            from .emps.fit import localisation_signals
+
+            r_final, signals = localisation_signals(record, final, st.sim)
+            step = max(1, record.n // 6000)  # the dots only: the levels are the test's, from every sample
+            r_final, signals = r_final[::step], {k: v[::step] for k, v in signals.items()}
+            title = textwrap.fill(f"EMPS {record.name}, position residual of the final model: {loc['text']}", 140)
+            fig_paths.append(figures.save(localisation_figure(loc, r_final, signals, title),
+                                          run_dir / "localisation.png"))
         if validation is not None:
             vs = simulate_emps(np.stack([final, PUBLISHED_THETA]), validation, **st.sim).q
             fig_paths.append(figures.save(response_figure(

@@ -27,9 +27,15 @@ SIGNALS = {
     "x_B_dir": ("slider B position, signed by the direction of motion", "m", 1e3, "mm"),
     "v_in": ("input voltage", "V", 1.0, "V"),
     "t": ("time", "s", 1.0, "s"),
+    # EMPS (toggle_id.emps): load position and velocity, drive force gtau·ν, controller output
+    "q": ("load position", "m", 1e3, "mm"),
+    "q_dir": ("load position × direction of motion (negative: moving back)", "m", 1e3, "mm"),
+    "qdot": ("load velocity", "m/s", 1e3, "mm/s"),
+    "force": ("drive force", "N", 1.0, "N"),
+    "vir": ("controller output", "V", 1.0, "V"),
 }
 #: Families that enter the verdict (time is shown only).
-TESTED = ("x_B", "x_B_dir", "xdot_B", "i_q", "v_in", "v_in_lags")
+TESTED = ("x_B", "x_B_dir", "xdot_B", "i_q", "v_in", "v_in_lags", "q", "q_dir", "qdot")
 
 
 def signals_of(t: np.ndarray, v_in: np.ndarray, states: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

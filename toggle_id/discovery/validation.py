@@ -49,7 +49,8 @@ class Evidence:
             return "significant in sample (prewhitened F-test and BIC) and better out of sample"
         names = {"f_test": "F-test not significant", "bic": "BIC does not improve",
                  "cross_validation": "no better out of sample (time-block cross-validation)",
-                 "validation_record": "does not predict the validation record better"}
+                 "validation_record": "does not predict the validation record better",
+                 "identifiable": "a new parameter is not identifiable (|correlation| > max_corr)"}
         return "; ".join(v for k, v in names.items() if k in self.checks and not self.checks[k])
 
     def to_dict(self) -> dict:

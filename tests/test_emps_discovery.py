@@ -1,0 +1,134 @@
+"""EMPS discovery verdicts through the discovery engine's objects: the three lists and the localisation.
+
+Records simulated in closed loop (:mod:`toggle_id.emps.synthetic`): one whose friction the EMPS library can
+express (Coulomb), and one with a position-dependent friction bump the library lacks, added as an external force.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from toggle_id.emps import PUBLISHED, run_emps_loop, simulate_emps, theta_from_dict
+from toggle_id.emps.data import EmpsRecord
+from toggle_id.emps.synthetic import POSITION_QUANTUM, simulated_record
+
+COULOMB = theta_from_dict({"M": PUBLISHED["M"], "Fv": PUBLISHED["Fv"], "Fc": PUBLISHED["Fc"]})
+
+
+def bump_force(q: np.ndarray, qdot: np.ndarray, amp: float, centre: float, width: float, eps: float = 1e-4):
+    """Friction bump amp·exp(−((q − centre)/width)²)·sign(q̇) (N), opposing the motion."""
+    return amp * np.exp(-((q - centre) / width) ** 2) * np.tanh(qdot / eps)
+
+
+def bumped_record(theta, n: int, amp: float, centre: float, width: float, iterations: int = 4,
+                  noise_m: float = 0.0, seed: int = 0) -> EmpsRecord:
+    """The closed loop of ``theta`` plus the bump, which ``simulate_emps`` cannot express: the bump force along the
+    trajectory enters as an external input (the pulse channel, f/gtau V added to the controller output, held over
+    each sample), iterated to a fixed point of the trajectory; ``vir`` is the controller's own output (the input
+    minus the disturbance), the position quantised like the encoder."""
+    base = simulated_record(theta, n, quantum=0.0)
+    u = np.zeros(n)
+    for _ in range(iterations):
+        rec = EmpsRecord(t=base.t, vir=base.vir, qm=base.qm, qg=base.qg, pulses=u, name="bump")
+        sim = simulate_emps(theta, rec)
+        q = sim.q[0]
+        u_new = -bump_force(q, np.gradient(q, rec.dt), amp, centre, width) / rec.gtau
+        change = np.max(np.abs(u_new - u))
+        u = u_new
+    sim = simulate_emps(theta, EmpsRecord(t=base.t, vir=base.vir, qm=base.qm, qg=base.qg, pulses=u))
+    q = sim.q[0] + np.random.default_rng(seed).normal(0.0, noise_m, n) if noise_m > 0 else sim.q[0]
+    qm = np.round(q / POSITION_QUANTUM) * POSITION_QUANTUM
+    return EmpsRecord(t=base.t, vir=sim.nu[0] - u, qm=qm, qg=base.qg, name="bump",
+                      meta={"fixed_point_change_V": float(change)})
+
+
+NAMES = ("coulomb_friction", "offset", "stribeck_friction", "asymmetric_friction")
+#: White position noise of the simulated records (m): the rig's encoder quantum alone would leave a residual so
+#: smooth that any AR noise model predicts it, which no measured record is.
+NOISE_M = 5e-7
+
+
+def _check_lists(rep: dict) -> dict:
+    """The three lists partition the candidates; every item has a name, a reason and the Evidence of its last
+    judgement; the verdicts agree with that evidence. Returns {name: list}."""
+    where = {}
+    for key in ("effects_added", "compensating", "rejected"):
+        for item in rep[key]:
+            assert {"name", "reason", "evidence"} <= set(item) and item["reason"]
+            assert item["name"] not in where
+            where[item["name"]] = key
+            ev = item["evidence"]
+            if ev is None:  # never refitted: an effect it refines is not in the model
+                assert key == "rejected" and "never refitted" in item["reason"]
+                continue
+            assert set(ev["checks"]) == {"f_test", "bic", "cross_validation", "identifiable"}
+            assert {"noise_model", "F", "p_value", "delta_bic", "sse_w_before", "sse_w_after", "cv_sse_w_before",
+                    "cv_sse_w_after", "passed", "reason"} <= set(ev)
+            significant = ev["checks"]["f_test"] and ev["checks"]["bic"]
+            if key == "effects_added":
+                assert ev["passed"] and all(ev["checks"].values()) and ev["p_value"] < rep["alpha"]
+                assert ev["delta_bic"] < 0 and ev["cv_sse_w_after"] < ev["cv_sse_w_before"]
+            elif key == "compensating":
+                assert significant and not ev["passed"] and "significant in sample" in item["reason"]
+            else:
+                assert not significant or ev["passed"]
+    assert set(where) == set(NAMES)
+    assert [a["name"] for a in rep["effects_added"]] == [c["name"] for c in rep["candidates"] if c["accepted"]]
+    json.dumps(rep)
+    return where
+
+
+def test_coulomb_record_coulomb_accepted_and_no_structure_left():
+    rec = simulated_record(COULOMB, 5000, noise_m=NOISE_M, name="coulomb")
+    rep = run_emps_loop(rec, reference_fit=False)
+    where = _check_lists(rep)
+    assert [a["name"] for a in rep["effects_added"]] == ["coulomb_friction"]
+    assert where == {"coulomb_friction": "effects_added", "offset": "rejected", "stribeck_friction": "rejected",
+                     "asymmetric_friction": "rejected"}
+    assert rep["identified"]["Fc"] == pytest.approx(PUBLISHED["Fc"], rel=0.02)
+    assert rep["effects_added"][0]["evidence"]["noise_model"]["n"] == 5000
+    loc = rep["localisation"]
+    assert rep["structure_left"] is False and loc["structure_left"] is False and loc["significant"] == []
+    assert {k for k, f in loc["families"].items() if f["tested"]} == {"q", "q_dir", "qdot"}
+    assert {"force", "vir", "t"} <= set(loc["families"])  # shown, not tested
+    assert loc["text"].startswith("no structure left")
+
+
+def test_an_effect_that_is_not_identifiable_is_compensating_never_added():
+    """The identifiability gate is one of Evidence's checks: with max_corr below every correlation Coulomb friction
+    is significant in sample and better out of sample, but not identifiable — listed as compensating; the nominal
+    model then leaves its structure, against the velocity and the direction of motion."""
+    rec = simulated_record(COULOMB, 5000, noise_m=NOISE_M, name="coulomb")
+    rep = run_emps_loop(rec, reference_fit=False, candidates=["coulomb_friction", "stribeck_friction"],
+                        max_corr=1e-6)
+    assert rep["effects_added"] == [] and rep["free"] == ["M", "Fv"]
+    (comp,) = rep["compensating"]
+    assert comp["name"] == "coulomb_friction" and "not identifiable" in comp["reason"]
+    assert comp["evidence"]["checks"] == {"f_test": True, "bic": True, "cross_validation": True,
+                                          "identifiable": False}
+    (rej,) = rep["rejected"]
+    assert rej["name"] == "stribeck_friction" and rej["evidence"] is None and "coulomb_friction" in rej["reason"]
+    assert rep["structure_left"] and set(rep["localisation"]["significant"]) & {"q_dir", "qdot"}
+
+
+def test_friction_bump_outside_the_library_is_left_and_localised():
+    """A 5 N friction bump at 150 mm (10 mm wide), which no EMPS effect can express: Coulomb friction (in the truth)
+    is accepted and nothing else; the residual keeps structure, found on the position signed by the direction of
+    motion, at the bump."""
+    rec = bumped_record(COULOMB, 5000, 5.0, 0.15, 0.01, noise_m=NOISE_M)
+    assert rec.meta["fixed_point_change_V"] < 1e-9
+    rep = run_emps_loop(rec, reference_fit=False)
+    where = _check_lists(rep)
+    assert [a["name"] for a in rep["effects_added"]] == ["coulomb_friction"]
+    assert all(where[n] != "effects_added" for n in ("offset", "stribeck_friction", "asymmetric_friction"))
+    loc = rep["localisation"]
+    assert rep["structure_left"] is True and loc["strongest"] == "q_dir"
+    fam = loc["families"]["q_dir"]
+    assert fam["significant"] and fam["p_value"] < 1e-10
+    assert abs(fam["peak_at"]) == pytest.approx(0.15, abs=0.02)  # m: the bump's bin, in either direction
+    assert "load position × direction of motion" in loc["text"]
+    assert not loc["families"]["q"]["significant"]  # in position alone the two directions cancel
+
+
