@@ -1,4 +1,32 @@
-"""Model discovery: find what the model lacks, add it, and say how sure we are."""
+"""Model discovery: find what the model lacks, add it, and say how sure we are.
+
+The loop (:func:`discover`, :mod:`.loop`) works on one record and the extended parameter vector of
+:mod:`toggle_id.effects`; it never names an effect — it reads the library, so adding an effect is adding a kernel
+term and an :class:`~toggle_id.effects.Effect` entry.
+
+1. *Baseline* (:mod:`.model`): the nominal fit is polished on the whole record (PRECISE tier, log space, one
+   parameter held per exact symmetry of x_B, :mod:`.gauge`), from every start; the best is the baseline.
+2. *Noise model* (:mod:`.noise`): an AR(p) model of the residual. Every statistic is computed on prewhitened
+   residuals and sensitivities, so coloured noise (a closed loop, an encoder) does not pass for an effect.
+3. *Scores and scouts* (:mod:`.scoring`, :mod:`.refit`): the score (LM) test and a magnitude grid of every
+   candidate up to its feasible bound at two linearisation points (the fit, and the nominal start with the effects
+   so far), and a short refit (scout) of *every* candidate from its best grid start — threshold and periodic
+   effects are silent at "off" but not at their magnitude.
+4. *Refits and verdicts* (:mod:`.validation`, :mod:`.stats`): candidates are refitted in the order of their scouts,
+   and no effect is accepted while a candidate whose scout explains more has not been refitted. A refit is judged
+   under the noise model of its own residual (both models refitted the prediction-error way when it is coloured):
+   prewhitened F-test and BIC, time-block cross-validation, and the prediction of a validation record when one is
+   given. A nominal re-polish from the refit guards against a better nominal optimum. The best supported
+   candidate joins the model; repeat.
+5. *Backward elimination*: an accepted effect the others make unnecessary is dropped.
+6. *What is left* (:mod:`.localise`): a structure test of the prewhitened residual against functions of position,
+   velocity, current and input. Effects are *accepted* only when no structure is left; otherwise they are listed as
+   *compensating* (they lower the error but do not explain it), the result is *unexplained*, and the report says
+   where the residual concentrates.
+7. *Report* (:mod:`.report`): parameters at the representative nearest the reference along the exact symmetries
+   (force-type magnitudes are determined only relative to the mechanism's scale), the three lists with their
+   evidence, figures; :func:`run_discover` (:mod:`.job`) is ``python -m jobs.run +experiment=discover``.
+"""
 from __future__ import annotations
 
 from .job import discover_settings, run_discover

@@ -1,4 +1,14 @@
-"""Score tests and magnitude profiles of the candidate effects at a linearisation point."""
+"""Score tests and magnitude profiles of the candidate effects at a linearisation point.
+
+- The Lagrange-multiplier (score) test: s = y(θ with the effect at a probe setting) − y(θ) (PRECISE finite
+  difference), prewhitened with the residual r and the sensitivities J of the free parameters, projected off J's
+  range (SVD basis U): s⊥ = (I − UUᵀ)s; score = (s⊥·r)²/(σ² s⊥·s⊥), σ² = ‖(I − UUᵀ)r‖²/(N − rank J), the best
+  probe per effect; χ²(1) under "the effect is absent" (a little more for the best of several probes). An effect
+  whose s is zero is silent at the probe; one whose s⊥ vanishes is absorbed by the free parameters.
+- The profile: each probe's nuisance setting × a geometric grid of magnitudes up to the feasible bound, ranked by
+  ‖(I − UUᵀ)(y_meas − y(θ_m))‖² (the residual after the linearised re-adjustment of the free parameters) — the
+  nonlinear counterpart of the score test, and the start of the candidate's scout.
+"""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence

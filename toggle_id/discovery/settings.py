@@ -23,7 +23,7 @@ class DiscoverSettings:
     - baseline_nfev, refit_nfev, null_nfev, scout_nfev: polish budgets (residual evaluations) of the
       baseline, a refit, the nominal re-polish guarding an acceptance, and a scout; rounds / refit_rounds:
       restarts of the baseline and guard / refit polishes while they still improve.
-    - second_point: also linearise at the nominal start (see the module docstring); gauge: report the
+    - second_point: also linearise at the nominal start (see the package docstring); gauge: report the
       representatives nearest the reference along the exact symmetries; grid_points: magnitudes per probe.
     - hold_gauge: during the loop's polishes, hold one parameter per exact symmetry of x_B (K_l, K_i, m_C; see
       :data:`GAUGE_HELD`) at its value — the same fits without the flat directions that stall the trust region
