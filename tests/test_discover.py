@@ -181,8 +181,13 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     assert d["rmse_after_m"] < 1.1e-6 and d["rmse_before_m"] > 5e-6
     assert d["fitness_after"] > d["fitness_before"]
     assert d["residual_tests_before"]["whiteness"]["p_value"] < 0.01 < d["residual_tests_after"]["whiteness"]["p_value"]
+    for key in ("compensating", "rejected", "noise_model", "localisation", "accepted"):
+        assert key in d, key
+    assert d["accepted"] == ["sensor_offset"] and d["noise_model"]["after"]["kind"]
+    assert d["localisation"]["structure_left"] is False
     for fig in ("residual_before.png", "residual_after.png", "residual_before_after.png",
-                "residual_states_before.png", "residual_states_after.png"):
+                "residual_states_before.png", "residual_states_after.png", "localisation_before.png",
+                "localisation_after.png"):
         assert (tmp_path / "run" / fig).stat().st_size > 10_000
     from mlflow import MlflowClient
 
