@@ -1,4 +1,4 @@
-"""Shared fixtures: paths to the shared reference data, a scratch MLflow store, and job runners."""
+"""Fixtures: a scratch MLflow store, job runners, and the EMPS benchmark records where the job would find them."""
 from __future__ import annotations
 
 import os
@@ -9,20 +9,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def shared_dir() -> Path:
-    """``../shared`` beside the checkout (or ``$TOGGLE_ID_SHARED``)."""
-    env = os.environ.get("TOGGLE_ID_SHARED")
-    return Path(env) if env else ROOT.parent / "shared"
-
-
-@pytest.fixture(scope="session")
-def shared() -> Path:
-    path = shared_dir()
-    if not (path / "MODEL.md").exists():
-        pytest.skip(f"shared data not found at {path} (set TOGGLE_ID_SHARED)")
-    return path
 
 
 def run_job(module: str, *args: str, cwd: Path, env: dict | None = None, timeout: int = 600

@@ -12,7 +12,7 @@ from toggle_id.data import check_two_stage, read_csv, validate_record, write_csv
 from toggle_id.errors import DataError
 from toggle_id.record import X_B0, Record
 
-REFERENCE = sorted(glob.glob("/work/shared/reference/*.csv"))
+REFERENCE = sorted(glob.glob(str(Path(__file__).resolve().parent / "reference" / "*.csv")))
 N = 60
 
 
@@ -243,7 +243,10 @@ def test_check_two_stage(tmp_path: Path) -> None:
         check_two_stage(read_csv(path))
 
 
-@pytest.mark.skipif(not REFERENCE, reason="reference files not available")
+def test_the_reference_trajectories_ship_with_the_repository():
+    assert [Path(p).stem for p in REFERENCE] == ["assigned_exp_sweep", "assigned_sim_sweep", "table1_one_stage_sim_sweep"]
+
+
 @pytest.mark.parametrize("path", REFERENCE, ids=lambda p: Path(p).stem)
 def test_reference_files_read(path: str) -> None:
     rec = read_csv(path, expect_rate_hz=1000.0)

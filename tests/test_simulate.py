@@ -2,7 +2,6 @@
 degenerate parameters, early stop, restart, and batching (parallel = serial, no cross-talk)."""
 from __future__ import annotations
 
-import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,19 +21,13 @@ from toggle_id.simulate import (
 )
 
 
-def _reference_dir() -> Path | None:
-    here = Path(__file__).resolve().parents[2] / "shared" / "reference"
-    if here.is_dir():
-        return here
-    env = os.environ.get("TOGGLE_ID_SHARED")
-    for cand in ([Path(env) / "reference", Path(env)] if env else []):
-        if (cand / "assigned_sim_sweep.csv").is_file():
-            return cand
-    return None
+def _reference_dir() -> Path:
+    """The reference trajectories made for this project, kept in the repository (tests/reference)."""
+    return Path(__file__).resolve().parent / "reference"
 
 
 REF_DIR = _reference_dir()
-#: reference file → excitation (shared/reference/README.md)
+#: reference file → excitation (tests/reference/README.md)
 REFERENCES = {"assigned_sim_sweep": "simulation", "table1_one_stage_sim_sweep": "simulation",
               "assigned_exp_sweep": "experiment"}
 #: tier → (max |x_B error| in m, max |i_q error| as a fraction of the i_q range)
@@ -52,8 +45,6 @@ def _mod(**values: float) -> np.ndarray:
 @pytest.mark.parametrize("tier", ["fast", "precise"])
 @pytest.mark.parametrize("name", sorted(REFERENCES))
 def test_reproduces_reference_trajectories(name, tier):
-    if REF_DIR is None:
-        pytest.skip("shared/reference not found next to the repository (set TOGGLE_ID_SHARED)")
     ref = np.loadtxt(REF_DIR / f"{name}.csv", delimiter=",", skiprows=1)
     theta = to_vector(read_params_file(str(REF_DIR / f"{name}.params")))
     rec = Record.from_sweep(REFERENCES[name])

@@ -107,7 +107,7 @@ def bounds(names: Sequence[str] = PARAM_NAMES,
 
 
 def read_params_file(path: str) -> dict[str, float]:
-    """Read a ``name=value`` per line file (the format of ``shared/reference/*.params``)."""
+    """Read a ``name=value`` per line file (the format of ``tests/reference/*.params``)."""
     out: dict[str, float] = {}
     with open(path, encoding="utf-8") as fh:
         for lineno, line in enumerate(fh, 1):
