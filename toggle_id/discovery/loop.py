@@ -154,14 +154,31 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     compensating: list[dict] = []
     with_compensating = None
     if structure and added:
-        say("structure remains after " + ", ".join(a["name"] for a in added) + ": they lower the error but do not "
-            "explain it (listed as compensating, not added)")
-        with_compensating = current
-        compensating = [dict(a, reason="lowers the error, but structure the noise model cannot explain remains "
-                                       "with it in the model") for a in added]
-        added = []
-        current = baseline
-        diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
+        # structure is left: an effect explains only if it removed most of the structure it was added for
+        s_with = _structure_excess(diag_after)
+        keep, demoted = [], []
+        for a in added:
+            reduced = a.get("_reduced") or _without(model, current, a["name"], added, held, settings)
+            d_without, _, _ = residual_report(model, reduced.theta, settings, split)
+            s_without = _structure_excess(d_without)
+            frac = (s_without - s_with) / s_without if s_without > 0 else 0.0
+            a["structure_explained"] = {"fraction": frac, "statistic_without": s_without, "statistic_with": s_with}
+            (keep if frac >= settings.explain_fraction else demoted).append(a)
+        if demoted:
+            say("structure remains; " + ", ".join(a["name"] for a in demoted) + " lower the error but do not "
+                "explain it (listed as compensating, not added)")
+            with_compensating = current
+            compensating = [dict(a, reason=f"lowers the error, but removes only "
+                                           f"{a['structure_explained']['fraction']:.0%} of the structure the noise "
+                                           f"model cannot explain, and structure remains") for a in demoted]
+            added = keep
+            current = baseline if not keep else fit_free(
+                model, _with(current.theta, {p.name: p.off for a in demoted for p in EFFECTS_BY_NAME[a["name"]].params}),
+                tuple(nm for nm in current.free if not any(nm in EFFECTS_BY_NAME[a["name"]].names for a in demoted)),
+                settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+            diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
+    for a in added + compensating:
+        a.pop("_reduced", None)
     compensating += [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
                       "evidence": rf.evidence} for rf in all_refits
                      if rf.lowers_error and not rf.accepted and rf.name not in {c["name"] for c in compensating}]
@@ -282,7 +299,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best)):
             break
         eff = EFFECTS_BY_NAME[sc.name]
-        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held)
+        start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
+        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=start)
         if rf.accepted:
             null = guard_null(model, base, rf, eff, settings, judge)
             if null is not None and null.sse < base.sse:
@@ -304,6 +322,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             on_refit(rf)
     winners = [rf for rf in refits if rf.accepted]
     chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
+    for rf in winners:
+        if rf is not chosen:
+            rf.reason = f"supported, but {chosen.name} explains more (lower SSE); judged again next iteration"
     record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
               "noise_model_of_current_residual": noise.to_dict(), "points": [pt.label for pt in points],
               "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
@@ -340,13 +361,10 @@ def _backward(model: Model, judge: Judge, current: Fit, added: list[dict], held:
         changed = False
         for a in reversed(added):
             eff = EFFECTS_BY_NAME[a["name"]]
-            others = {s for b in added if b is not a for s in EFFECTS_BY_NAME[b["name"]].breaks}
-            rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
-            free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
-            start = _with(current.theta, _off_values(eff))
-            reduced = fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+            reduced = _without(model, current, a["name"], added, held, settings)
             ev = judge.judge_pair(reduced, current)
             a["backward"] = ev.to_dict()
+            a["_reduced"] = reduced
             say(f"backward: without {eff.name} rms {reduced.rmse(model.n) * 1e6:.4g} µm — "
                 f"{'kept' if ev.passed else 'dropped: ' + ev.reason}")
             if not ev.passed:
@@ -356,6 +374,25 @@ def _backward(model: Model, judge: Judge, current: Fit, added: list[dict], held:
                 changed = True
                 break
     return current, added, eliminated
+
+
+def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held: Sequence[str],
+             settings: DiscoverSettings) -> Fit:
+    """The current model refitted with effect ``name`` switched off (and the gauge parameter it alone freed held
+    again)."""
+    eff = EFFECTS_BY_NAME[name]
+    others = {s for b in added if b["name"] != name for s in EFFECTS_BY_NAME[b["name"]].breaks}
+    rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
+    free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
+    start = _with(current.theta, _off_values(eff))
+    return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+
+
+def _structure_excess(diag: dict) -> float:
+    """Σ over the tested families of the structure test of (χ² statistic − its dof)⁺: how much structure the
+    noise model cannot explain (about 0 for noise)."""
+    fams = ((diag.get("localisation") or {}).get("families") or {}).values()
+    return float(sum(max(f["statistic"] - f["dof"], 0.0) for f in fams if f.get("tested")))
 
 
 def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_after: dict) -> None:

@@ -106,9 +106,14 @@ def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Ef
 
 
 def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, settings: DiscoverSettings,
-                    iteration: int, judge: Judge, held: Collection[str] = ()) -> Refit:
+                    iteration: int, judge: Judge, held: Collection[str] = (), anchor: np.ndarray | None = None
+                    ) -> Refit:
     """Polish with the effect's parameters freed, continuing from the scout, then judged against ``base``
-    (:class:`~.validation.Judge`: prewhitened F-test and BIC, cross-validation, validation record)."""
+    (:class:`~.validation.Judge`: prewhitened F-test and BIC, cross-validation, validation record).
+
+    A refit that is significant as least squares is converged before it is judged, from where it stands and
+    from ``anchor`` (the nominal start) with the refit's effect values — the polished baseline may have bent the
+    nominal parameters into a valley the effect's optimum is not in."""
     t0 = time.perf_counter()
     names = effect.names
     free = freed_with(base.free, effect, held)
@@ -122,7 +127,11 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     if f_test(base.sse, fit.sse, k, model.n, p1)[1] < settings.alpha:
         # significant as least squares: converge it before it is judged (a refit stopped half-way leaves a
         # structured residual — a coloured noise model — and a cross-validation linearised far from its optimum)
-        fit = fit_free(model, fit.theta, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+        starts = [fit.theta]
+        if anchor is not None:
+            starts.append(_with(anchor, {nm: fit.theta[ALL_INDEX[nm]] for nm in free if nm not in base.free}))
+        fit = min((fit_free(model, st, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+                   for st in starts), key=lambda f: f.sse)
     params = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in names}
     out = Refit(effect.name, iteration, fit, params, base.sse, fit.sse, k, p1, 0.0, 1.0, float("inf"), False, "",
                 scout.search, std_errors=_std_errors(fit, names, model.n))

@@ -37,7 +37,9 @@ class DiscoverSettings:
       and block length (samples) of the time-block cross-validation; structure_bins: bins per signal of the
       structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
       its score (global screening; false: only those whose score passes ``screen_alpha``); backward: drop,
-      at the end, every accepted effect the others make unnecessary.
+      at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
+      an accepted effect still counts as an explanation if removing it raises the residual's structure statistic
+      by this fraction of the total (it explains most of what it was added for); otherwise it is compensating.
     """
 
     top_k: int = 3
@@ -67,10 +69,11 @@ class DiscoverSettings:
     parallel: bool = True
     noise_max_order: int = 8
     cv_folds: int = 5
-    cv_block: int = 100
+    cv_block: int = 10
     structure_bins: int = 12
     scout_all: bool = True
     backward: bool = True
+    explain_fraction: float = 0.5
 
     def validate(self) -> DiscoverSettings:
         """Raise ConfigError naming the first bad value; normalise ``candidates``."""
@@ -103,6 +106,8 @@ class DiscoverSettings:
             raise ConfigError(f"discover.noise_max_order must be a non-negative integer, got {self.noise_max_order!r}")
         if not isinstance(self.cv_folds, int) or isinstance(self.cv_folds, bool) or self.cv_folds < 2:
             raise ConfigError(f"discover.cv_folds must be an integer ≥ 2, got {self.cv_folds!r}")
+        if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
+            raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
         for name in ("scout_all", "backward"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
