@@ -181,7 +181,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         a.pop("_reduced", None)
     compensating += [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
                       "evidence": rf.evidence} for rf in all_refits
-                     if rf.lowers_error and not rf.accepted and rf.name not in {c["name"] for c in compensating}]
+                     if rf.lowers_error and not rf.accepted and rf.name not in {c["name"] for c in compensating}
+                     and rf.name not in {a["name"] for a in added}]
 
     # the representatives of the fits nearest the reference along the exact symmetries (same output)
     ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
