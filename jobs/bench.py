@@ -45,7 +45,7 @@ def near_assigned(n: int, rel: float = 0.1, seed: int = 1) -> np.ndarray:
 
 
 def uniform_domain(n: int, seed: int = 2) -> np.ndarray:
-    """(n, 15) parameter vectors uniform in the feasible domain of MODEL.md §6."""
+    """(n, 15) parameter vectors uniform in the feasible domain of docs/model.md §6."""
     rng = np.random.default_rng(seed)
     return LOWER + (UPPER - LOWER) * rng.uniform(0.0, 1.0, (n, ASSIGNED.size))
 

@@ -3,11 +3,11 @@
 ``python -m jobs.bench_adversarial --out DIR [--only NAME,...] [--duration S] [--calibrate] [--run] [--jobs N]
 [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
 
-Writes CSV records (MODEL.md §8, via :func:`toggle_id.data.write_csv`) and ``manifest.json`` (the truth of each:
+Writes CSV records (docs/model.md §8, via :func:`toggle_id.data.write_csv`) and ``manifest.json`` (the truth of each:
 parameters, effects, noise model, command) into DIR. A record's name (``rec01`` …) says nothing about what is in
 it; only the manifest does. Every record has its own truth: the 15 physical parameters drawn log-normally around
 Table 1 (per record a spread σ_log ∈ [0.15, 0.40], each log-factor σ_log·z with z ~ N(0, 1) cut at ±2.5; a draw
-outside the feasible domain of MODEL.md §6, or that its command cannot drive into the clamp and back within the
+outside the feasible domain of docs/model.md §6, or that its command cannot drive into the clamp and back within the
 stroke, is redrawn — the manifest counts the redraws), and one of three commands: the paper's simulation sweep
 (A = 0.05 V), its experiment sweep (A = 0.25 V) or the open/close cycling command
 (:data:`toggle_id.record.CYCLING`). Noise σ = 1 µm unless the record is about the noise.

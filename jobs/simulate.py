@@ -1,7 +1,7 @@
 """`python -m jobs.simulate out=FILE.csv [command=sweep|cycling] [sweep=simulation|experiment] [params.NAME=VALUE ...]
 [effects.NAME=VALUE ...] [noise_m=SIGMA] [noise_ar=RHO] [quantum_m=Q] [seed=N]`
 
-Simulates the plant (PRECISE tier) and writes a record in the CSV format of MODEL.md §8 (t, v_in, x_B, i_q):
+Simulates the plant (PRECISE tier) and writes a record in the CSV format of docs/model.md §8 (t, v_in, x_B, i_q):
 the paper's swept sine or the open/close cycling command (``command=cycling``), x_B with white or AR(1)
 Gaussian noise (``noise_ar``) and optionally quantised to an encoder's resolution (``quantum_m``). The last line
 of output is `report: <absolute path of the CSV>`.

@@ -1,6 +1,6 @@
-"""An independent reference of the motor-toggle plant (MODEL.md §1–5) with effects the library does NOT have.
+"""An independent reference of the motor-toggle plant (docs/model.md §1–5) with effects the library does NOT have.
 
-Written from MODEL.md alone — scalar kinematics and inertia, M'(q) by the complex-step derivative of M(q),
+Written from docs/model.md alone — scalar kinematics and inertia, M'(q) by the complex-step derivative of M(q),
 scipy's DOP853 with its own location of the contact instant — and shares no code with the compiled kernels
 (``toggle_id/_kernels.py``) or with ``toggle_id/plant.py``. It is used by the tests (``tests/test_outside_plant.py``
 checks it against :func:`toggle_id.simulate.simulate`) and by ``jobs/bench_adversarial.py`` to make records
@@ -13,7 +13,7 @@ with physics outside the discovery library (``toggle_id/effects.py``):
   K_t,eff·i_q tends to K_t·i_sat at high current (magnetic saturation of the motor); the back-EMF (λ_d) is
   unchanged.
 
-Both are off by default (``bump=None``, ``i_sat=None``); then this is the nominal plant of MODEL.md.
+Both are off by default (``bump=None``, ``i_sat=None``); then this is the nominal plant of docs/model.md.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.integrate import solve_ivp
 
-# MODEL.md §1 (pinned constants)
+# docs/model.md §1 (pinned constants)
 R1 = R3 = 0.06
 R2 = 0.032
 R4 = 0.068
@@ -39,16 +39,16 @@ X_B_L = 0.056
 X_B0 = 0.020
 EPS = 1e-3
 
-#: MODEL.md §6 order of the 15 physical parameters
+#: docs/model.md §6 order of the 15 physical parameters
 NAMES = ("B_m", "D", "J_m", "K_i", "K_l", "K_t", "L_q", "R_s", "m_2", "m_3", "m_5", "m_B", "m_C", "mu", "lambda_d")
 
 
 class OutOfRange(Exception):
-    """The mechanism left its assembly range (|sin θ5| ≥ 1 or x_B ≤ 0): a failed simulation (MODEL.md §6)."""
+    """The mechanism left its assembly range (|sin θ5| ≥ 1 or x_B ≤ 0): a failed simulation (docs/model.md §6)."""
 
 
 def _kin(q, lib):
-    """x_B, x_C, x_B', x_C', θ2', θ5', sin θ2, sin θ5 at q (MODEL.md §2); ``lib`` is math or cmath."""
+    """x_B, x_C, x_B', x_C', θ2', θ5', sin θ2, sin θ5 at q (docs/model.md §2); ``lib`` is math or cmath."""
     s1, c1 = lib.sin(q), lib.cos(q)
     sp, cp = lib.sin(q + PHI), lib.cos(q + PHI)
     sin2 = -R1 * s1 / R3
@@ -65,7 +65,7 @@ def _kin(q, lib):
 
 
 def _mass(q, p, lib=math):
-    """M(q) of MODEL.md §3 (kg·m²); with ``lib=cmath`` it accepts a complex q (complex-step derivative)."""
+    """M(q) of docs/model.md §3 (kg·m²); with ``lib=cmath`` it accepts a complex q (complex-step derivative)."""
     _, _, dx_B, dx_C, d2, d5, s1, c1, sp, cp, _ = _kin(q, lib)
     g3x, g3y = 0.5 * (-R1 * s1 + dx_B), 0.5 * R1 * c1
     g5x, g5y = 0.5 * (-R4 * sp + dx_C), 0.5 * R4 * cp
@@ -102,7 +102,7 @@ class Outside:
 
 
 class Plant:
-    """The plant of MODEL.md for one parameter vector (15 values, MODEL.md §6 order or a name → value mapping)
+    """The plant of docs/model.md for one parameter vector (15 values, docs/model.md §6 order or a name → value mapping)
     and one command ``v_in(t)`` (V), with the :class:`Outside` effects."""
 
     def __init__(self, theta, v_in: Callable[[float], float], outside: Outside = Outside()) -> None:
@@ -183,7 +183,7 @@ class Plant:
 
 
 def command_of(record) -> Callable[[float], float]:
-    """The record's v_in(t) as MODEL.md §5 defines it: the swept sine in continuous time, or the samples
+    """The record's v_in(t) as docs/model.md §5 defines it: the swept sine in continuous time, or the samples
     interpolated linearly (held at the ends; 0 V before the record starts)."""
     if record.sweep is not None:
         sw = record.sweep

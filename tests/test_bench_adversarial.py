@@ -81,7 +81,7 @@ def test_a_truth_the_command_cannot_drive_is_redrawn():
     fast[INDEX["K_i"]] *= 3.0  # opens beyond x_B = 0
     assert not B._valid_truth(fast, "cycling")
     out = theta.copy()
-    out[INDEX["K_l"]] = 1.2e8  # outside the feasible domain of MODEL.md §6
+    out[INDEX["K_l"]] = 1.2e8  # outside the feasible domain of docs/model.md §6
     assert not B._valid_truth(out, "simulation")
 
 

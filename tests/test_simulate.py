@@ -64,7 +64,7 @@ def test_reproduces_reference_trajectories(name, tier):
 @pytest.mark.parametrize("tier", ["fast", "precise"])
 def test_measured_record_agrees_with_sweep_within_interpolation_effect(tier):
     """A record without a sweep gives v_in at the samples only; the simulator interpolates it linearly. The
-    interpolation changes x_B by about 0.16 µm (a zero-order hold would shift it by about 8 µm, MODEL.md §5)."""
+    interpolation changes x_B by about 0.16 µm (a zero-order hold would shift it by about 8 µm, docs/model.md §5)."""
     rec = Record.from_sweep("simulation")
     measured = Record(t=rec.t, v_in=rec.v_in)
     a = simulate(ASSIGNED[None], rec, SETTINGS[tier])

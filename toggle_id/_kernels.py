@@ -12,7 +12,7 @@ Small, pure functions on float64 arrays and scalars; failures are returned as st
 The readable model and the independent reference for these kernels are in :mod:`toggle_id.plant`.
 
 State y = (q, q̇, i_q). The parameter vector ``th`` is the extended vector of :mod:`toggle_id.effects`: the 15
-physical parameters of MODEL.md §6 followed by the parameters of the candidate effects (zero = off). The
+physical parameters of docs/model.md §6 followed by the parameters of the candidate effects (zero = off). The
 right-hand side reads the per-individual constants ``pc`` (:func:`_derived`: products and reciprocals of the
 parameters, and the input's description) so that one evaluation needs a single division (by M(q)).
 """
@@ -144,7 +144,7 @@ def _geometry(q, geo):
     ddxB = -r1 * c1 - r3 * cos2 * d2 * d2 - r3 * sin2 * dd2
     dxC = -r4 * sp - r5 * sin5 * d5
     ddxC = -r4 * cp - r5 * cos5 * d5 * d5 - r5 * sin5 * dd5
-    # centres of the slender links 3 and 5: G' and G'' (MODEL.md §3)
+    # centres of the slender links 3 and 5: G' and G'' (docs/model.md §3)
     g3x, g3y = 0.5 * (-r1 * s1 + dxB), 0.5 * (r1 * c1)
     g3xx, g3yy = 0.5 * (-r1 * c1 + ddxB), 0.5 * (-r1 * s1)
     g5x, g5y = 0.5 * (-r4 * sp + dxC), 0.5 * (r4 * cp)

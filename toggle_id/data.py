@@ -1,4 +1,4 @@
-"""Measured-data files (MODEL.md §8) and the checks every record must pass before it is fitted.
+"""Measured-data files (docs/model.md §8) and the checks every record must pass before it is fitted.
 
 A data file is a CSV with a header row, SI units, one row per sample, uniform sampling, sorted by time:
 ``t`` (s), ``v_in`` (V, the command before the gain K_i), ``x_B`` (m) and optionally ``i_q`` (A). Other
@@ -20,14 +20,14 @@ from .checkpoint import atomic_write_text
 from .errors import DataError
 from .record import X_B0, Record
 
-#: Clamping position x_B^L of MODEL.md §1, m.
+#: Clamping position x_B^L of docs/model.md §1, m.
 X_B_L = 0.056
-#: Plausible range of the measured x_B, m: the toggle stroke is 0 < x_B ≤ 2 r1 = 0.12 m (MODEL.md §2),
+#: Plausible range of the measured x_B, m: the toggle stroke is 0 < x_B ≤ 2 r1 = 0.12 m (docs/model.md §2),
 #: widened a little for sensor noise and offsets.
 X_B_RANGE = (0.0, 0.125)
 #: Largest plausible |v_in|, V (the command before the drive gain K_i).
 V_IN_MAX = 1e3
-#: Largest plausible |i_q|, A (the assigned plant stalls near 350 A while clamped, MODEL.md §9).
+#: Largest plausible |i_q|, A (the assigned plant stalls near 350 A while clamped, docs/model.md §9).
 I_Q_MAX = 1e5
 #: Fewest samples a record may have.
 MIN_SAMPLES = 10
@@ -174,7 +174,7 @@ def check_two_stage(record: Record, x_B_L: float = X_B_L) -> int:
 
 def read_csv(path: str | os.PathLike, *, x_B0: float | None = None, require_x_B: bool = True,
              expect_rate_hz: float | None = None, rtol_dt: float = 1e-6, **checks) -> Record:
-    """Read a measured record (MODEL.md §8) and validate it; raise DataError (one line) on any problem.
+    """Read a measured record (docs/model.md §8) and validate it; raise DataError (one line) on any problem.
 
     ``x_B0`` (m) is the record's initial position, default the plant constant :data:`toggle_id.record.X_B0`.
     ``require_x_B=False`` accepts input-only files (no x_B column). ``expect_rate_hz`` (Hz) checks the

@@ -1,4 +1,4 @@
-"""The library of candidate effects the nominal model (MODEL.md) lacks.
+"""The library of candidate effects the nominal model (docs/model.md) lacks.
 
 Each effect is a physically meaningful term of the compiled right-hand side with its own parameters, bounds
 and an *off* value at which the term vanishes (the nominal model). An effect's parameters live in the

@@ -1,4 +1,4 @@
-"""Identification pipelines: one-stage and two-stage RGA (MODEL.md §7), local polish, identifiability.
+"""Identification pipelines: one-stage and two-stage RGA (docs/model.md §7), local polish, identifiability.
 
 The pipeline knows the plant only through :class:`toggle_id.problem.FitProblem`; the GA knows nothing of the
 plant; evaluators know nothing of either. Everything here takes plain arguments (the jobs translate Hydra
@@ -410,7 +410,7 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
     for k, v in (fixed or {}).items():
         theta[free_indices([k])[0]] = float(v)
     k_cs, plan = joint_plan(records, method, theta, fixed=tuple(fixed or {}), extra_free=extra_free)
-    if method == "two_stage":  # D and K_l at the centres of their domains during stage 1 (MODEL.md §7)
+    if method == "two_stage":  # D and K_l at the centres of their domains during stage 1 (docs/model.md §7)
         for nm in P.CLAMP_NAMES:
             if nm not in (fixed or {}):
                 lo, hi = stage_bounds([nm], bounds)

@@ -1,4 +1,4 @@
-"""The 15 physical parameters of the motor-toggle plant (MODEL.md §6, the paper's Table 1).
+"""The 15 physical parameters of the motor-toggle plant (docs/model.md §6, the paper's Table 1).
 
 Parameter vectors travel as float64 arrays in the order of :data:`PARAM_NAMES`; names are used only at the
 edges (configuration, reports). Everything here is data: names, units, assigned values, feasible domains.

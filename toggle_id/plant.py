@@ -1,4 +1,4 @@
-"""Plant constants, kinematics and inertia of the motor-toggle mechanism (MODEL.md §1–4), in plain numpy.
+"""Plant constants, kinematics and inertia of the motor-toggle mechanism (docs/model.md §1–4), in plain numpy.
 
 This module is the readable statement of the model and the *independent reference* for the compiled kernel
 in :mod:`toggle_id._kernels`: it computes M'(q) by differentiating M(q) numerically instead of with the
@@ -16,7 +16,7 @@ from .params import INDEX
 
 @dataclass(frozen=True)
 class Geometry:
-    """Pinned plant constants of MODEL.md §1 (lengths in m, angles in rad)."""
+    """Pinned plant constants of docs/model.md §1 (lengths in m, angles in rad)."""
 
     r1: float = 0.06
     r2: float = 0.032   # radius of gyration of the ternary link about O
@@ -51,7 +51,7 @@ GEOMETRY = Geometry()
 
 
 def kinematics(q, geo: Geometry = GEOMETRY) -> dict[str, np.ndarray]:
-    """Positions and first derivatives w.r.t. q of the mechanism (MODEL.md §2). Works on arrays."""
+    """Positions and first derivatives w.r.t. q of the mechanism (docs/model.md §2). Works on arrays."""
     q = np.asarray(q, dtype=float)
     s1, c1 = np.sin(q), np.cos(q)
     sin2 = -geo.r1 * s1 / geo.r3
@@ -70,7 +70,7 @@ def kinematics(q, geo: Geometry = GEOMETRY) -> dict[str, np.ndarray]:
 
 
 def mass_matrix(q, theta, geo: Geometry = GEOMETRY) -> np.ndarray:
-    """Generalised inertia M(q) of MODEL.md §3 (kg·m²) for one parameter vector ``theta``."""
+    """Generalised inertia M(q) of docs/model.md §3 (kg·m²) for one parameter vector ``theta``."""
     k = kinematics(q, geo)
     g3x, g3y = 0.5 * (k["A"][0] + k["dx_B"]), 0.5 * k["A"][1]
     g5x, g5y = 0.5 * (k["E"][0] + k["dx_C"]), 0.5 * k["E"][1]

@@ -1,4 +1,4 @@
-"""Fitness problems: which parameters are free, which samples count, and fitness = 1/ΣE² (MODEL.md §7).
+"""Fitness problems: which parameters are free, which samples count, and fitness = 1/ΣE² (docs/model.md §7).
 
 A :class:`FitProblem` is the picklable *problem* of :mod:`toggle_id.evaluators`: ``setup()`` compiles the kernel
 in the process that evaluates, ``evaluate(X)`` returns the fitness of each row of X (free parameters only,

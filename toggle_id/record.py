@@ -1,4 +1,4 @@
-"""Records (time grid, input, measured output), the swept-sine excitation of MODEL.md §5, an open/close cycling
+"""Records (time grid, input, measured output), the swept-sine excitation of docs/model.md §5, an open/close cycling
 command, and the measurement model of synthetic records (white or AR(1) Gaussian noise, encoder quantisation)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from itertools import pairwise
 
 import numpy as np
 
-#: Initial position of slider B, a constant of the plant (MODEL.md §1), m.
+#: Initial position of slider B, a constant of the plant (docs/model.md §1), m.
 X_B0 = 0.020
 
 
@@ -73,7 +73,7 @@ class Cycling:
     ``cycles[k % len(cycles)]``); between the levels of a cycle the command moves along a raised-cosine step of
     ``ramp`` s, so it is smooth on the sampling scale.
 
-    Closing is v_in > 0 (x_B increasing towards the clamping position x_B^L = 56 mm of MODEL.md §1). The default
+    Closing is v_in > 0 (x_B increasing towards the clamping position x_B^L = 56 mm of docs/model.md §1). The default
     cycles (see :data:`CYCLING`) drive slider B from its rest position into the clamp, hold a clamping force,
     open part of the way back (about 22 mm) and dwell; one cycle in four only moves slider B part of the way
     and back without reaching the clamp. |v_in| ≤ 0.3 V. A record of this command is defined by its samples:
@@ -206,7 +206,7 @@ class Record:
         return rec
 
     def clamp_index(self, x_B_L: float) -> int:
-        """Index of the first sample with measured x_B ≥ x_B_L (MODEL.md §7); ``n`` if never reached."""
+        """Index of the first sample with measured x_B ≥ x_B_L (docs/model.md §7); ``n`` if never reached."""
         if self.x_B is None:
             raise ValueError("record has no measured x_B")
         hit = np.flatnonzero(self.x_B >= x_B_L)

@@ -52,7 +52,7 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
               tol_m: float = 2e-8, broken: Collection[str] = ()) -> tuple[np.ndarray, dict]:
     """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
 
-    The symmetries (see :data:`MECHANICAL`, :data:`ELECTRICAL`, and m_C + J_m·Z² of MODEL.md §3) leave the output
+    The symmetries (see :data:`MECHANICAL`, :data:`ELECTRICAL`, and m_C + J_m·Z² of docs/model.md §3) leave the output
     unchanged, so the fit is the same; the representative nearest the reference values makes the parameters —
     and the magnitudes of force-type effects, which scale with the mechanism — comparable with the reference. A
     symmetry is used only if all its parameters are free, the move stays within the feasible domains, and the
