@@ -7,6 +7,7 @@ The last line of output is `report: <absolute path of the job's report>`.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -44,11 +45,31 @@ def run(cfg: dict, run_dir: str, project_root: str) -> str:
     raise ConfigError(f"unknown job {job!r}; known: identify, table1, discover, emps, identifiability")
 
 
+def tracking_context(hc, project_root: str) -> tuple[list[str], dict]:
+    """What the MLflow run of this job is named after and tagged with: Hydra's task overrides (the job's
+    command-line differences, e.g. ``ga.population=200 seed=1``) and, in a multirun, the sweep (its directory,
+    absolute, and the job's number in it)."""
+    from hydra.types import RunMode
+
+    overrides = list(hc.overrides.task)
+    tags = {}
+    if hc.mode == RunMode.MULTIRUN:
+        sweep = Path(hc.sweep.dir)
+        tags = {"sweep": str(sweep if sweep.is_absolute() else Path(project_root) / sweep),
+                "sweep.job": str(hc.job.num)}
+    return overrides, tags
+
+
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    from toggle_id.tracking import run_context
+
     plain = OmegaConf.to_container(cfg, resolve=True)
-    run_dir = HydraConfig.get().runtime.output_dir
-    report = guarded(lambda: run(plain, run_dir, get_original_cwd()))
+    hc = HydraConfig.get()
+    run_dir = hc.runtime.output_dir
+    overrides, tags = tracking_context(hc, get_original_cwd())
+    with run_context(overrides, tags):
+        report = guarded(lambda: run(plain, run_dir, get_original_cwd()))
     print(f"report: {report}", flush=True)
 
 

@@ -194,7 +194,15 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
     runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
     parent = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
-    assert len(parent) == 1 and parent[0].info.run_name == "discover"
+    assert len(parent) == 1 and parent[0].info.run_name.startswith("discover evaluator=serial data.duration=1.0 ")
+    assert "data.effects.x_off=5e-5" in parent[0].info.run_name
+    # comparing: the result in µm, the shared curve ending at it, the record as a dataset, the model
+    assert parent[0].data.metrics["rmse_um"] == pytest.approx(1e6 * d["rmse_after_m"])
+    curve = client.get_metric_history(parent[0].info.run_id, "best_rmse_um")
+    assert curve and max(curve, key=lambda m: m.step).value == pytest.approx(1e6 * d["rmse_after_m"])
+    assert [i.dataset.name for i in parent[0].inputs.dataset_inputs] == ["simulated_simulation"]
+    assert d["model_uri"].removeprefix("models:/") in [o.model_id for o in parent[0].outputs.model_outputs]
+    assert "sensor_offset" in parent[0].data.tags["mlflow.note.content"]
     children = sorted(r.info.run_name for r in runs if r.data.tags.get("mlflow.parentRunId") == parent[0].info.run_id)
     assert "refit_1_sensor_offset" in children
     assert "figures" in [a.path for a in client.list_artifacts(parent[0].info.run_id)]

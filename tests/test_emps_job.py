@@ -92,7 +92,8 @@ def test_job_on_simulated_records_end_to_end(sim_files, tmp_path):
 
     client = MlflowClient(uri)
     parent = client.get_run(rep["mlflow_run_id"])
-    assert parent.info.run_name == "emps" and parent.info.status == "FINISHED"
+    assert parent.info.run_name == "emps emps.path=sim_estimation.mat validation.path=sim_validation.csv"
+    assert parent.info.status == "FINISHED"
     m = parent.data.metrics
     assert m["validation.position_rel_error_pct"] == pytest.approx(v["position_rel_error_pct"])
     assert m["validation.published.position_rel_error_pct"] == pytest.approx(v["published_model_rel_error_pct"])

@@ -25,6 +25,7 @@ import numpy as np
 
 from . import params as P
 from .checkpoint import load_checkpoint, save_checkpoint
+from .curve import CurvePoint, RmseCurve
 from .effects import ALL_INDEX, ALL_NAMES, effect_bounds
 from .errors import CheckpointError, ConfigError
 from .ga import RGA, GAConfig, join_state, split_state
@@ -33,7 +34,7 @@ from .plant import GEOMETRY
 from .polish import polish_many
 from .problem import FitProblem, JointProblem, free_indices, joint
 from .record import Record
-from .simulate import FAST, PRECISE, STATUS_OK, SolverSettings, extend, simulate
+from .simulate import FAST, PRECISE, STATUS_OK, SolverSettings, extend, simulate, simulations_run
 
 METHODS = ("one_stage", "two_stage")
 
@@ -70,6 +71,7 @@ class StageResult:
     polish: dict | None = None
     identifiability: dict | None = None
     windows: tuple[tuple[int, int], ...] | None = None  # joint fits: every record's window (``window``: the first's)
+    n_simulations: int = 0  # simulations the stage spent: GA individuals, polish residuals and Jacobian columns
 
     @property
     def n_samples(self) -> int:
@@ -87,7 +89,7 @@ class StageResult:
                 "converged_generation": self.converged_generation, "n_evaluations": self.n_evaluations,
                 "seconds_ga": self.seconds_ga, "seconds_polish": self.seconds_polish,
                 "seconds": self.seconds_ga + self.seconds_polish, "fitness_history": list(self.history),
-                "polish": self.polish, "identifiability": self.identifiability}
+                "n_simulations": self.n_simulations, "polish": self.polish, "identifiability": self.identifiability}
 
 
 @dataclass
@@ -103,6 +105,7 @@ class IdentificationResult:
     seconds: float
     clamp_index: int
     extra: dict = field(default_factory=dict)
+    curve: list[CurvePoint] = field(default_factory=list)  # best whole-record RMS vs simulations (toggle_id.curve)
 
     @property
     def params(self) -> dict[str, float]:
@@ -112,10 +115,17 @@ class IdentificationResult:
     def rmse_m(self) -> float:
         return float(np.sqrt(self.sse / self.n_samples))
 
+    @property
+    def n_simulations(self) -> int:
+        """Simulations the whole identification spent (its stages' sum)."""
+        return sum(s.n_simulations for s in self.stages)
+
     def to_dict(self) -> dict:
         extra = {n: float(self.theta[ALL_INDEX[n]]) for n in ALL_NAMES[P.N_PARAMS:]}
         return {"method": self.method, "params": self.params, "effect_params": extra,
-                "fitness": self.fitness, "sse_m2": self.sse, "rmse_m": self.rmse_m, "n_samples": self.n_samples,
+                "fitness": self.fitness, "sse_m2": self.sse, "rmse_m": self.rmse_m, "rmse_um": 1e6 * self.rmse_m,
+                "n_samples": self.n_samples, "n_simulations": self.n_simulations,
+                "curve": [p.to_dict() for p in self.curve],
                 "clamp_index": self.clamp_index, "seconds_total": self.seconds,
                 "seconds_per_stage": {s.name: s.seconds_ga + s.seconds_polish for s in self.stages},
                 "stages": [s.to_dict() for s in self.stages], **self.extra}
@@ -385,7 +395,8 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
              progress: Callable[[int, str], Any] = _noop_progress, checkpoint_dir: str | Path | None = None,
              checkpoint_every: int = 5, resume: bool = False, noise_var: float | None = None,
              on_generation: Callable[[str, RGA], None] | None = None,
-             on_stage: Callable[[StageResult], None] | None = None) -> IdentificationResult:
+             on_stage: Callable[[StageResult], None] | None = None,
+             curve: RmseCurve | None = None) -> IdentificationResult:
     """Identify the plant's parameters from ``record`` by the paper's RGA, one- or two-stage.
 
     ``record``: one record, or several fitted jointly with one parameter vector (multi-experiment; fitness
@@ -393,6 +404,10 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
     effects off) — it sets the values of parameters that are not free. ``fixed``: parameters held at given
     values (e.g. from a datasheet). ``extra_free``: effect parameters to fit along (discovery). The same
     ``seed`` gives the same result whatever the evaluator and its number of workers.
+
+    ``curve``: where the best whole-record RMS error against cumulative simulations goes (one more PRECISE
+    simulation per generation whose best individual changed; :mod:`toggle_id.curve`), e.g. one whose
+    ``on_point`` logs it live; default a new one. Its points are the result's ``curve``.
     """
     from .evaluators import SerialEvaluator
 
@@ -425,19 +440,24 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
         resume_stage, resume_state, done = ckpt.load()
     stages: list[StageResult] = []
     t_start = time.perf_counter()
+    curve = curve if curve is not None else RmseCurve(records, t0=t_start)
+    spent = curve.simulations  # simulations before this stage (a curve passed in may already have some)
     for (name, free, windows), stage_seed in zip(plan, seeds):
         prior = next((d for d in done if d["name"] == name), None)
         problem = joint([_stage_problem(r, name, free, w, theta, settings, i_q_weight)
                          for r, w in zip(records, windows)])
         if prior is not None:  # finished before the interruption: take its result as it was
             st = _stage_from_dict(prior, theta)
+            spent += st.n_simulations
+            curve.add(name, spent, theta=st.theta, notify=False)  # logged before the interruption
         else:
             state = resume_state if resume_stage == name else None
             g, secs, last = run_ga_stage(name, problem, ga, int(stage_seed), make_evaluator, bounds=bounds,
                                    progress=progress, checkpointer=ckpt, resume_state=state, done=done,
-                                   on_generation=on_generation)
+                                   on_generation=_curve_hook(curve, problem, spent, on_generation))
             lo, hi = stage_bounds(list(free), bounds)
             x, pinfo, secs_p = np.asarray(g.best_x, float), None, 0.0
+            n0 = simulations_run()
             if polish.enabled:
                 t0 = time.perf_counter()
                 x, pinfo = polish_stage(problem, g, lo, hi, polish, last)
@@ -447,7 +467,10 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
                              fitness_ga=float(g.best_fitness), fitness=1.0 / sse if sse > 0 else float("inf"),
                              sse=sse, history=list(g.history), generations=g.generation,
                              converged_generation=converged_generation(g.history), n_evaluations=g.n_evaluations,
-                             seconds_ga=secs, seconds_polish=secs_p, windows=windows if many else None)
+                             seconds_ga=secs, seconds_polish=secs_p, windows=windows if many else None,
+                             n_simulations=g.n_evaluations + simulations_run() - n0)
+            spent += st.n_simulations
+            curve.add(f"{name}_polish" if polish.enabled else name, spent, theta=st.theta)
             if identifiability:
                 st.identifiability = identifiability_report(problem, x, noise_var)
             st.polish = pinfo
@@ -459,6 +482,8 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
     if method == "two_stage" and polish.enabled and polish.final_joint:
         st = _joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish, identifiability, noise_var)
         theta = st.theta.copy()
+        spent += st.n_simulations
+        curve.add(st.name, spent, theta=theta)
         stages.append(st)
         if on_stage is not None:
             on_stage(st)
@@ -474,7 +499,19 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
     return IdentificationResult(method=method, theta=theta, stages=stages,
                                 fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse,
                                 n_samples=sum(r.n for r in records), seconds=time.perf_counter() - t_start,
-                                clamp_index=k_cs[0], extra=extra)
+                                clamp_index=k_cs[0], extra=extra, curve=list(curve.points))
+
+
+def _curve_hook(curve: RmseCurve, problem: FitProblem | JointProblem, spent: int,
+                then: Callable[[str, RGA], None] | None) -> Callable[[str, RGA], None]:
+    """Per generation: a curve point for the GA's best individual (simulated on the whole record only when it
+    changed), then ``then`` (e.g. the fault injection of the tests)."""
+    def hook(name: str, g: RGA) -> None:
+        curve.add(name, spent + g.n_evaluations, theta=problem.thetas(np.asarray(g.best_x, float)[None, :])[0])
+        if then is not None:
+            then(name, g)
+
+    return hook
 
 
 def _joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, settings: SolverSettings,
@@ -491,18 +528,20 @@ def _joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, sett
     lo, hi = stage_bounds(list(free), bounds)
     x0 = problem.x0()
     t0 = time.perf_counter()
+    n0 = simulations_run()
     resid = lambda x: problem.residuals(x[None, :], PRECISE)[0]  # noqa: E731
     jac = lambda x: _batched_jacobian(problem, x, polish.fd_rel_step, PRECISE)  # noqa: E731
     res = polish_many(resid, x0[None, :], lo, hi, jac_fn=jac, max_nfev=polish.max_nfev)
     x = res.x if res.improved else x0
     sse = float(problem.sse(x[None, :], PRECISE)[0])
+    n_sims = simulations_run() - n0
     st = StageResult(name="joint_polish", free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],
                      fitness_ga=float("nan"), fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse, history=[],
                      generations=0, converged_generation=0, n_evaluations=0, seconds_ga=0.0,
                      seconds_polish=time.perf_counter() - t0,
                      polish={"improved": bool(res.improved), "sse_before": float(res.sse0),
                              "sse_after": float(res.sse), "nfev": int(res.nfev), "message": str(res.message)},
-                     windows=windows if len(records) > 1 else None)
+                     windows=windows if len(records) > 1 else None, n_simulations=n_sims)
     if identifiability:
         st.identifiability = identifiability_report(problem, x, noise_var)
     return st
@@ -536,4 +575,5 @@ def _stage_from_dict(d: dict, theta: np.ndarray) -> StageResult:
                        converged_generation=d["converged_generation"], n_evaluations=d["n_evaluations"],
                        seconds_ga=d["seconds_ga"], seconds_polish=d["seconds_polish"], polish=d.get("polish"),
                        identifiability=d.get("identifiability"),
-                       windows=None if d.get("windows") is None else tuple(tuple(w) for w in d["windows"]))
+                       windows=None if d.get("windows") is None else tuple(tuple(w) for w in d["windows"]),
+                       n_simulations=int(d.get("n_simulations", d["n_evaluations"])))

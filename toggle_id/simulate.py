@@ -10,6 +10,7 @@ x_B and i_q for all of them, and a per-individual status.
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -28,6 +29,18 @@ STATUS_NAMES = {STATUS_OK: "ok", STATUS_MODEL_FAILURE: "model failure", STATUS_S
 N_THETA = K.N_THETA
 #: Integration methods: Rodas4 throughout, DOPRI5 throughout, or DOPRI5 in free motion and Rodas4 while clamped.
 METHODS = {"rodas4": K.METHOD_RODAS4, "dopri5": K.METHOD_DOPRI5, "mixed": K.METHOD_MIXED}
+
+
+_COUNT_LOCK = threading.Lock()
+_SIMULATIONS = 0
+
+
+def simulations_run() -> int:
+    """How many parameter vectors :func:`simulate` has been asked to simulate in this process so far (each row of
+    each call counts once, fallback re-integrations not again). Differences of it measure what a piece of work
+    cost in simulations (e.g. a polish, or the discovery loop); work done in other processes (Ray actors) is not
+    counted here."""
+    return _SIMULATIONS
 
 
 @dataclass(frozen=True)
@@ -155,8 +168,11 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     shared pre-contact trajectory); samples before t0 are NaN. Never raises for bad parameter values: each
     row gets a status.
     """
+    global _SIMULATIONS
     thetas = extend(theta)
     P = thetas.shape[0]
+    with _COUNT_LOCK:
+        _SIMULATIONS += P
     N = record.n if n_samples is None else int(n_samples)
     if not 1 <= N <= record.n:
         raise ValueError(f"n_samples must be in [1, {record.n}], got {n_samples}")

@@ -25,10 +25,18 @@ Design
   unreachable server stalls a job for ~4 minutes per call.
 * ``mlflow`` is imported lazily (≈2 s, plus ≈1.5 s for the SQL store), so importing this module or
   using a disabled tracker costs nothing.
+* The outermost run of a job is named after what differs (:func:`run_name`: the job's name and its command-line
+  overrides, set by the entry point with :func:`run_context`) and carries the context's tags (e.g. ``sweep``);
+  it can sample system metrics (CPU, memory, disk, network: MLflow's ``SystemMetricsMonitor``, which needs
+  ``psutil``). Parameters whose value is ``None`` or empty are not logged.
+* Datasets (:meth:`Tracker.log_input`) and models (:meth:`Tracker.log_model`) use MLflow's own
+  ``mlflow.data`` and ``mlflow.models.Model.log``; the latter reads MLflow's process-wide tracking URI and
+  experiment, which are pointed at this tracker's store only for the duration of the call.
 """
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import getpass
 import json
 import logging
@@ -39,7 +47,7 @@ import sys
 import time
 import warnings
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Mapping, Sequence
 from urllib.parse import urlparse
 
@@ -123,6 +131,66 @@ def default_artifact_location(uri: str) -> str | None:
     return None
 
 
+# ------------------------------------------------------------------------------------- run context
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """What the entry point knows about the job that the library does not: the command-line overrides (Hydra's
+    task overrides, e.g. ``("+experiment=two_stage", "ga.population=200", "seed=1")``) and tags for the
+    job's outermost run (e.g. ``{"sweep": "/abs/multirun/2026-01-01/10-00-00"}``)."""
+
+    overrides: tuple[str, ...] = ()
+    tags: Mapping[str, str] = field(default_factory=dict)
+
+
+_RUN_CONTEXT: contextvars.ContextVar[RunContext] = contextvars.ContextVar("toggle_id_run_context",
+                                                                        default=RunContext())
+
+
+@contextlib.contextmanager
+def run_context(overrides: Sequence[str] = (), tags: Mapping[str, Any] | None = None) -> Iterator[RunContext]:
+    """Within this block, a tracker's outermost new run is named ``run_name(name, overrides)`` and gets ``tags``."""
+    ctx = RunContext(tuple(str(o) for o in overrides), {str(k): str(v) for k, v in (tags or {}).items()})
+    token = _RUN_CONTEXT.set(ctx)
+    try:
+        yield ctx
+    finally:
+        _RUN_CONTEXT.reset(token)
+
+
+#: Overrides that change how a job reports, not what it computes: left out of run names.
+_NAME_SKIP = ("hydra.", "hydra/", "tracking.", "tracking=", "progress=", "run_dir=", "resume=")
+MAX_RUN_NAME_LENGTH = 250
+
+
+def run_name(base: str, overrides: Sequence[str] = ()) -> str:
+    """A run name that says what differs: ``base`` followed by the overrides, e.g.
+    ``run_name("two_stage", ["+experiment=two_stage", "ga.population=200", "seed=1"])`` →
+    ``"two_stage ga.population=200 seed=1"``.
+
+    An ``experiment=X`` override is dropped when X is ``base`` and written ``X`` otherwise; Hydra's own, the
+    tracking node's and reporting-only overrides (``progress``, ``resume``) are left out; a value that is a path
+    is shortened to its file name. At most 250 characters.
+    """
+    parts = [str(base)]
+    for item in overrides:
+        text = str(item).strip()
+        key, sep, value = text.partition("=")
+        key = key.lstrip("+~")
+        if not text or any((key + sep).startswith(p) or key.startswith(p) for p in _NAME_SKIP):
+            continue
+        if key == "experiment":
+            if value and value != base and value not in parts:
+                parts.append(value)
+            continue
+        if "/" in value and not value.startswith(("[", "{")):
+            value = value.rstrip("/").rsplit("/", 1)[-1]
+        parts.append(f"{key}{sep}{value}")
+    name = " ".join(parts)
+    return name if len(name) <= MAX_RUN_NAME_LENGTH else name[: MAX_RUN_NAME_LENGTH - 1] + "…"
+
+
 # ------------------------------------------------------------------------------------- value helpers
 
 
@@ -187,6 +255,15 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
+def _meaningful(value: Any) -> bool:
+    """False for values that say "not set": None and empty strings, lists and mappings."""
+    if value is None:
+        return False
+    if isinstance(value, (str, list, tuple, dict, set, frozenset)) and len(value) == 0:
+        return False
+    return True
+
+
 def _chunks(items: Sequence[Any], size: int) -> Iterator[Sequence[Any]]:
     for i in range(0, len(items), size):
         yield items[i:i + size]
@@ -242,6 +319,10 @@ class Tracker:
     http_timeout_s, http_max_retries:
         Request timeout (s) and retries for ``http(s)://`` stores, unless the ``MLFLOW_HTTP_REQUEST_*``
         environment variables are set.
+    system_metrics, system_metrics_interval_s, system_metrics_samples:
+        Sample CPU, memory, disk and network use every ``system_metrics_interval_s`` seconds while the
+        outermost run is open and log the mean of every ``system_metrics_samples`` samples (``system/*``
+        metrics, MLflow's ``SystemMetricsMonitor``; needs ``psutil``). A run shorter than one interval logs none.
 
     Usage::
 
@@ -253,13 +334,20 @@ class Tracker:
     """
 
     def __init__(self, uri: str | None, experiment_name: str = "toggle-id", enabled: bool = True, *,
-                 artifact_location: str | None = None, http_timeout_s: int = 5, http_max_retries: int = 1):
+                 artifact_location: str | None = None, http_timeout_s: int = 5, http_max_retries: int = 1,
+                 system_metrics: bool = False, system_metrics_interval_s: float = 10.0,
+                 system_metrics_samples: int = 1):
         if not isinstance(experiment_name, str) or not experiment_name.strip():
             raise ConfigError(f"experiment_name must be a non-empty string, got {experiment_name!r}")
         if int(http_timeout_s) < 1 or int(http_max_retries) < 0:
             raise ConfigError(f"http_timeout_s must be ≥ 1 and http_max_retries ≥ 0, "
                               f"got {http_timeout_s}, {http_max_retries}")
+        if system_metrics and (not float(system_metrics_interval_s) > 0 or int(system_metrics_samples) < 1):
+            raise ConfigError(f"system metrics: the sampling interval must be > 0 s and the samples per logged "
+                              f"value >= 1, got {system_metrics_interval_s}, {system_metrics_samples}")
         self.enabled = bool(enabled)
+        self.system_metrics = bool(system_metrics)
+        self._system_metrics_args = (float(system_metrics_interval_s), int(system_metrics_samples))
         self.experiment_name = experiment_name
         self.uri = absolute_uri(uri or os.environ.get("MLFLOW_TRACKING_URI"))
         self.artifact_location = artifact_location or default_artifact_location(self.uri)
@@ -432,8 +520,10 @@ class Tracker:
         the store does not know it, a new run is created and tagged ``toggle_id.resume_requested``.
         The run ends FINISHED, FAILED (exception) or KILLED (KeyboardInterrupt); exceptions propagate.
         """
+        outermost = not self._stack
         handle = self._start(name, tags, nested, run_id, description)
         self._stack.append(handle)
+        monitor = self._start_system_metrics(handle) if outermost and self.system_metrics else None
         status = "FINISHED"
         try:
             yield handle
@@ -445,6 +535,8 @@ class Tracker:
             raise
         finally:
             self._stack.pop()
+            if monitor is not None:
+                self._call("system_metrics", 0, monitor.finish)
             if handle.run_id is not None:
                 self._call("end_run", 0, self._client.set_terminated, handle.run_id, status)
             total = sum(self._dropped_counts.values())
@@ -453,9 +545,36 @@ class Tracker:
                 logger.warning("MLflow tracking: not logged: %s%s", self.dropped_summary(),
                                f" (tracking disabled: {self.error})" if self.error else "")
 
+    def _start_system_metrics(self, handle: RunHandle) -> Any:
+        """MLflow's system-metrics monitor on ``handle``'s run (``None`` when it cannot run: no run, no psutil)."""
+        if handle.run_id is None:
+            return None
+        try:
+            import psutil  # noqa: F401 — MLflow's CPU monitor needs it
+            from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+        except ImportError as exc:
+            self._drop("system_metrics", 0, f"unavailable: {exc}")
+            logger.warning("MLflow system metrics are not logged: %s (pip install psutil)", exc)
+            return None
+        interval, samples = self._system_metrics_args
+        logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)  # no "skip GPU", "started" lines
+        done, monitor = self._call("system_metrics", 0, SystemMetricsMonitor, handle.run_id,
+                                   sampling_interval=interval, samples_before_logging=samples,
+                                   resume_logging=handle.resumed, tracking_uri=self.uri)
+        if not done:
+            return None
+        monitor.start()
+        return monitor
+
     def _start(self, name: str, tags: Mapping[str, Any] | None, nested: bool, run_id: str | None,
                description: str | None) -> RunHandle:
         parent = next((h.run_id for h in reversed(self._stack) if h.run_id), None) if nested else None
+        if not self._stack and not run_id:  # the job's outermost run: named after what differs
+            context = _RUN_CONTEXT.get()
+            name = run_name(name, context.overrides)
+            tags = {**context.tags, **(tags or {})}
+            if context.overrides:
+                tags.setdefault("overrides", " ".join(context.overrides))
         if not self.ok:
             if self.enabled:
                 self._drop("start_run", 1, "tracking disabled")
@@ -519,11 +638,12 @@ class Tracker:
 
     def log_params(self, params: Mapping[str, Any], prefix: str = "") -> None:
         """Log parameters; nested mappings become dotted keys, values are strings truncated to 6000 chars.
+        Values that say "not set" (``None``, empty strings, lists and mappings) are left out.
 
         Re-logging an identical value (e.g. after a resume) is accepted; a changed value is refused by
         MLflow and dropped with a log line.
         """
-        flat = flatten(params, prefix) if params else {}
+        flat = {k: v for k, v in flatten(params, prefix).items() if _meaningful(v)} if params else {}
         run_id = self._target("log_params", len(flat))
         if run_id is None or not flat:
             return
@@ -535,11 +655,12 @@ class Tracker:
                               synchronous=True)[0] and not self.ok:
                 return
 
-    def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
-        """Log scalar metrics (nested mappings → dotted keys) at ``step`` (default 0). Values that are not
-        numbers are dropped; NaN/inf are logged as such."""
+    def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None, run_id: str | None = None) -> None:
+        """Log scalar metrics (nested mappings → dotted keys) at ``step`` (default 0) into the innermost active
+        run, or into ``run_id`` (e.g. a parent while a child is open). Values that are not numbers are dropped;
+        NaN/inf are logged as such."""
         flat = flatten(metrics) if metrics else {}
-        run_id = self._target("log_metrics", len(flat))
+        run_id = run_id if run_id and self.ok else self._target("log_metrics", len(flat))
         if run_id is None or not flat:
             return
         from mlflow.entities import Metric
@@ -607,6 +728,81 @@ class Tracker:
         run_id = self._target("log_figure", 1)
         if run_id is not None:
             self._call("log_figure", 1, self._client.log_figure, run_id, fig, artifact_file)
+
+    def log_input(self, df: Any, *, name: str, source: str | None = None, context: str = "training",
+                  targets: str | None = None) -> str | None:
+        """Log a pandas DataFrame as a dataset input of the active run (``mlflow.data.from_pandas``: name, digest,
+        schema, profile and ``source`` — a file path or URI; ``None``: the code that logged it) with
+        ``context`` (``mlflow.data.context``: ``training``, ``validation``, …). Returns the dataset's digest."""
+        run_id = self._target("log_input", 1)
+        if run_id is None:
+            return None
+
+        def log() -> str:
+            import mlflow.data
+            from mlflow.entities import DatasetInput, InputTag
+            from mlflow.utils.mlflow_tags import MLFLOW_DATASET_CONTEXT
+
+            with warnings.catch_warnings():  # a local path "can be interpreted in multiple ways": all the same
+                warnings.filterwarnings("ignore", message=r".*dataset source can be interpreted")
+                dataset = mlflow.data.from_pandas(df, source=source, name=name, targets=targets)
+            tags = [InputTag(MLFLOW_DATASET_CONTEXT, context)] if context else []
+            self._client.log_inputs(run_id, datasets=[DatasetInput(dataset._to_mlflow_entity(), tags=tags)])
+            return dataset.digest
+
+        return self._call("log_input", 1, log)[1]
+
+    @contextlib.contextmanager
+    def _fluent_defaults(self) -> Iterator[None]:
+        """Point MLflow's process-wide defaults (tracking URI and experiment, read through the environment) at
+        this tracker's store for the duration of a call that reads them, then restore the environment."""
+        saved = {k: os.environ.get(k) for k in ("MLFLOW_TRACKING_URI", "MLFLOW_EXPERIMENT_ID", "MLFLOW_EXPERIMENT_NAME",
+                                               "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR")}
+        os.environ["MLFLOW_TRACKING_URI"] = self.uri
+        os.environ["MLFLOW_EXPERIMENT_ID"] = str(self.experiment_id)
+        os.environ.pop("MLFLOW_EXPERIMENT_NAME", None)
+        os.environ["MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"] = "false"  # no progress bars on the job's stderr
+        try:
+            yield
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+    def log_model(self, name: str, flavor: Any = None, **kwargs: Any) -> str | None:
+        """Log a model of the active run with MLflow's ``mlflow.models.Model.log`` (what ``mlflow.pyfunc.log_model``
+        calls, plus the run to link it to): ``flavor`` is the flavor module (default ``mlflow.pyfunc``),
+        ``kwargs`` go to its ``save_model`` (``python_model``, ``artifacts``, ``signature``,
+        ``pip_requirements``, …). The model is linked to the run with the run's step-0 metrics and its params.
+        Returns its ``model_uri`` (``models:/<model id>``), or ``None`` when not logged. A model that cannot be
+        saved (e.g. not picklable) drops this call only."""
+        run_id = self._target("log_model", 1)
+        if run_id is None:
+            return None
+
+        def log() -> str:
+            import mlflow.pyfunc
+            from mlflow.exceptions import MlflowException
+            from mlflow.models import Model
+
+            quiet = logging.getLogger("mlflow.pyfunc")
+            level = quiet.level
+            quiet.setLevel(max(level, logging.WARNING))  # not "Validating input example against model signature"
+            try:
+                with self._fluent_defaults():
+                    info = Model.log(artifact_path=None, name=name, flavor=flavor or mlflow.pyfunc, run_id=run_id,
+                                     **kwargs)
+            except (OSError, MlflowException):
+                raise
+            except Exception as exc:  # the model itself, not the store: refuse this call only
+                raise ValueError(f"{type(exc).__name__}: {exc}") from exc
+            finally:
+                quiet.setLevel(level)
+            return info.model_uri
+
+        return self._call("log_model", 1, log)[1]
 
     def log_artifact(self, path: str | os.PathLike, artifact_path: str | None = None) -> None:
         """Copy a local file (or a directory's contents) into the run's artifacts (under ``artifact_path``)."""

@@ -249,7 +249,11 @@ def make_tracker(cfg: Mapping, project_root: str | Path) -> Tracker:
         uri = os.environ.get("MLFLOW_TRACKING_URI") or None
     from .tracking import absolute_uri
 
-    return Tracker(absolute_uri(uri, project_root), tr.get("experiment", "toggle-id"), bool(tr.get("enabled", True)))
+    sm = tr.get("system_metrics") or {}
+    return Tracker(absolute_uri(uri, project_root), tr.get("experiment", "toggle-id"), bool(tr.get("enabled", True)),
+                   system_metrics=bool(sm.get("enabled", False)),
+                   system_metrics_interval_s=float(sm.get("sampling_interval_s", 10.0)),
+                   system_metrics_samples=int(sm.get("samples_before_logging", 1)))
 
 
 # ------------------------------------------------------------------------------------------ reporting
@@ -288,7 +292,7 @@ def write_figures(run_dir: Path, records: list[Record], result: IdentificationRe
     """
     clamp = [r["clamp_index"] for r in result.extra.get("records") or []] or [result.clamp_index]
     out = []
-    fig = figures.fitness_history({s.name: s.history for s in result.stages})
+    fig = figures.fitness_history({s.name: s.history for s in result.stages if s.history})  # GA stages only
     out.append(figures.save(fig, run_dir / "fitness_history.png"))
     for k, (rec, k_c, resp) in enumerate(zip(records, clamp, responses)):
         t_c = rec.t[k_c] if k_c < rec.n else None
@@ -369,14 +373,19 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     ev = cfg.get("evaluator") or {}
     show = bool(cfg.get("progress", True))
     t0 = time.perf_counter()
+    from . import mlflow_run
+    from .curve import RmseCurve
+
     with ray_session(ev), tracker.run(method, tags={"method": method, "job": "identify"},
                                      run_id=_mlflow_run_id(run_dir) if resume else None) as run:
         _remember_mlflow_run(run_dir, run.run_id)
         tracker.log_params(_flat_config(cfg))
+        datasets = mlflow_run.log_records(tracker, records, run_dir, enabled=_get(cfg, "tracking.log_datasets", True))
+        curve = RmseCurve(records, on_point=mlflow_run.curve_logger(tracker, run.run_id))
         result = identify(records if len(records) > 1 else record, method=method, make_evaluator=evaluator_factory(ev),
                           progress=lambda total, desc: console.progress(total, desc, enabled=show),
                           on_stage=lambda st: stage_child_run(tracker, st, truth),
-                          on_generation=_fault_injection(cfg), **kw)
+                          on_generation=_fault_injection(cfg), curve=curve, **kw)
         wall = time.perf_counter() - t0
         report = result.to_dict()
         report.update(_truth_report(result.theta, truth))
@@ -393,12 +402,22 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         validation = _get(cfg, "validation.path")
         if validation:
             report["validation"] = validation_report(validation, result.theta)
+            datasets += mlflow_run.log_records(tracker, [read_csv(validation)], run_dir, "validation",
+                                               enabled=_get(cfg, "tracking.log_datasets", True))
         tracker.log_metrics({"fitness": result.fitness, "sse_m2": result.sse, "rmse_m": result.rmse_m,
+                             "rmse_um": 1e6 * result.rmse_m, "n_simulations": result.n_simulations,
                              "seconds_total": result.seconds, "wall_seconds": wall,
+                             **({"validation.rmse_um": 1e6 * report["validation"]["rmse_m"]} if validation else {}),
                              **{f"rmse_m.{r['name']}": r["rmse_m"] for r in report.get("records") or []},
                              **{f"param.{k}": v for k, v in result.params.items()},
                              **{f"pct_error.{k}": v for k, v in (report.get("pct_error") or {}).items()}})
         write_figures(run_dir, records, result, tracker, method, responses)
+        report["datasets"] = datasets
+        report["model_uri"], report["seconds_model_logging"] = mlflow_run.log_identified_model(
+            tracker, result.theta, records, run_dir, method=method, rmse_m=result.rmse_m,
+            enabled=_get(cfg, "tracking.log_model", True))
+        tracker.set_tags({"mlflow.note.content": mlflow_run.describe_identification(
+            method, records, result.rmse_m, result.n_simulations, wall, truth is not None)})
         path = publish_report(tracker, run_dir, console_report(result, truth), report)
     return path
 
@@ -476,7 +495,13 @@ def _jsonable_cfg(cfg: Mapping) -> dict:
     return json.loads(json.dumps(cfg, default=str))
 
 
+#: Configuration keys that say how a job reports, not what it computes: not logged as MLflow parameters.
+_NOT_PARAMS = ("run_dir", "tracking.", "progress", "debug.")
+
+
 def _flat_config(cfg: Mapping) -> dict:
+    """The configuration as MLflow parameters: dotted keys, without reporting-only keys (values that say "not
+    set" are left out by :meth:`Tracker.log_params`)."""
     from .tracking import flatten
 
-    return {k: v for k, v in flatten(_jsonable_cfg(cfg)).items() if not k.startswith("run_dir")}
+    return {k: v for k, v in flatten(_jsonable_cfg(cfg)).items() if not k.startswith(_NOT_PARAMS)}

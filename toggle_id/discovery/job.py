@@ -75,8 +75,16 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     tracker = workflow.make_tracker(cfg, project_root)
     show = bool(cfg.get("progress", True))
     t0 = time.perf_counter()
+    from .. import mlflow_run
+    from ..curve import RmseCurve
+
+    log_datasets = (cfg.get("tracking") or {}).get("log_datasets", True)
     with workflow.ray_session(ev), tracker.run("discover", tags={"job": "discover", "method": method}) as run:
         tracker.log_params(workflow._flat_config(cfg))
+        datasets = mlflow_run.log_records(tracker, [record], run_dir, enabled=log_datasets)
+        if validation is not None:
+            datasets += mlflow_run.log_records(tracker, [validation], run_dir, "validation", enabled=log_datasets)
+        curve = RmseCurve(record, on_point=mlflow_run.curve_logger(tracker, run.run_id), t0=t0)
         nominal_result: IdentificationResult | None = None
         if nominal_mode == "ga":
             with tracker.run("nominal", tags={"stage": "nominal"}, nested=True):
@@ -84,7 +92,8 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                           make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
                                           settings=tier, polish=polish_cfg, identifiability=False,
                                           progress=lambda total, desc: console.progress(total, desc, enabled=show),
-                                          on_stage=lambda st: workflow.stage_child_run(tracker, st, truth))
+                                          on_stage=lambda st: workflow.stage_child_run(tracker, st, truth),
+                                          curve=curve)
                 tracker.log_metrics({"fitness": nominal_result.fitness, "rmse_m": nominal_result.rmse_m,
                                      "seconds": nominal_result.seconds})
         nominal = nominal_result if nominal_result is not None else base_start
@@ -105,14 +114,18 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                        validation=validation,
                        on_refit=on_refit,
                        progress=(lambda msg: print(msg, flush=True)) if show else None)
+        curve.add("discovery", curve.simulations + res.n_simulations, rmse_m=res.rmse_after_m)
         wall = time.perf_counter() - t0
         report = res.to_dict()
         report.update({"job": "discover", "wall_seconds": wall, "mlflow_run_id": run.run_id,
+                       "rmse_um": 1e6 * res.rmse_after_m, "curve": curve.to_list(), "datasets": datasets,
                        "config": workflow._jsonable_cfg(cfg), "nominal_mode": nominal_mode,
                        "settings": asdict(settings)})
         if truth is not None:
             report["truth"] = {nm: float(truth[i]) for i, nm in enumerate(ALL_NAMES)}
         tracker.log_metrics({"rmse_before_m": res.rmse_before_m, "rmse_after_m": res.rmse_after_m,
+                             "rmse_m": res.rmse_after_m, "rmse_um": 1e6 * res.rmse_after_m,
+                             "rmse_before_um": 1e6 * res.rmse_before_m, "n_simulations": curve.simulations,
                              "fitness_before": report["fitness_before"], "fitness_after": report["fitness_after"],
                              "n_effects_added": len(res.effects_added), "wall_seconds": wall,
                              "ljung_box_p_before": res.diagnostics_before.get("whiteness", {}).get("p_value", np.nan),
@@ -121,6 +134,12 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         tracker.set_tags({"effects_added": ",".join(a["name"] for a in res.effects_added) or "none"})
         for path in write_figures(run_dir, record, res, settings):
             tracker.log_artifact(path, "figures")
+        report["model_uri"], report["seconds_model_logging"] = mlflow_run.log_identified_model(
+            tracker, res.final.theta, [record], run_dir, method=f"discover ({method} nominal)",
+            rmse_m=res.rmse_after_m, enabled=(cfg.get("tracking") or {}).get("log_model", True),
+            extra={"effects_added": [a["name"] for a in res.effects_added]})
+        tracker.set_tags({"mlflow.note.content": mlflow_run.describe_discovery(
+            method, record, res.rmse_before_m, res.rmse_after_m, [a["name"] for a in res.effects_added], wall)})
         path = workflow.publish_report(tracker, run_dir, summary_text(res), report, "discovery.json", "discovery.txt")
     return path
 
