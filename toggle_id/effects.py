@@ -11,6 +11,7 @@ have no influence while the effect is off, so the score test probes them on a sm
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,8 +40,11 @@ class Effect:
     ``probe`` lists parameter settings (name → value) at which the effect is 'small but on'; the score test
     linearises the output around the nominal fit in the direction of each probe and keeps the best.
     ``breaks`` names the exact symmetries of the rigid model's x_B (``mechanical``, ``current``,
-    ``inertia_split``; see :mod:`toggle_id.discover`) that the effect breaks: with it on, the parameter that
-    fixes such a symmetry becomes determined by the data and is fitted again.
+    ``inertia_split``; see :mod:`toggle_id.discovery.gauge`) that the effect breaks: with it on, the parameter
+    that fixes such a symmetry becomes determined by the data and is fitted again.
+    ``grid`` (threshold effects): the magnitudes a global screening tries on a given record, as a function of
+    the current parameters, the record's input and the number of points — a threshold acts only where the
+    record crosses it, so a grid fixed in advance misses it on a record whose drive levels differ.
     """
 
     name: str
@@ -48,6 +52,7 @@ class Effect:
     params: tuple[EffectParam, ...]
     probe: tuple[dict, ...] = field(default_factory=tuple)
     breaks: tuple[str, ...] = ()
+    grid: Callable[[np.ndarray, np.ndarray, int], np.ndarray] | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -57,6 +62,16 @@ class Effect:
     def magnitude(self) -> EffectParam:
         """The parameter that measures the effect's size (the first non-nuisance one)."""
         return next(p for p in self.params if not p.nuisance)
+
+
+def saturation_grid(theta: np.ndarray, v_in: np.ndarray, points: int) -> np.ndarray:
+    """s_sat values that clip the record's peak drive command max|K_i·v_in| by 0.2 % to 60 % (geometric in the
+    clipped fraction: a limit just below the peak acts on the few samples at the peak only)."""
+    peak = float(np.max(np.abs(theta[PARAM_NAMES.index("K_i")] * np.asarray(v_in, float))))
+    if not np.isfinite(peak) or peak <= 0.0:
+        return np.zeros(0)
+    clipped = np.geomspace(0.002, 0.6, max(int(points), 2))
+    return 1.0 / ((1.0 - clipped) * peak)
 
 
 EFFECTS: tuple[Effect, ...] = (
@@ -86,7 +101,7 @@ EFFECTS: tuple[Effect, ...] = (
            (EffectParam("k3", K.K3, "N/m³", -1e15, 1e15),), ({"k3": 1e10},)),
     Effect("voltage_saturation", "drive output limit |K_i·v_in| ≤ 1/s_sat (s_sat = 0: no limit)",
            (EffectParam("s_sat", K.S_SAT, "1/V", 0.0, 1.0),),
-           tuple({"s_sat": s} for s in (0.12, 0.15, 0.17, 0.2, 0.25, 0.35, 0.5))),
+           tuple({"s_sat": s} for s in (0.12, 0.15, 0.17, 0.2, 0.25, 0.35, 0.5)), grid=saturation_grid),
     Effect("sensor_offset", "constant offset of the measured x_B",
            (EffectParam("x_off", K.X_OFF, "m", -5e-3, 5e-3),), ({"x_off": 1e-6},)),
 )

@@ -17,7 +17,7 @@ from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, extend
 from .gauge import GAUGE_HELD, _force_like, gauge_fix, gauge_symmetries
-from .model import Fit, Model, _off_values, _with, fit_free, parameter_uncertainty
+from .model import Fit, Model, _off_values, _with, fit_free, parameter_uncertainty, revived
 from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
@@ -154,14 +154,17 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     compensating: list[dict] = []
     with_compensating = None
     if structure and added:
-        # structure is left: an effect explains only if it removed most of the structure it was added for
-        s_with = _structure_excess(diag_after)
+        # structure is left: an effect explains only if it removed most of the structure it was added for, both
+        # residuals measured under one noise model — that of the larger model (each residual's own AR model
+        # would absorb more of the structure the more structure there is, and the measure would not be monotone)
+        common = fit_noise(r_after, settings.noise_max_order)
+        s_with = _structure_excess(model, current.theta, common, settings)
         keep, demoted = [], []
         for a in added:
             reduced = a.get("_reduced") or _without(model, current, a["name"], added, held, settings)
-            d_without, _, _ = residual_report(model, reduced.theta, settings, split)
-            s_without = _structure_excess(d_without)
-            frac = (s_without - s_with) / s_without if s_without > 0 else 0.0
+            s_without = _structure_excess(model, reduced.theta, common, settings)
+            frac = (1.0 if not np.isfinite(s_without) else  # the model without it cannot even be simulated
+                    (s_without - s_with) / s_without if s_without > 0 else 0.0)
             a["structure_explained"] = {"fraction": frac, "statistic_without": s_without, "statistic_with": s_with}
             (keep if frac >= settings.explain_fraction else demoted).append(a)
         if demoted:
@@ -238,6 +241,7 @@ def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], fre
     n = model.n
     current, anchor, report = None, theta, []
     anchors = [theta, *others]
+    anchors += [th for th in (revived(a, free) for a in list(anchors)) if th is not None]  # collapsed parameters
     for k, th0 in enumerate(anchors):
         if not np.all(np.isfinite(model.residuals(th0[None, :])[0])):
             report.append({"start": k, "error": "cannot be simulated on this record"})
@@ -389,10 +393,18 @@ def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held:
     return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
 
 
-def _structure_excess(diag: dict) -> float:
-    """Σ over the tested families of the structure test of (χ² statistic − its dof)⁺: how much structure the
-    noise model cannot explain (about 0 for noise)."""
-    fams = ((diag.get("localisation") or {}).get("families") or {}).values()
+def _structure_excess(model: Model, theta: np.ndarray, noise, settings: DiscoverSettings) -> float:
+    """Σ over the tested families of the structure test of the residual of ``theta`` under ``noise`` of
+    (χ² statistic − its dof)⁺: how much structure that noise model cannot explain (about 0 for noise)."""
+    x, i_q, status = model.response(theta)
+    rec = model.record
+    r = rec.x_B - x
+    if status != STATUS_OK or not np.all(np.isfinite(r)):
+        return float("inf")
+    states = R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]]))
+    loc = locate(noise, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
+                 alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
+    fams = (loc.get("families") or {}).values()
     return float(sum(max(f["statistic"] - f["dof"], 0.0) for f in fams if f.get("tested")))
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import params as P
 from ..effects import ALL_INDEX, EFFECTS, Effect
 from ..errors import ConfigError, DataError
 from ..identify import stage_bounds
@@ -157,6 +158,24 @@ def _with(theta: np.ndarray, values: Mapping[str, float]) -> np.ndarray:
     for k, v in values.items():
         out[ALL_INDEX[k]] = float(v)
     return out
+
+
+def revived(theta: np.ndarray, free: Sequence[str], collapse: float = 1e-3) -> np.ndarray | None:
+    """``theta`` with every free physical parameter that collapsed towards its lower bound of 0 (below
+    ``collapse`` × its assigned value) put back at its assigned value; None when none collapsed.
+
+    Positive parameters are fitted in log space, where a parameter near 0 has almost no sensitivity: once a
+    fit has pushed it there (say the slider's friction coefficient, while another term stood in for it), no
+    later polish brings it back, and a model that contains the truth stays above the noise. Such a start
+    lets the polish find the interior optimum."""
+    out = theta.copy()
+    hit = False
+    for nm in free:
+        j = P.INDEX.get(nm)
+        if j is not None and P.LOWER[j] == 0.0 and 0.0 <= out[j] < collapse * P.ASSIGNED[j]:
+            out[j] = P.ASSIGNED[j]
+            hit = True
+    return out if hit else None
 
 
 def _off_values(effect: Effect) -> dict[str, float]:

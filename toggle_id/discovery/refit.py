@@ -9,7 +9,7 @@ import numpy as np
 
 from ..effects import ALL_INDEX, Effect
 from .gauge import freed_with
-from .model import Fit, Model, _off_values, _std_errors, _with, fit_free
+from .model import Fit, Model, _off_values, _std_errors, _with, fit_free, revived
 from .scoring import Point, refit_start
 from .settings import DiscoverSettings
 from .stats import f_test
@@ -130,6 +130,7 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
         starts = [fit.theta]
         if anchor is not None:
             starts.append(_with(anchor, {nm: fit.theta[ALL_INDEX[nm]] for nm in free if nm not in base.free}))
+        starts += [th for th in (revived(st, free) for st in starts) if th is not None]
         fit = min((fit_free(model, st, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
                    for st in starts), key=lambda f: f.sse)
     params = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in names}
@@ -145,7 +146,9 @@ def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: 
     """Re-polish the model without the effect from the refit's parameters; if it beats the baseline the
     refit is judged again against it. Returns the better null fit (or None when it did not improve)."""
     start = _with(refit.fit.theta, _off_values(effect))
-    null = fit_free(model, start, base.free, settings.null_nfev, settings.fd_rel_step, rounds=settings.rounds)
+    starts = [start] + [th for th in (revived(start, base.free), revived(base.theta, base.free)) if th is not None]
+    null = min((fit_free(model, st, base.free, settings.null_nfev, settings.fd_rel_step, rounds=settings.rounds)
+                for st in starts), key=lambda f: f.sse)
     refit.null_sse = null.sse
     if null.sse < base.sse:
         refit.judge(judge.judge_pair(null, refit.fit), null.sse)

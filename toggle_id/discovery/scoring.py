@@ -160,12 +160,16 @@ def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Project
     mag = effect.magnitude
     rows, labels = [], []
     lin = {json_key(s["probe"]): s.get("magnitude_linear") for s in cand.probes}
-    for pr in effect.probe:
-        for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points):
-            setting = dict(pr)
-            setting[mag.name] = float(m)
-            rows.append(_with(base, setting))
-            labels.append(setting)
+    if effect.grid is not None:  # a threshold: magnitudes relative to what this record crosses
+        grid = [({}, m) for m in effect.grid(theta, model.record.v_in, points)
+                if mag.lower <= m <= mag.upper and m != mag.off]
+    else:
+        grid = [(pr, m) for pr in effect.probe for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points)]
+    for pr, m in grid:
+        setting = dict(pr)
+        setting[mag.name] = float(m)
+        rows.append(_with(base, setting))
+        labels.append(setting)
     n = r.size
     rp = proj.perp(noise.whiten(r))
     ref = float(rp @ rp)
