@@ -98,8 +98,13 @@ def test_multirun_sweep_gives_one_mlflow_run_per_config(tmp_path, job_env):
 
     client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
     runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
-    pops = sorted(r.data.params["ga.population"] for r in runs if "mlflow.parentRunId" not in r.data.tags)
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    pops = sorted(r.data.params["ga.population"] for r in parents)
     assert pops == ["10", "12"]
+    # named after what differs, grouped under the sweep
+    assert sorted(r.info.run_name.split()[1] for r in parents) == ["ga.population=10", "ga.population=12"]
+    assert {r.data.tags["sweep"] for r in parents} == {str(tmp_path / "multi")}
+    assert sorted(r.data.tags["sweep.job"] for r in parents) == ["0", "1"]
     assert len(list((tmp_path / "multi").glob("*/result.json"))) == 2
 
 
