@@ -4,14 +4,49 @@ Hydra reports a configuration it cannot compose (an unknown key, a bad override)
 handing over to Hydra the command line is composed once here, so such mistakes end in one line naming the
 problem and exit status 2. Errors the library raises for bad input (:class:`toggle_id.errors.ToggleIdError`)
 are printed the same way.
+
+Run directories: ``conf/config.yaml`` names a job's directory ``outputs/<date>/<time>-<suffix>`` through the
+``unique_dir`` resolver registered here; the directory is created exclusively, so no job writes into another's.
 """
 from __future__ import annotations
 
+import os
+import secrets
 import sys
 from pathlib import Path
 from typing import Callable
 
+from omegaconf import OmegaConf
+
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+
+
+def unique_dir(base: str) -> str:
+    """Create ``<base>-<6 random hex digits>`` exclusively and return it (the ``unique_dir`` config resolver).
+
+    ``os.mkdir`` fails when the directory exists, so two jobs started in the same second (the same
+    ``outputs/<date>/<time>`` base) never share a run directory: a name already taken is drawn again.
+    """
+    parent = Path(base).parent
+    parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(64):
+        path = f"{base}-{secrets.token_hex(3)}"
+        try:
+            os.mkdir(path)
+        except FileExistsError:
+            continue
+        return path
+    raise RuntimeError(f"no free run directory name next to {base}")
+
+
+def register_resolvers() -> None:
+    """``${unique_dir:BASE}`` in the Hydra configs (conf/config.yaml's run and sweep directories). Cached, so
+    Hydra resolving the same directory twice (a multirun's jobs share their sweep directory) gets one name."""
+    if not OmegaConf.has_resolver("unique_dir"):
+        OmegaConf.register_new_resolver("unique_dir", unique_dir, use_cache=True)
+
+
+register_resolvers()  # importing the CLI plumbing (every entry point does) makes the configs resolvable
 
 
 def fail(message: str, code: int = 2) -> None:

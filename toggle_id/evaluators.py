@@ -17,6 +17,12 @@ address, so ``ray.init`` cannot confine a cluster to loopback. What protects it 
 a new local cluster turns it on by default when ``RAY_AUTH_MODE`` is unset (``enable_token_auth_by_default``;
 the token is generated once into ``~/.ray/auth_token``). This module never turns it off and logs a warning
 when the environment has ``RAY_AUTH_MODE=disabled``.
+
+Local or joined (read from the same files and measured): ``address=None`` starts its own local Ray with
+``ray.init(address="local")``. Plain ``ray.init()`` would join the cluster named by ``RAY_ADDRESS`` or recorded in
+``/tmp/ray/ray_current_cluster`` by the last ``ray start``, and it waits minutes when that head has died.
+Joining (``"auto"``, ``"host:port"``) is checked first by :func:`join_address`: the cluster must answer within
+seconds, and the token is sent when one is found. Ray sends it by itself only when it found the cluster on its own.
 """
 from __future__ import annotations
 
@@ -149,12 +155,18 @@ def _is_actor_lost(err: BaseException) -> bool:
 
 
 def init_ray(num_cpus: Optional[int] = None, address: Optional[str] = None,
-             log_to_driver: bool = False, **kwargs: Any) -> bool:
+             log_to_driver: bool = False, connect_timeout_s: float = 10.0, ship_code: bool = True,
+             **kwargs: Any) -> bool:
     """Start or join Ray unless it is already initialised; return True when this call initialised it.
 
-    ``address=None`` starts a local instance with ``num_cpus`` CPUs (None: all), no dashboard, token
-    authentication left at Ray's default (on); ``address="auto"`` or ``"host:port"`` joins a running cluster.
-    Extra ``kwargs`` go to ``ray.init``.
+    ``address=None`` always starts a new local instance (``ray.init(address="local")``: a ``RAY_ADDRESS`` in the
+    environment or a cluster recorded on the machine by ``ray start``, live or dead, is never joined) with
+    ``num_cpus`` CPUs (None: all), no dashboard, token authentication left at Ray's default (on).
+    ``address="auto"`` or ``"host:port"`` joins a running cluster (:func:`join_address`): it is found and checked
+    within ``connect_timeout_s`` seconds, with the cluster's token when this machine has one; any failure is a
+    one-line ConfigError naming the fix. ``ship_code``: when joining, this ``toggle_id`` package goes to the
+    cluster's workers (:func:`code_runtime_env`), so they run the driver's code whether or not the nodes have it
+    installed (they need its dependencies). Extra ``kwargs`` go to ``ray.init``.
     """
     import ray
 
@@ -164,12 +176,168 @@ def init_ray(num_cpus: Optional[int] = None, address: Optional[str] = None,
         log.warning("RAY_AUTH_MODE=disabled: this Ray cluster accepts unauthenticated connections")
     options: dict[str, Any] = dict(ignore_reinit_error=True, log_to_driver=log_to_driver)
     if address is None:
-        options.update(num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1")
-    else:
-        options.update(address=address)
+        options.update(address="local", num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1")
+        options.update(kwargs)
+        ray.init(**options)
+        return True
+    target = join_address(address, connect_timeout_s)
+    options.update(address=target)
+    if ship_code:
+        options.update(runtime_env=code_runtime_env())
     options.update(kwargs)
-    ray.init(**options)
+    try:
+        ray.init(**options)
+    except Exception as err:  # the checks passed, yet Ray refused (e.g. another Ray version on the cluster)
+        text = " ".join(str(err).split())[:300] or type(err).__name__
+        raise ConfigError(f"could not join the Ray cluster at {target}: {text}") from None
     return True
+
+
+# ---- joining a cluster -------------------------------------------------------------------------------------------
+
+#: What to do instead, appended to every "cannot join" message.
+_JOIN_FIX = "or leave evaluator.address unset (null) to start a local Ray"
+
+# Run in a fresh interpreter (its stderr, where Ray's C++ client logs, is kept out of the job's): connect a GCS
+# client to argv[1] within argv[2] ms. Exit 0: a Ray head answered and accepted us; 3: authentication refused;
+# 4: any other failure.
+_PROBE = r"""
+import sys
+try:
+    from ray._raylet import InnerGcsClient
+    InnerGcsClient.standalone(sys.argv[1], None, int(sys.argv[2]))
+except Exception as err:
+    text = type(err).__name__ + ": " + " ".join(str(err).split())
+    print(text[:400])
+    sys.exit(3 if "Authentication" in text or "InvalidAuthToken" in text else 4)
+"""
+
+
+def _split_address(address: str) -> tuple[str, int]:
+    """``host:port`` (``[v6]:port`` too) → (host, port); ConfigError naming the expected form otherwise."""
+    text = str(address).strip()
+    host, sep, port = text.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536 or "/" in text:
+        raise ConfigError(f"evaluator.address {address!r} is not a Ray cluster address: give HOST:PORT of the "
+                          f"head (the --port of `ray start --head`, default 6379) or auto, {_JOIN_FIX}")
+    return host, int(port)
+
+
+def _auto_address() -> tuple[str, str]:
+    """The cluster ``address="auto"`` means: RAY_ADDRESS, else the one the last ``ray start`` on this machine
+    recorded (Ray's ``ray_current_cluster`` file); (address, where it came from). Unlike Ray's own "auto", a
+    private ``ray.init()`` instance of another process is never picked."""
+    env = os.environ.get("RAY_ADDRESS", "").strip()
+    if env:
+        return env, "RAY_ADDRESS"
+    from ray._private.utils import get_ray_address_file, read_ray_address
+
+    recorded = read_ray_address()
+    if recorded:
+        return recorded, f"{get_ray_address_file(None)}, written by the last `ray start` on this machine"
+    raise ConfigError("evaluator.address=auto: no Ray cluster to join (RAY_ADDRESS is unset and no `ray start` is "
+                      "recorded on this machine): start a head with `ray start --head --port=6379`, give "
+                      f"evaluator.address=HOST:PORT, {_JOIN_FIX}")
+
+
+def _token_found() -> bool:
+    """Whether this machine has a Ray auth token where Ray looks: RAY_AUTH_TOKEN, the file RAY_AUTH_TOKEN_PATH
+    names, or ~/.ray/auth_token."""
+    if os.environ.get("RAY_AUTH_TOKEN", "").strip():
+        return True
+    for path in (os.environ.get("RAY_AUTH_TOKEN_PATH"), os.path.join(os.path.expanduser("~"), ".ray", "auth_token")):
+        try:
+            if path and open(path, encoding="utf-8").read().strip():
+                return True
+        except OSError:
+            pass
+    return False
+
+
+def _send_token_if_found() -> None:
+    """Join with the cluster's token when this machine has one and RAY_AUTH_MODE is unset.
+
+    Ray 2.60 turns token mode on by itself only for a cluster it finds on its own (address None/"auto"); with an
+    explicit address the token is not sent unless RAY_AUTH_MODE=token, and a head with token authentication
+    (the default of `ray start --head` where ~/.ray/auth_token exists) refuses the join after ~20 s. A token sent
+    to a head without authentication is ignored, so sending it whenever there is one is safe.
+    """
+    if os.environ.get("RAY_AUTH_MODE") is not None or not _token_found():
+        return
+    os.environ["RAY_AUTH_MODE"] = "token"
+    try:  # refresh Ray's cached configuration in this process (what Ray's own auto-enable does)
+        from ray._raylet import Config
+
+        Config.initialize("")
+    except Exception:  # pragma: no cover - older Ray without token authentication
+        pass
+
+
+def code_runtime_env() -> dict[str, Any]:
+    """A Ray ``runtime_env`` that ships this ``toggle_id`` package (without compiled caches) to the workers."""
+    package = os.path.dirname(os.path.abspath(__file__))
+    return {"py_modules": [package], "excludes": ["__pycache__/", "*.pyc", "*.nbi", "*.nbc"]}
+
+
+def join_address(address: str, timeout_s: float = 10.0) -> str:
+    """Find and check the Ray cluster ``address`` (``"auto"`` or ``"host:port"``) names; return ``host:port``.
+
+    Within about ``timeout_s`` seconds: the address is found (``auto``: :func:`_auto_address`), something must
+    accept a TCP connection there, and a Ray head must answer a GCS client and accept this machine's
+    credentials (the token is sent when one is found, :func:`_send_token_if_found`). Every failure is a one-line
+    ConfigError that names the fix. Ray's own ``ray.init`` would wait 20 s for a refused token and minutes for a
+    dead head.
+    """
+    import socket
+    import subprocess
+    import sys
+
+    if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not timeout_s > 0:
+        raise ConfigError(f"evaluator.connect_timeout_s must be a positive number of seconds, got {timeout_s!r}")
+    given = str(address).strip()
+    source = None
+    if given == "auto":
+        given, source = _auto_address()
+    if "://" in given:
+        raise ConfigError(f"evaluator.address {given!r}{f' (from {source})' if source else ''}: Ray Client "
+                          "addresses (ray://) are not supported; give the head's HOST:PORT (`ray start --head "
+                          f"--port=PORT`), {_JOIN_FIX}")
+    host, port = _split_address(given)
+    target = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    where = f"{target} (from {source})" if source else target
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as err:
+        reason = ("timed out" if isinstance(err, socket.timeout) else
+                  "connection refused" if isinstance(err, ConnectionRefusedError) else
+                  " ".join(str(err).split()) or type(err).__name__)
+        gone = (" — the head recorded there has stopped or crashed" if source and "ray start" in source else "")
+        raise ConfigError(f"cannot reach a Ray cluster at {where}: {reason}{gone}; start its head "
+                          f"(`ray start --head --port={port}`), point evaluator.address at a running head, "
+                          f"{_JOIN_FIX}") from None
+    _send_token_if_found()
+    try:
+        proc = subprocess.run([sys.executable, "-c", _PROBE, target, str(int(timeout_s * 1000))],
+                              capture_output=True, text=True, timeout=timeout_s + 20.0)
+    except subprocess.TimeoutExpired:
+        proc = None
+    if proc is None or proc.returncode == 4 and "timed out" in proc.stdout.replace("TimedOut", "timed out").lower():
+        raise ConfigError(f"no Ray head answers at {where} within {timeout_s:g} s (is it the head's GCS port, "
+                          f"`ray start --head --port={port}`?); raise evaluator.connect_timeout_s on a slow network, "
+                          f"{_JOIN_FIX}")
+    if proc.returncode == 3:
+        mode = os.environ.get("RAY_AUTH_MODE", "").lower()
+        why = ("RAY_AUTH_MODE=disabled here" if mode == "disabled" else
+               "the token found here is not the cluster's" if _token_found() else "no token found on this machine")
+        raise ConfigError(f"the Ray cluster at {where} requires its authentication token ({why}): copy the head's "
+                          "token (`ray get-auth-token` on the head) into ~/.ray/auth_token here or set "
+                          f"RAY_AUTH_TOKEN{', and unset RAY_AUTH_MODE' if mode == 'disabled' else ''}")
+    if proc.returncode != 0:
+        text = (proc.stdout.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]
+        raise ConfigError(f"cannot join a Ray cluster at {where} ({text[:300]}): is it the head's address "
+                          f"(`ray start --head --port={port}`)? Point evaluator.address at a running head, {_JOIN_FIX}")
+    return target
 
 
 class RayEvaluator(_EvaluatorBase):
@@ -179,10 +347,12 @@ class RayEvaluator(_EvaluatorBase):
         problem: picklable problem; put in the object store once, built and set up once per actor.
         n_workers: actors (each reserves 1 CPU); None: the CPUs of the local machine (``address=None``) or of
             the cluster.
-        address: None starts a local Ray if none is running; ``"auto"`` / ``"host:port"`` joins a cluster.
+        address: None starts a local Ray (never joins one) unless Ray is initialised already; ``"auto"`` /
+            ``"host:port"`` joins a cluster (:func:`join_address`).
         max_restarts: actor replacements allowed within one :meth:`evaluate` call before giving up.
         ready_timeout_s: seconds to wait for all actors to finish ``setup`` (s).
         init_kwargs: extra arguments for ``ray.init`` when this evaluator starts Ray.
+        connect_timeout_s: seconds to find and check a cluster to join (s).
 
     Fault tolerance: when an actor dies (``RayActorError`` and subclasses), it is replaced by a new actor and its
     chunk is evaluated again, so the result equals a fault-free run; ``stats["restarts"]`` counts replacements.
@@ -192,7 +362,7 @@ class RayEvaluator(_EvaluatorBase):
 
     def __init__(self, problem: Problem, n_workers: Optional[int] = None, address: Optional[str] = None,
                  max_restarts: int = 10, ready_timeout_s: float = 600.0,
-                 init_kwargs: Optional[Mapping[str, Any]] = None) -> None:
+                 init_kwargs: Optional[Mapping[str, Any]] = None, connect_timeout_s: float = 10.0) -> None:
         super().__init__()
         n_workers = _check_workers(n_workers)
         if isinstance(max_restarts, bool) or not isinstance(max_restarts, int) or max_restarts < 0:
@@ -202,7 +372,7 @@ class RayEvaluator(_EvaluatorBase):
         self._ray = ray
         num_cpus = n_workers if n_workers is not None else (os.cpu_count() or 1)
         self._owns_ray = init_ray(num_cpus=num_cpus if address is None else None, address=address,
-                                  **dict(init_kwargs or {}))
+                                  connect_timeout_s=connect_timeout_s, **dict(init_kwargs or {}))
         if n_workers is None:
             n_workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.n_workers = n_workers

@@ -168,18 +168,19 @@ class Checkpointer:
     """GA state (population, fitness, RNG, generation, best, stage) saved every ``every`` generations, with the
     results of the stages already finished; written atomically (JSON + npz, no pickle)."""
 
-    def __init__(self, directory: str | Path, every: int = 5) -> None:
+    def __init__(self, directory: str | Path, every: int = 5, meta: Mapping[str, Any] | None = None) -> None:
         if int(every) < 1:
             raise ConfigError(f"checkpoint.every must be >= 1, got {every}")
         self.prefix = Path(directory) / "checkpoint"
         self.every = int(every)
+        self.meta = dict(meta or {})  # saved along (e.g. the job's identity, toggle_id.jobdir)
 
     def exists(self) -> bool:
         return self.prefix.with_suffix(".json").exists()
 
     def save(self, stage: str, ga: RGA, done: list[dict]) -> None:
         arrays, meta = split_state(ga.state_dict())
-        save_checkpoint(self.prefix, arrays, {"stage": stage, "ga": meta, "done": done})
+        save_checkpoint(self.prefix, arrays, {**self.meta, "stage": stage, "ga": meta, "done": done})
 
     def load(self) -> tuple[str, dict, list[dict]]:
         arrays, meta = load_checkpoint(self.prefix)
@@ -393,7 +394,8 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
              extra_free: Sequence[str] = (), settings: SolverSettings = FAST, i_q_weight: float = 0.0,
              polish: PolishSettings | None = None, identifiability: bool = True,
              progress: Callable[[int, str], Any] = _noop_progress, checkpoint_dir: str | Path | None = None,
-             checkpoint_every: int = 5, resume: bool = False, noise_var: float | None = None,
+             checkpoint_every: int = 5, checkpoint_meta: Mapping[str, Any] | None = None, resume: bool = False,
+             noise_var: float | None = None,
              on_generation: Callable[[str, RGA], None] | None = None,
              on_stage: Callable[[StageResult], None] | None = None,
              curve: RmseCurve | None = None) -> IdentificationResult:
@@ -403,7 +405,8 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
     1/ΣE² over all of them). ``base``: starting extended vector (names → values; default the assigned values,
     effects off) — it sets the values of parameters that are not free. ``fixed``: parameters held at given
     values (e.g. from a datasheet). ``extra_free``: effect parameters to fit along (discovery). The same
-    ``seed`` gives the same result whatever the evaluator and its number of workers.
+    ``seed`` gives the same result whatever the evaluator and its number of workers. ``checkpoint_meta`` is
+    stored in every checkpoint (the workflow puts the job's identity there, :mod:`toggle_id.jobdir`).
 
     ``curve``: where the best whole-record RMS error against cumulative simulations goes (one more PRECISE
     simulation per generation whose best individual changed; :mod:`toggle_id.curve`), e.g. one whose
@@ -432,7 +435,7 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
                 theta[ALL_INDEX[nm]] = 0.5 * (lo[0] + hi[0])
     seeds = np.random.SeedSequence(seed).generate_state(len(plan), dtype=np.uint32)
 
-    ckpt = Checkpointer(checkpoint_dir, checkpoint_every) if checkpoint_dir is not None else None
+    ckpt = Checkpointer(checkpoint_dir, checkpoint_every, checkpoint_meta) if checkpoint_dir is not None else None
     resume_stage, resume_state, done = None, None, []
     if resume:
         if ckpt is None or not ckpt.exists():

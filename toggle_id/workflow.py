@@ -16,7 +16,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
-from . import console, figures
+from . import console, figures, jobdir
 from . import params as P
 from .checkpoint import atomic_write_json, atomic_write_text
 from .data import read_csv
@@ -215,7 +215,9 @@ def ray_session(ev: Mapping) -> Iterator[None]:
     from .evaluators import init_ray
     import ray
 
-    started = init_ray(num_cpus=ev.get("n_workers"), address=ev.get("address"))
+    started = init_ray(num_cpus=ev.get("n_workers"), address=ev.get("address"),
+                       connect_timeout_s=float(ev.get("connect_timeout_s", 10.0)),
+                       ship_code=bool(ev.get("ship_code", True)))
     try:
         yield
     finally:
@@ -236,10 +238,16 @@ def evaluator_factory(ev: Mapping) -> Callable[[Any], Any]:
     timeout = ev.get("ready_timeout_s", 600.0)
     if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not timeout > 0:
         raise ConfigError(f"evaluator.ready_timeout_s must be a positive number of seconds, got {timeout!r}")
+    connect = ev.get("connect_timeout_s", 10.0)
+    if isinstance(connect, bool) or not isinstance(connect, (int, float)) or not connect > 0:
+        raise ConfigError(f"evaluator.connect_timeout_s must be a positive number of seconds, got {connect!r}")
+    address = ev.get("address")
+    if address is not None and (not isinstance(address, str) or not address.strip()):
+        raise ConfigError(f"evaluator.address must be null (a local Ray), auto or HOST:PORT, got {address!r}")
     if kind == "serial":
         return lambda problem: make_evaluator("serial", problem)
-    return lambda problem: make_evaluator("ray", problem, n_workers=n, address=ev.get("address"),
-                                          ready_timeout_s=float(timeout))
+    return lambda problem: make_evaluator("ray", problem, n_workers=n, address=address,
+                                          ready_timeout_s=float(timeout), connect_timeout_s=float(connect))
 
 
 def make_tracker(cfg: Mapping, project_root: str | Path) -> Tracker:
@@ -363,11 +371,13 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     """The main job: identify the parameters of one record — or of several jointly (data=joint) — one- or
     two-stage, log and report."""
     validate_config(cfg)
-    run_dir, resume = _run_dir(cfg, run_dir)
     records, truth = build_records(cfg.get("data") or {})
+    identity = jobdir.job_identity(cfg, records)  # stored in every checkpoint; a resume must match it
+    run_dir, resume = _run_dir(cfg, run_dir, identity)
     record = records[0]
     method = cfg.get("method", "two_stage")
     kw = _identify_kwargs(cfg, run_dir, resume)
+    kw["checkpoint_meta"] = {jobdir.META_KEY: identity}
     joint_plan(records, method, extend(P.ASSIGNED)[0], fixed=tuple(kw["fixed"]))  # records fit the method?
     tracker = make_tracker(cfg, project_root)
     ev = cfg.get("evaluator") or {}
@@ -467,16 +477,25 @@ def _truth_report(theta: np.ndarray, truth: np.ndarray | None) -> dict:
             "pct_error": {n: console.pct_error(float(truth[i]), float(theta[i])) for i, n in enumerate(P.PARAM_NAMES)}}
 
 
-def _run_dir(cfg: Mapping, run_dir: str | Path) -> tuple[Path, bool]:
+def _run_dir(cfg: Mapping, run_dir: str | Path, identity: Mapping) -> tuple[Path, bool]:
+    """The directory the job works in (claimed for this process) and whether it continues a checkpoint there —
+    only one that this job (``identity``) wrote (:mod:`toggle_id.jobdir`)."""
     resume = cfg.get("resume")
     if resume:
         path = Path(resume).expanduser().resolve()
         if not (path / "checkpoint.json").exists():
             raise ConfigError(f"resume: no checkpoint in {path}")
+        jobdir.claim(path)
+        jobdir.check_resume(path, identity)
         return path, True
     path = Path(run_dir).resolve()
     path.mkdir(parents=True, exist_ok=True)
-    return path, (path / "checkpoint.json").exists() and not (path / "result.json").exists()
+    jobdir.claim(path)
+    again = (path / "checkpoint.json").exists() and not (path / "result.json").exists()
+    if again:  # an interrupted run in this very directory (an explicit hydra.run.dir): continue it if it is ours
+        jobdir.check_resume(path, identity, what=f"run directory {path} holds an unfinished run",
+                            fix="give the job another hydra.run.dir")
+    return path, again
 
 
 def _mlflow_run_id(run_dir: Path) -> str | None:
