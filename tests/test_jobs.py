@@ -188,6 +188,13 @@ def test_table1_job_writes_markdown_and_csv(tmp_path, job_env):
     rows = (tmp_path / "run" / "table1_runs.csv").read_text().splitlines()
     assert len(rows) == 3  # header + one run per method
     assert _last_line(proc) == f"report: {(tmp_path / 'run' / 'result.json').resolve()}"
+    from mlflow import MlflowClient
+
+    client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
+    runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
+    methods = [r for r in runs if r.info.run_name in ("one_stage_seed0", "two_stage_seed0")]
+    assert len(methods) == 2  # each with the curve both methods share, to overlay them in Compare
+    assert all(len(client.get_metric_history(r.info.run_id, "best_rmse_um")) >= 2 for r in methods)
 
 
 def test_interrupted_job_resumes_to_the_uninterrupted_result(tmp_path, job_env):

@@ -14,6 +14,8 @@ from . import params as P
 from .checkpoint import atomic_write_json, atomic_write_text
 from .errors import ConfigError
 from .identify import METHODS, identify
+from .curve import RmseCurve
+from .mlflow_run import curve_logger
 from .workflow import (_identify_kwargs, _jsonable_cfg, _flat_config, build_record, evaluator_factory, make_tracker,
                        ray_session, stage_child_run, validate_config)
 
@@ -42,12 +44,14 @@ def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
             for seed in seeds:
                 kw = _identify_kwargs({**cfg, "seed": seed}, run_dir / f"{method}_seed{seed}", False)
                 (run_dir / f"{method}_seed{seed}").mkdir(exist_ok=True)
-                with tracker.run(f"{method}_seed{seed}", tags={"method": method, "seed": seed}, nested=True):
+                with tracker.run(f"{method}_seed{seed}", tags={"method": method, "seed": seed}, nested=True) as child:
+                    curve = RmseCurve(record, on_point=curve_logger(tracker, child.run_id))  # comparable curves
                     res = identify(record, method=method, make_evaluator=evaluator_factory(ev),
                                    progress=lambda total, desc, m=method, s=seed: console.progress(
                                        total, f"{m} seed {s} {desc}", enabled=show),
-                                   on_stage=lambda st: stage_child_run(tracker, st, truth), **kw)
-                    tracker.log_metrics({"fitness": res.fitness, "rmse_m": res.rmse_m, "seconds": res.seconds})
+                                   on_stage=lambda st: stage_child_run(tracker, st, truth), curve=curve, **kw)
+                    tracker.log_metrics({"fitness": res.fitness, "rmse_m": res.rmse_m, "rmse_um": 1e6 * res.rmse_m,
+                                         "n_simulations": res.n_simulations, "seconds": res.seconds})
                 runs.append({"method": method, "seed": seed, "result": res})
         header, rows, summary_header, summary = _tables(runs, truth)
         md = ("## Identified parameters (median over seeds; % error = |A − B| / A)\n\n"
