@@ -56,7 +56,7 @@ COMPARED = ("M", "Fv", "Fc", "offset")
 EMPS_DEFAULTS: dict[str, Any] = {
     "data_dir": None, "path": None, "validate": True, "samples": None, "candidates": None, "alpha": 0.01,
     "max_effects": None, "max_corr": 0.99, "noise_max_order": 8, "cv_block": 100, "cv_folds": 5,
-    "structure_bins": 12, "structure_alpha": 0.01, "solver": "polish", "max_nfev": 50, "reference_fit": True,
+    "structure_bins": 12, "structure_alpha": 0.01, "backward": True, "explain_fraction": 0.5, "solver": "polish", "max_nfev": 50, "reference_fit": True,
     "sim": {"eps": 1e-4, "h_lambda": 0.5, "n_sub_max": 5000, "pulse_gain": 1.0},
 }
 
@@ -96,6 +96,8 @@ class EmpsJobSettings:
     noise_std_m: float | None = None
     structure_bins: int = 12
     structure_alpha: float = 0.01
+    backward: bool = True
+    explain_fraction: float = 0.5
 
 
 def _number(name: str, value: Any, *, integer: bool = False) -> float | int:
@@ -191,6 +193,11 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     structure_alpha = _number("emps.structure_alpha", node["structure_alpha"])
     if not 0 < structure_alpha < 1:
         raise ConfigError(f"emps.structure_alpha must lie in (0, 1), got {structure_alpha}")
+    explain_fraction = _number("emps.explain_fraction", node["explain_fraction"])
+    if not 0 < explain_fraction < 1:
+        raise ConfigError(f"emps.explain_fraction must lie in (0, 1), got {explain_fraction}")
+    if not isinstance(node["backward"], bool):
+        raise ConfigError(f"emps.backward must be true or false, got {node['backward']!r}")
     if node["solver"] not in SOLVERS:
         raise ConfigError(f"emps.solver must be one of {list(SOLVERS)}, got {node['solver']!r}")
     max_nfev = _number("emps.max_nfev", node["max_nfev"], integer=True)
@@ -217,7 +224,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
                            cv_block=cv_block, cv_folds=cv_folds, solver=node["solver"], max_nfev=max_nfev,
                            reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
                            identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise,
-                           structure_bins=structure_bins, structure_alpha=structure_alpha)
+                           structure_bins=structure_bins, structure_alpha=structure_alpha,
+                           backward=node["backward"], explain_fraction=explain_fraction)
 
 
 def load_record(path: str | Path) -> EmpsRecord:
@@ -392,7 +400,7 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
     validation = None if "skipped" in vsrc else load_record(vsrc["path"])
 
     from . import figures
-    from .emps.fit import run_emps_loop
+    from .emps.loop import run_emps_loop
     from .emps.model import INDEX, PUBLISHED_THETA, simulate_emps, theta_from_dict
     from .workflow import make_tracker, publish_report
 
@@ -410,7 +418,8 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
                                max_effects=st.max_effects, max_corr=st.max_corr, solver=st.solver,
                                reference_fit=st.reference_fit, noise_max_order=st.noise_max_order,
                                cv_block=st.cv_block, cv_folds=st.cv_folds, structure_bins=st.structure_bins,
-                               structure_alpha=st.structure_alpha, sim_options=st.sim)
+                               structure_alpha=st.structure_alpha, backward=st.backward,
+                               explain_fraction=st.explain_fraction, sim_options=st.sim)
         final = theta_from_dict(report["identified"])
         nominal = theta_from_dict(report["nominal"]["identified"])
         report["data"] = sources
@@ -435,7 +444,7 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
         loc = report.get("localisation") or {}
         if "families" in loc:  # what the final model leaves in its position residual, and where
             from .discovery.localise import figure as localisation_figure
-            from .emps.fit import localisation_signals
+            from .emps.loop import localisation_signals
 
             r_final, signals = localisation_signals(record, final, st.sim)
             step = max(1, record.n // 6000)  # the dots only: the levels are the test's, from every sample

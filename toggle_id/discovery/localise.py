@@ -66,14 +66,11 @@ def _describe(name: str, edges: np.ndarray, levels: np.ndarray) -> dict:
             "text": f"{where}, residual level {sign}{abs(dev[j]) * 1e6:.3g} µm"}
 
 
-def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
-           alpha: float = 0.01, lags: int = 50, lag_step: int = 5) -> dict:
-    """Structure test and localisation of the residual ``r`` (see the module docstring).
-
-    Returns {structure_left, alpha, families: {name: {p_value, statistic, dof, share, centres, levels,
-    where, text}}, strongest, text}. ``structure_left`` when a tested family's p-value is below
-    alpha / (number of tested families).
-    """
+def family_bases(signals: Mapping[str, np.ndarray], bins: int = 12, lags: int = 50, lag_step: int = 5
+                 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The bases of the structure test, one family per signal: equal-width bins of each signal (and of the
+    slider position signed by the direction of motion), plus the lagged input. Returns (bases, bin centres,
+    bin edges), keyed by family."""
     bases, centres, edges_of = {}, {}, {}
     for name, v in signals.items():
         B, edges = piecewise_basis(v, bins)
@@ -86,6 +83,39 @@ def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.nda
         centres["x_B_dir"], edges_of["x_B_dir"] = centres["x_B"], edges_of["x_B"]
     if "v_in" in signals:
         bases["v_in_lags"] = lagged_basis(signals["v_in"], lags, lag_step)
+    return bases, centres, edges_of
+
+
+def structure_energy(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12, lags: int = 50,
+                     lag_step: int = 5) -> float:
+    """Σ over the tested families of ‖P_B r‖²: the energy of the raw residual ``r`` (m²) that functions of
+    position, velocity, current and input express (least-squares projection on each family's basis).
+
+    A descriptive measure, not a test: it compares residuals of one record (how much of the structure an effect
+    removed) in the residual's own unit. The test statistics are whitened by an AR noise model, which acts as
+    a high-pass filter — the smooth error a missing friction leaves is largely removed by it — so a whitened
+    statistic can even grow when an effect removes most of the error."""
+    r = np.asarray(r, float)
+    bases, _, _ = family_bases(signals, bins, lags, lag_step)
+    total = 0.0
+    for name, B in bases.items():
+        if name not in TESTED or not np.all(np.isfinite(B)):
+            continue
+        coef = np.linalg.lstsq(B, r, rcond=1e-10)[0]
+        fitted = B @ coef
+        total += float(fitted @ fitted)
+    return total
+
+
+def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
+           alpha: float = 0.01, lags: int = 50, lag_step: int = 5) -> dict:
+    """Structure test and localisation of the residual ``r`` (see the module docstring).
+
+    Returns {structure_left, alpha, families: {name: {p_value, statistic, dof, share, centres, levels,
+    where, text}}, strongest, text}. ``structure_left`` when a tested family's p-value is below
+    alpha / (number of tested families).
+    """
+    bases, centres, edges_of = family_bases(signals, bins, lags, lag_step)
     res = structure_test(noise, r, bases)
     tested = [k for k in TESTED if k in res]
     level = alpha / max(len(tested), 1)

@@ -22,7 +22,8 @@ from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
-from .localise import locate, signals_of
+from .engine import backward_eliminate, split_explaining
+from .localise import locate, signals_of, structure_energy
 from .noise import WHITE, fit_noise
 from .validation import Judge
 
@@ -154,30 +155,19 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     compensating: list[dict] = []
     with_compensating = None
     if structure and added:
-        # structure is left: an effect explains only if it removed most of the structure it was added for, both
-        # residuals measured under one noise model — that of the larger model (each residual's own AR model
-        # would absorb more of the structure the more structure there is, and the measure would not be monotone)
-        common = fit_noise(r_after, settings.noise_max_order)
-        s_with = _structure_excess(model, current.theta, common, settings)
-        keep, demoted = [], []
-        for a in added:
-            reduced = a.get("_reduced") or _without(model, current, a["name"], added, held, settings)
-            s_without = _structure_excess(model, reduced.theta, common, settings)
-            frac = (1.0 if not np.isfinite(s_without) else  # the model without it cannot even be simulated
-                    (s_without - s_with) / s_without if s_without > 0 else 0.0)
-            a["structure_explained"] = {"fraction": frac, "statistic_without": s_without, "statistic_with": s_with}
-            (keep if frac >= settings.explain_fraction else demoted).append(a)
-        if demoted:
-            say("structure remains; " + ", ".join(a["name"] for a in demoted) + " lower the error but do not "
-                "explain it (listed as compensating, not added)")
+        # structure is left: an effect explains only if it removed most of the structure energy it was added for
+        e_with = _structure_energy(model, current.theta, settings)
+        added, compensating = split_explaining(
+            added, e_with, lambda a: _structure_energy(model, (a.get("_reduced") or _without(
+                model, current, a["name"], added, held, settings)).theta, settings), settings.explain_fraction)
+        if compensating:
+            demoted = [c["name"] for c in compensating]
+            say("structure remains; " + ", ".join(demoted) + " lower the error but do not explain it (listed as "
+                "compensating, not added)")
             with_compensating = current
-            compensating = [dict(a, reason=f"lowers the error, but removes only "
-                                           f"{a['structure_explained']['fraction']:.0%} of the structure the noise "
-                                           f"model cannot explain, and structure remains") for a in demoted]
-            added = keep
-            current = baseline if not keep else fit_free(
-                model, _with(current.theta, {p.name: p.off for a in demoted for p in EFFECTS_BY_NAME[a["name"]].params}),
-                tuple(nm for nm in current.free if not any(nm in EFFECTS_BY_NAME[a["name"]].names for a in demoted)),
+            current = baseline if not added else fit_free(
+                model, _with(current.theta, {p.name: p.off for nm in demoted for p in EFFECTS_BY_NAME[nm].params}),
+                tuple(nm for nm in current.free if not any(nm in EFFECTS_BY_NAME[d].names for d in demoted)),
                 settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
             diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
     for a in added + compensating:
@@ -357,28 +347,10 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
 
 def _backward(model: Model, judge: Judge, current: Fit, added: list[dict], held: Sequence[str],
               settings: DiscoverSettings, say: Callable[[str], None]) -> tuple[Fit, list[dict], list[dict]]:
-    """Backward elimination: drop any accepted effect the model without it (refitted) predicts as well out of
-    sample, or that is no longer significant against it; repeat until every effect is needed."""
-    added = list(added)
-    eliminated: list[dict] = []
-    changed = True
-    while changed and added:
-        changed = False
-        for a in reversed(added):
-            eff = EFFECTS_BY_NAME[a["name"]]
-            reduced = _without(model, current, a["name"], added, held, settings)
-            ev = judge.judge_pair(reduced, current)
-            a["backward"] = ev.to_dict()
-            a["_reduced"] = reduced
-            say(f"backward: without {eff.name} rms {reduced.rmse(model.n) * 1e6:.4g} µm — "
-                f"{'kept' if ev.passed else 'dropped: ' + ev.reason}")
-            if not ev.passed:
-                eliminated.append({"name": a["name"], "reason": ev.reason, "evidence": ev.to_dict()})
-                added.remove(a)
-                current = reduced
-                changed = True
-                break
-    return current, added, eliminated
+    """Backward elimination (:func:`.engine.backward_eliminate`) with the toggle plant's refits and judge."""
+    return backward_eliminate(
+        current, added, lambda cur, a, now: _without(model, cur, a["name"], now, held, settings), judge.judge_pair,
+        say, lambda fit: f"rms {fit.rmse(model.n) * 1e6:.4g} µm")
 
 
 def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held: Sequence[str],
@@ -393,19 +365,16 @@ def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held:
     return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
 
 
-def _structure_excess(model: Model, theta: np.ndarray, noise, settings: DiscoverSettings) -> float:
-    """Σ over the tested families of the structure test of the residual of ``theta`` under ``noise`` of
-    (χ² statistic − its dof)⁺: how much structure that noise model cannot explain (about 0 for noise)."""
+def _structure_energy(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> float:
+    """:func:`.localise.structure_energy` of the residual of ``theta`` (inf when it cannot be simulated)."""
     x, i_q, status = model.response(theta)
     rec = model.record
     r = rec.x_B - x
     if status != STATUS_OK or not np.all(np.isfinite(r)):
         return float("inf")
     states = R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]]))
-    loc = locate(noise, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
-                 alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
-    fams = (loc.get("families") or {}).values()
-    return float(sum(max(f["statistic"] - f["dof"], 0.0) for f in fams if f.get("tested")))
+    return structure_energy(r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
+                            lags=settings.ccf_lags, lag_step=settings.ccf_step)
 
 
 def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_after: dict) -> None:

@@ -5,10 +5,10 @@
 - :mod:`.model`: parameters, the effect registry :data:`EFFECTS`, the batched numba closed-loop simulator
   :func:`simulate_emps` (kernel :func:`simulate_kernel`);
 - :mod:`.idim`: the benchmark's IDIM-LS recipe :func:`idim_ls`;
-- :mod:`.fit`: output-error residual/Jacobian/fit, the greedy effect-discovery loop :func:`run_emps_loop` (each
-  effect judged by :func:`judge_effect` into the discovery engine's ``Evidence``; the three lists
-  :func:`three_lists`; the structure test of the final residual :func:`localise`) and the prediction of a held-out
-  record :func:`predict_validation`.
+- :mod:`.fit`: output-error residual/Jacobian/fit, the judge of an effect :func:`judge_effect` (into the discovery
+  engine's ``Evidence``) and the prediction of a held-out record :func:`predict_validation`;
+- :mod:`.loop`: the greedy effect-discovery loop :func:`run_emps_loop` with the discovery engine's verdict rules
+  (the three lists :func:`three_lists`; the structure test of the final residual :func:`localise`).
 
 The names below are imported on first use, so that finding and checking the records (:mod:`.data`) does not wait
 for numba.
@@ -22,8 +22,9 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "data": ("CITATION", "ENV_DIR", "ESTIMATION_FILE", "GTAU", "KP", "KV", "SHA256", "VALIDATION_FILE",
              "BenchmarkFiles", "EmpsRecord", "EmpsRecordsNotFound", "find_benchmark_files", "load_emps_csv",
              "load_emps_mat", "loader_cache_dir"),
-    "fit": ("OEFitResult", "fit_output_error", "judge_effect", "localisation_signals", "localise", "make_jacobian",
-            "make_residual", "predict_validation", "run_emps_loop", "three_lists"),
+    "fit": ("OEFitResult", "fit_output_error", "judge_effect", "make_jacobian", "make_residual",
+            "predict_validation"),
+    "loop": ("localisation_signals", "localise", "run_emps_loop", "three_lists"),
     "idim": ("idim_ls",),
     "model": ("EFFECTS", "NOMINAL_NAMES", "PARAM_NAMES", "PUBLISHED", "PUBLISHED_THETA", "Effect", "EmpsSimResult",
               "controller_law", "position_rel_error_pct", "simulate_emps", "simulate_kernel", "theta_from_dict",

@@ -128,8 +128,14 @@ def verdict_lines(report: Mapping) -> list[str]:
     structure test of the final position residual: whether structure is left, where, and each family's p-value."""
     lines = []
     added = report.get("effects_added") or []
-    lines.append("effects accepted: " + (", ".join(f"{a['name']} (round {a['round']})" for a in added) or "none"))
-    for label, key in (("compensating (significant in sample only, never added)", "compensating"),
+    def explained(a: Mapping) -> str:
+        se = a.get("structure_explained")
+        return f", removed {se['fraction']:.0%} of the structure energy" if se else ""
+
+    lines.append("effects accepted: " + (", ".join(f"{a['name']} (round {a['round']}{explained(a)})" for a in added)
+                                         or "none"))
+    lines.extend(f"  eliminated (backward): {e['name']}: {e['reason']}" for e in report.get("backward_elimination") or [])
+    for label, key in (("compensating (lower the error without explaining it; never added)", "compensating"),
                        ("rejected", "rejected")):
         items = report.get(key) or []
         lines.append(f"{label}:" + (" none" if not items else ""))

@@ -1,0 +1,88 @@
+"""The plant-independent verdict rules (toggle_id.discovery.engine) and the structure energy they use."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from toggle_id.discovery.engine import backward_eliminate, explained_fraction, split_explaining
+from toggle_id.discovery.localise import structure_energy
+
+
+@dataclass
+class _Verdict:
+    passed: bool
+    reason: str = ""
+
+    def to_dict(self) -> dict:
+        return {"passed": self.passed, "reason": self.reason}
+
+
+def _signals(n: int = 4000, seed: int = 0) -> dict[str, np.ndarray]:
+    t = np.linspace(0.0, 4.0, n)
+    x = 0.05 + 0.04 * np.sin(2 * np.pi * 0.5 * t)
+    return {"x_B": x, "xdot_B": np.gradient(x, t), "i_q": 10 * np.cos(2 * np.pi * 0.5 * t),
+            "v_in": 0.1 * np.sin(2 * np.pi * 3 * t), "t": t}
+
+
+def test_structure_energy_measures_a_bump_and_not_noise():
+    rng = np.random.default_rng(1)
+    s = _signals()
+    noise = 1e-6 * rng.standard_normal(s["t"].size)
+    bump = 3e-6 * np.exp(-((s["x_B"] - 0.06) / 0.004) ** 2)
+    e_noise = structure_energy(noise, s)
+    e_bump = structure_energy(noise + bump, s)
+    # noise alone: about (bins per family) σ² per family; the bump's energy is far above that
+    assert e_noise < 200 * 1e-12
+    assert e_bump > 10 * e_noise
+    # halving the bump removes about three quarters of its energy: the measure is monotone in the structure
+    e_half = structure_energy(noise + 0.5 * bump, s)
+    assert e_noise < e_half < e_bump
+    assert explained_fraction(e_bump, e_half) == pytest.approx(0.75, abs=0.1)
+
+
+def test_explained_fraction_edge_cases():
+    assert explained_fraction(float("inf"), 1.0) == 1.0
+    assert explained_fraction(0.0, 0.0) == 0.0
+    assert explained_fraction(4.0, 1.0) == pytest.approx(0.75)
+
+
+def test_split_explaining_demotes_what_removes_little_structure():
+    added = [{"name": "a"}, {"name": "b"}]
+    without = {"a": 10.0, "b": 1.2}
+    keep, comp = split_explaining(added, 1.0, lambda it: without[it["name"]], 0.5)
+    assert [k["name"] for k in keep] == ["a"]
+    assert [c["name"] for c in comp] == ["b"]
+    assert comp[0]["structure_explained"]["fraction"] == pytest.approx(1 - 1 / 1.2)
+    assert "17%" in comp[0]["reason"] and "compensat" not in keep[0].get("reason", "")
+
+
+def test_backward_eliminate_drops_what_the_judge_no_longer_supports():
+    # fits are plain labels: the model is the set of effects it has
+    judged = []
+
+    def without(cur, a, now):
+        return cur - {a["name"]}
+
+    def judge(reduced, current):
+        judged.append((frozenset(reduced), frozenset(current)))
+        return _Verdict(passed=("real" in current and "real" not in reduced), reason="no better out of sample")
+
+    current, kept, eliminated = backward_eliminate(frozenset({"real", "spurious"}),
+                                                   [{"name": "real"}, {"name": "spurious"}], without, judge,
+                                                   lambda msg: None, lambda fit: str(sorted(fit)))
+    assert current == frozenset({"real"})
+    assert [k["name"] for k in kept] == ["real"] and kept[0]["backward"]["passed"]
+    assert [e["name"] for e in eliminated] == ["spurious"] and eliminated[0]["reason"] == "no better out of sample"
+    # after the drop, the remaining effect was judged again against the model without it
+    assert (frozenset(), frozenset({"real"})) in judged
+
+
+def test_backward_eliminate_keeps_an_effect_another_refines():
+    current, kept, eliminated = backward_eliminate(
+        frozenset({"base", "refinement"}), [{"name": "base"}, {"name": "refinement"}],
+        lambda cur, a, now: cur - {a["name"]}, lambda reduced, current: _Verdict(True), lambda msg: None, str,
+        keep=lambda a, now: a["name"] == "base")
+    assert [k["name"] for k in kept] == ["base", "refinement"] and not eliminated
+    assert "backward" not in kept[0]

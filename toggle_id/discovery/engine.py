@@ -1,0 +1,91 @@
+"""The plant-independent verdict rules of the discovery loop, shared by the toggle plant (:mod:`.loop`) and the
+EMPS plant (:mod:`toggle_id.emps.fit`).
+
+Each plant brings its own fits (a model with an effect switched off, refitted) and its own judge (an
+:class:`~.validation.Evidence` for a larger model against a smaller one: noise model of the larger model's
+residual, prewhitened F-test and BIC, time-block cross-validation, validation record). The rules are:
+
+- **backward elimination** (:func:`backward_eliminate`): after the forward steps, drop any accepted effect that
+  the model without it — refitted — matches as well (the judge no longer passes the effect against it);
+  repeat until every effect is needed;
+- **explaining or compensating** (:func:`split_explaining`): when the final residual still holds structure, an
+  accepted effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
+  (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
+  current and input express); otherwise it lowers the error without explaining it and is listed as
+  *compensating*, never as added.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+
+class Verdict(Protocol):
+    """What a judge returns (:class:`~.validation.Evidence`)."""
+
+    passed: bool
+    reason: str
+
+    def to_dict(self) -> dict: ...
+
+
+def backward_eliminate(current: Any, added: Sequence[dict], without: Callable[[Any, dict, Sequence[dict]], Any],
+                       judge: Callable[[Any, Any], Verdict], say: Callable[[str], None],
+                       error_of: Callable[[Any], str], keep: Callable[[dict, Sequence[dict]], bool] = lambda a, s: False
+                       ) -> tuple[Any, list[dict], list[dict]]:
+    """Backward elimination over the accepted effects ``added`` (dicts with ``name``; the latest last).
+
+    ``without(current, a, added)``: the current model refitted with effect ``a`` off; ``judge(reduced, current)``:
+    the verdict for the current model against it; ``error_of(fit)``: its error for the log line; ``keep(a,
+    added)``: True where ``a`` may not be removed (another effect refines it). Each kept item gets
+    ``backward`` (the verdict's dict) and ``_reduced`` (the model without it). Returns (model, kept, eliminated
+    [{name, reason, evidence}])."""
+    added = list(added)
+    eliminated: list[dict] = []
+    changed = True
+    while changed and added:
+        changed = False
+        for a in reversed(added):
+            if keep(a, added):
+                continue
+            reduced = without(current, a, added)
+            ev = judge(reduced, current)
+            a["backward"] = ev.to_dict()
+            a["_reduced"] = reduced
+            say(f"backward: without {a['name']} {error_of(reduced)} — {'kept' if ev.passed else 'dropped: ' + ev.reason}")
+            if not ev.passed:
+                eliminated.append({"name": a["name"], "reason": ev.reason, "evidence": ev.to_dict()})
+                added.remove(a)
+                current = reduced
+                changed = True
+                break
+    return current, added, eliminated
+
+
+def explained_fraction(energy_without: float, energy_with: float) -> float:
+    """The share of the structure energy of the model without an effect that the model with it removed (1 when
+    the model without it cannot even be simulated)."""
+    if not np.isfinite(energy_without):
+        return 1.0
+    return float((energy_without - energy_with) / energy_without) if energy_without > 0 else 0.0
+
+
+def split_explaining(added: Sequence[dict], energy_with: float, energy_without: Callable[[dict], float],
+                     explain_fraction: float) -> tuple[list[dict], list[dict]]:
+    """(explaining, compensating) of the accepted effects ``added`` when structure is left in the residual of the
+    model with all of them (structure energy ``energy_with``); ``energy_without(a)``: that of the model without
+    ``a``. Each item gets ``structure_explained`` {fraction, energy_without_m2, energy_with_m2}; a compensating
+    one also a ``reason``."""
+    keep, demoted = [], []
+    for a in added:
+        e0 = float(energy_without(a))
+        frac = explained_fraction(e0, energy_with)
+        a["structure_explained"] = {"fraction": frac, "energy_without_m2": e0, "energy_with_m2": float(energy_with),
+                                    "measure": "raw residual energy in the structure test's bases"}
+        (keep if frac >= explain_fraction else demoted).append(a)
+    compensating = [dict(a, reason=f"lowers the error, but removes only {a['structure_explained']['fraction']:.0%} "
+                                   f"of the structure energy (position, velocity, current and input bins), and "
+                                   f"structure remains") for a in demoted]
+    return keep, compensating

@@ -1,0 +1,401 @@
+"""The EMPS plant's greedy effect-discovery loop, :func:`run_emps_loop`.
+
+It fits the nominal model (M, Fv) by output error (:mod:`.fit`), then adds effects from
+:data:`~toggle_id.emps.model.EFFECTS` greedily, each judged by :func:`~.fit.judge_effect` into the discovery
+engine's verdict object, :class:`toggle_id.discovery.validation.Evidence`, with its statistics
+(:mod:`toggle_id.discovery.noise`, :mod:`toggle_id.discovery.stats`) and its acceptance rule plus an
+identifiability gate. The residuals of a 1 kHz closed loop are strongly autocorrelated, so counting N ≈ 25 000
+independent samples would make any test far too lenient; instead every comparison describes the noise by an
+AR(p) model fitted (Yule–Walker, order by BIC) to the *larger* model's residual and computes its statistics on
+prewhitened signals. A candidate is accepted only if the prewhitened F-test gives p < alpha, the prewhitened
+ΔBIC < 0, the time-block cross-validated whitened SSE drops (both fits linearised at their optimum with their own
+Jacobians) and its new parameters stay identifiable (|correlation| ≤ max_corr); among those that pass, the one
+with the lowest prewhitened SSE is taken, all of a round's residuals whitened by one noise model (that of the
+refit that explains the most, as the toggle plant ranks its refits).
+
+Then the toggle loop's own verdict rules (:mod:`toggle_id.discovery.engine`): backward elimination, and — when
+the noise-aware structure test (:func:`toggle_id.discovery.localise.locate`) finds structure left in the final
+position residual — an accepted effect that removed less than ``explain_fraction`` of the structure energy is
+listed as compensating, not added. The report gives the three lists — ``effects_added``, ``compensating`` and
+``rejected``, each item with its ``Evidence.to_dict()`` — and where the structure left concentrates.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from ..discovery.engine import backward_eliminate, split_explaining
+from ..discovery.localise import locate, structure_energy
+from ..discovery.noise import fit_noise, whitened_sse
+from ..discovery.validation import Evidence
+from ..errors import ConfigError, DataError
+from .data import EmpsRecord
+from .fit import (
+    OEFitResult,
+    _check_solver,
+    _compare_published,
+    evidence_entry,
+    fit_output_error,
+    judge_effect,
+    new_params_corr,
+    predict_validation,
+    significant_in_sample,
+)
+from .idim import idim_ls
+from .model import (
+    EFFECTS,
+    INDEX,
+    LOWER,
+    NOMINAL_NAMES,
+    OFF,
+    PUBLISHED,
+    PUBLISHED_THETA,
+    UPPER,
+    Effect,
+    position_rel_error_pct,
+    simulate_emps,
+)
+
+
+def _rank_passing(refits: Sequence[tuple[dict, OEFitResult, Effect]],
+                  noise_max_order: int) -> tuple[tuple[dict, OEFitResult, Effect] | None, dict]:
+    """The refit to accept among those whose checks all passed: the lowest prewhitened SSE, every residual of the
+    round whitened by one noise model, as the toggle plant ranks its refits (:mod:`toggle_id.discovery.loop`):
+    the AR model of the residual of the refit that explains the most (lowest raw SSE). Each candidate's own noise
+    model (the one its tests use) would not do for the ranking: a residual that keeps more structure gets a noise
+    model that predicts it and a smaller whitened SSE. Sets ``sse_w_round`` on every entry; returns the chosen
+    (entry, fit, effect) or None, and {lead, noise_model} of the round."""
+    finite = [rf for rf in refits if rf[1].residual is not None and np.all(np.isfinite(rf[1].residual))]
+    if not finite:
+        return None, {"lead": None, "noise_model": None}
+    lead = min(finite, key=lambda rf: rf[1].sse)
+    noise = fit_noise(lead[1].residual, noise_max_order)
+    for entry, fit, _ in refits:
+        ok = fit.residual is not None and np.all(np.isfinite(fit.residual))
+        entry["sse_w_round"] = float(whitened_sse(noise, fit.residual)[0]) if ok else float("inf")
+    passing = [rf for rf in refits if rf[0]["passed"]]
+    chosen = min(passing, key=lambda rf: rf[0]["sse_w_round"]) if passing else None
+    return chosen, {"lead": lead[2].name, "noise_model": noise.to_dict()}
+
+
+def localisation_signals(record: EmpsRecord, theta: np.ndarray,
+                         sim_options: Mapping | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The position residual qm − q_sim of the model ``theta`` (m) and the signals the structure test bins it by
+    (keys of :data:`toggle_id.discovery.localise.SIGNALS`): the simulated load position ``q`` (m), the position
+    signed by the direction of motion ``q_dir`` = q·sign(q̇) (m: forward strokes on the positive side, backward ones
+    on the negative side, so that a friction force localised on the stroke — which changes sign with the motion
+    and averages out in bins of q alone — shows as a level per bin), the velocity ``qdot`` (m/s, central
+    differences of q), the simulated drive force ``force`` = gtau·ν (N), the record's controller output ``vir`` (V)
+    and the time ``t`` (s). NaN where the simulation fails."""
+    sim = simulate_emps(theta, record, **dict(sim_options or {}))
+    q, nu = sim.q[0], sim.nu[0]
+    qdot = np.gradient(q, record.dt) if np.all(np.isfinite(q)) else np.full(record.n, np.nan)
+    return record.qm - q, {"q": q, "q_dir": q * np.sign(qdot), "qdot": qdot, "force": record.gtau * nu,
+                           "vir": np.asarray(record.vir, float), "t": np.asarray(record.t, float)}
+
+
+def localise(record: EmpsRecord, theta: np.ndarray, sim_options: Mapping | None = None, *, bins: int = 12,
+             alpha: float = 0.01) -> dict:
+    """Is structure left in the position residual of ``theta``, and where? :func:`toggle_id.discovery.localise.locate`
+    with no fixed noise model (each family judged under the AR noise model of its own alternative) on the signals of
+    :func:`localisation_signals`; position, position signed by the direction of motion and velocity enter the
+    verdict (Bonferroni over the three), drive force, controller output and time are shown (in a closed loop the
+    controller output carries the position error itself). Returns locate's dict (``structure_left``, ``families``, ``significant``,
+    ``strongest``, ``text``); ``{"error": ...}`` when the model cannot be simulated on the record."""
+    r, signals = localisation_signals(record, theta, sim_options)
+    if not (np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())):
+        return {"error": "the final model cannot be simulated on the record", "structure_left": None,
+                "text": "no localisation: the final model cannot be simulated on the record"}
+    return locate(None, r, signals, bins=int(bins), alpha=float(alpha))
+
+
+def three_lists(names: Sequence[str], tried: Sequence[dict], evidence: Mapping[int, Evidence],
+                max_effects: int | None) -> tuple[list[dict], list[dict], list[dict]]:
+    """The verdict per effect, as the toggle plant's ``discovery.json`` gives it: ``effects_added`` (accepted),
+    ``compensating`` (its last refit is significant in sample — prewhitened F-test and BIC pass — but no better out
+    of sample or not identifiable; never called added) and ``rejected`` (not significant in sample, passed but left
+    out by ``max_effects``, or never refitted because an effect it refines is not in the model). Unlike the toggle
+    loop, structure left in the final residual does not move the accepted effects to ``compensating``: each passed
+    all four checks against the model before it, and the structure test reports separately what is left. Each item:
+    ``name``, ``round``, ``params``, ``reason``, ``evidence`` (``Evidence.to_dict()`` of its last judgement, None if
+    never judged); an added effect also has ``F``, ``p_value``, ``delta_bic``. ``evidence`` maps ``id(entry)`` of
+    the ``tried`` entries to their :class:`Evidence`."""
+    added, compensating, rejected = [], [], []
+    for name in names:
+        mine = [c for c in tried if c["name"] == name]
+        if not mine:
+            req = [r for r in EFFECTS[name].requires]
+            rejected.append({"name": name, "round": None, "params": {}, "evidence": None,
+                             "reason": "never refitted: it refines " + ", ".join(req) + ", which is not in the model"
+                             if req else "never refitted"})
+            continue
+        last = next((c for c in mine if c["accepted"]), mine[-1])
+        ev = evidence[id(last)]
+        item = {"name": name, "round": last["round"], "params": dict(last["params"]), "reason": ev.reason,
+                "evidence": ev.to_dict()}
+        if last["accepted"]:
+            added.append({**item, "F": ev.F, "p_value": ev.p_value, "delta_bic": ev.delta_bic})
+        elif ev.passed:
+            item["reason"] = (f"passed every check in round {last['round']} but was not added: the limit "
+                              f"emps.max_effects = {max_effects} was reached")
+            rejected.append(item)
+        elif significant_in_sample(ev):
+            item["reason"] = "significant in sample (prewhitened F-test and BIC), but " + ev.reason
+            compensating.append(item)
+        else:
+            rejected.append(item)
+    added.sort(key=lambda a: a["round"])
+    return added, compensating, rejected
+
+
+def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
+                  candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
+                  max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
+                  reference_fit: bool = True, noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
+                  structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
+                  explain_fraction: float = 0.5, sim_options: Mapping | None = None) -> dict:
+    """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
+
+    Each round refits all parameters of the current model plus one candidate (from its registry default) for every
+    remaining candidate whose ``requires`` are in the model, and judges each refit against the current model with
+    :func:`judge_effect` (the discovery engine's :class:`~toggle_id.discovery.validation.Evidence`: AR(p ≤
+    ``noise_max_order``) noise model of the refit's residual; prewhitened F-test p < ``alpha``, prewhitened
+    ΔBIC < 0, a lower time-block cross-validated whitened SSE with blocks of ``cv_block`` samples dealt to
+    ``cv_folds`` folds, and every new parameter identifiable: |correlation| with each other free parameter ≤
+    ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at standstill). Of the candidates that
+    pass, the one with the lowest prewhitened SSE is accepted, the round's residuals all whitened by one noise
+    model (:func:`_rank_passing`); the loop stops when none passes. Then the noise-aware structure test localises
+    what the final model leaves in its position residual (:func:`localise`, ``structure_bins`` bins per signal,
+    level ``structure_alpha``). Keys of the report:
+
+    - ``position_rel_error_pct_before`` (nominal M, Fv fit), ``position_rel_error_pct_after`` (final model), %;
+    - ``effects_added``, ``compensating``, ``rejected``: the three lists of :func:`three_lists` (each item with
+      name, reason, evidence); ``effects_added`` items also keep {params, round, F, p_value, delta_bic};
+      ``free`` (final free parameters);
+    - ``candidates`` [{round, name, noise_model, F, p_value, delta_bic, in_sample_rms_w_before/after,
+      out_of_sample_rms_w_before/after, checks, max_corr, verdict (accepted | passed, not the best | rejected),
+      reason, sse_w_round, sse_ratio, rel_error_pct, params, accepted, seconds, …}] (:func:`evidence_entry`);
+    - ``rounds`` [{round, lead, noise_model, accepted}]: the noise model each round's ranking whitened by;
+    - ``nominal``: the nominal fit {free, identified (M, Fv), rel_error_pct, noise_model};
+    - ``noise_model``: the AR noise model of the final model's residual (its effective sample size included);
+    - ``structure_left`` (bool, None if the final model cannot be simulated) and ``localisation`` (locate's dict:
+      families with p-values and per-bin levels, ``significant``, ``strongest``, ``text``);
+    - ``identified`` (all 8 parameters), ``std`` (approximate σ of the free ones, white-residual assumption);
+    - ``published``, ``pct_diff_vs_published`` (M, Fv, Fc, offset; None where not in the final model) and, if the
+      asymmetry was added, ``pct_diff_vs_published_asym`` and ``asymmetric_values`` (Fv±, Fc±);
+    - ``published_model_rel_error_pct``: the PDF's symmetric values simulated by this simulator;
+    - ``reference`` (if ``reference_fit``): output-error fit of the PDF's own structure (M, Fv, Fc, offset) with its
+      rel. error and % differences vs the PDF;
+    - ``validation`` (if given): the held-out record predicted by the final, published and reference models
+      (:func:`predict_validation`; nothing is fitted on it);
+    - ``seconds``, ``n_samples``, ``alpha``, ``max_corr``, ``noise_max_order``, ``cv_block``, ``cv_folds``,
+      ``structure_bins``, ``structure_alpha``, ``solver``.
+    """
+    t0 = time.perf_counter()
+    names = list(EFFECTS) if candidates is None else list(candidates)
+    unknown = [c for c in names if c not in EFFECTS]
+    if unknown:
+        raise ConfigError(f"unknown EMPS effect(s) {unknown}; known: {list(EFFECTS)}")
+    if not (0 < alpha < 1):
+        raise ConfigError(f"alpha must lie in (0, 1), got {alpha}")
+    if not (0 < structure_alpha < 1):
+        raise ConfigError(f"structure_alpha must lie in (0, 1), got {structure_alpha}")
+    if not (0 < explain_fraction < 1):
+        raise ConfigError(f"explain_fraction must lie in (0, 1), got {explain_fraction}")
+    if not (0 < max_corr <= 1):
+        raise ConfigError(f"max_corr must lie in (0, 1], got {max_corr}")
+    for label, value, least in (("noise_max_order", noise_max_order, 0), ("cv_block", cv_block, 1),
+                                ("cv_folds", cv_folds, 2), ("structure_bins", structure_bins, 2)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise ConfigError(f"{label} must be a whole number >= {least}, got {value!r}")
+    _check_solver(solver)
+    n = record.n
+    fit_kw = dict(max_nfev=max_nfev, solver=solver, sim_options=sim_options)
+    judge_kw = {"alpha": alpha, "max_corr": max_corr, "noise_max_order": int(noise_max_order),
+                "cv_block": int(cv_block), "cv_folds": int(cv_folds)}
+
+    # nominal model: IDIM-LS (M, Fv only) start, then output error
+    theta = OFF.copy()
+    try:
+        start = idim_ls(record, terms=NOMINAL_NAMES)["params"]
+        for nm in NOMINAL_NAMES:
+            theta[INDEX[nm]] = np.clip(start[nm], LOWER[INDEX[nm]], UPPER[INDEX[nm]])
+    except DataError:  # record too short for the recipe: start from the registry's round values
+        pass
+    free: list[str] = list(NOMINAL_NAMES)
+    current = fit_output_error(record, free, theta, **fit_kw)
+    nominal = current
+    before = current.rel_error_pct
+
+    in_model: list[str] = []
+    tried: list[dict] = []
+    evidence: dict[int, Evidence] = {}  # id(entry of ``tried``) → its Evidence
+    remaining = list(names)
+    rnd = 0
+    rounds: list[dict] = []
+    while remaining and (max_effects is None or len(in_model) < max_effects):
+        rnd += 1
+        refits: list[tuple[dict, OEFitResult, Effect]] = []
+        for name in remaining:
+            eff = EFFECTS[name]
+            if any(req not in in_model for req in eff.requires):
+                continue
+            th = current.theta.copy()
+            for p, d in zip(eff.params, eff.default):
+                th[INDEX[p]] = d
+            fit = fit_output_error(record, free + list(eff.params), th, **fit_kw)
+            ev = judge_effect(current, fit, **judge_kw)
+            entry = {"round": rnd, "name": name,
+                     **evidence_entry(ev, n, new_params_corr(current, fit), cv_block, cv_folds),
+                     "sse_ratio": float(fit.sse / current.sse), "rel_error_pct": fit.rel_error_pct,
+                     "params": {p: float(fit.theta[INDEX[p]]) for p in eff.params}, "accepted": False,
+                     "verdict": "passed" if ev.passed else "rejected", "seconds": fit.seconds}
+            tried.append(entry)
+            evidence[id(entry)] = ev
+            refits.append((entry, fit, eff))
+        if not refits:
+            break
+        chosen, ranking = _rank_passing(refits, noise_max_order)
+        rounds.append({"round": rnd, **ranking, "accepted": chosen[2].name if chosen else None})
+        if chosen is None:
+            break
+        entry, fit, eff = chosen
+        entry["accepted"] = True
+        entry["verdict"] = "accepted"
+        for other, _, _ in refits:
+            if other["passed"] and other is not entry:
+                other["verdict"] = "passed, not the best"
+                other["reason"] = (f"passed every check, but {eff.name} has the lower prewhitened SSE under the "
+                                   f"round's noise model ({entry['sse_w_round']:.4g} against "
+                                   f"{other['sse_w_round']:.4g} m²); judged again next round")
+        in_model.append(eff.name)
+        free += list(eff.params)
+        current = fit
+        remaining.remove(eff.name)
+    added, compensating, rejected = three_lists(names, tried, evidence, max_effects)
+    sim_kw = dict(sim_options or {})
+    current, added, compensating, rejected, loc, rules = _verdict_rules(
+        record, current, added, compensating, rejected, fit_kw, judge_kw, sim_kw, backward=backward,
+        explain_fraction=explain_fraction, bins=structure_bins, alpha=structure_alpha)
+    free = list(current.free)
+    noise_final = fit_noise(current.residual, noise_max_order)
+    noise_nominal = fit_noise(nominal.residual, noise_max_order)
+
+    pub_sim = simulate_emps(PUBLISHED_THETA, record, **sim_kw)
+    cmp = _compare_published(current.theta, free)
+    report = {
+        "record": record.name,
+        "n_samples": int(n),
+        "position_rel_error_pct_before": float(before),
+        "position_rel_error_pct_after": float(current.rel_error_pct),
+        "effects_added": added,
+        "compensating": compensating,
+        "rejected": rejected,
+        "candidates": tried,
+        "rounds": rounds,
+        "free": list(free),
+        "nominal": {"free": list(NOMINAL_NAMES), "identified": {k: nominal.params[k] for k in NOMINAL_NAMES},
+                    "rel_error_pct": float(before), "noise_model": noise_nominal.to_dict()},
+        "noise_model": {**noise_final.to_dict(), "description": noise_final.describe()},
+        "structure_left": loc["structure_left"],
+        "localisation": loc,
+        "backward_elimination": rules["eliminated"],
+        "explain_fraction": float(explain_fraction),
+        "identified": current.params,
+        "std": dict(current.std),
+        "published": dict(PUBLISHED),
+        "pct_diff_vs_published": cmp["symmetric"],
+        "published_model_rel_error_pct": float(position_rel_error_pct(record.qm, pub_sim.q[0])),
+        "alpha": float(alpha),
+        "max_corr": float(max_corr),
+        "noise_max_order": int(noise_max_order),
+        "cv_block": int(cv_block),
+        "cv_folds": int(cv_folds),
+        "structure_bins": int(structure_bins),
+        "structure_alpha": float(structure_alpha),
+        "solver": solver,
+    }
+    if "asymmetric" in cmp:
+        report["asymmetric_values"] = cmp["asymmetric_values"]
+        report["pct_diff_vs_published_asym"] = cmp["asymmetric"]
+    if reference_fit:
+        ref = fit_output_error(record, ["M", "Fv", "Fc", "offset"], PUBLISHED_THETA, **fit_kw)
+        report["reference"] = {
+            "free": list(ref.free),
+            "identified": {k: ref.params[k] for k in ref.free},
+            "rel_error_pct": ref.rel_error_pct,
+            "pct_diff_vs_published": _compare_published(ref.theta, ref.free)["symmetric"],
+        }
+    if validation is not None:
+        models = {"final": current.theta, "published": PUBLISHED_THETA}
+        if "reference" in report:
+            models["reference"] = ref.theta
+        report["validation"] = predict_validation(validation, models, sim_kw)
+    report["seconds"] = float(time.perf_counter() - t0)
+    return report
+
+
+def _without(record: EmpsRecord, current: OEFitResult, name: str, fit_kw: Mapping) -> OEFitResult:
+    """The current model refitted with effect ``name`` off."""
+    eff = EFFECTS[name]
+    theta = current.theta.copy()
+    for p in eff.params:
+        theta[INDEX[p]] = OFF[INDEX[p]]
+    return fit_output_error(record, [p for p in current.free if p not in eff.params], theta, **fit_kw)
+
+
+def _effect_last(fit: OEFitResult, params: Sequence[str]) -> OEFitResult:
+    """``fit`` with its free parameters reordered so that ``params`` come last (as :func:`judge_effect` expects of
+    the larger model: its new parameters last)."""
+    order = [i for i, p in enumerate(fit.free) if p not in params] + [i for i, p in enumerate(fit.free) if p in params]
+    corr = None if fit.corr is None else fit.corr[np.ix_(order, order)]
+    jac = None if fit.jacobian is None else fit.jacobian[:, order]
+    return replace(fit, free=tuple(fit.free[i] for i in order), corr=corr, jacobian=jac)
+
+
+def _verdict_rules(record: EmpsRecord, current: OEFitResult, added: list[dict], compensating: list[dict],
+                   rejected: list[dict], fit_kw: Mapping, judge_kw: Mapping, sim_kw: Mapping, *, backward: bool,
+                   explain_fraction: float, bins: int, alpha: float) -> tuple:
+    """The discovery engine's verdict rules (:mod:`toggle_id.discovery.engine`) on the EMPS loop's result: backward
+    elimination over the accepted effects (an effect another accepted one refines stays), then, when the structure
+    test finds structure left, the split into explaining and compensating by the structure energy. Returns the final
+    model, the three lists, the localisation of the final residual and {eliminated, demoted}."""
+    def required(a: dict, now: Sequence[dict]) -> bool:
+        return any(a["name"] in EFFECTS[b["name"]].requires for b in now if b is not a)
+
+    eliminated: list[dict] = []
+    if backward and added:
+        current, added, eliminated = backward_eliminate(
+            current, added, lambda cur, a, now: _without(record, cur, a["name"], fit_kw),
+            lambda small, large: judge_effect(small, _effect_last(large, [p for p in large.free
+                                                                         if p not in small.free]), **judge_kw),
+            lambda msg: None, lambda fit: f"{fit.rel_error_pct:.3g} %", keep=required)
+        rejected += [{"name": e["name"], "round": None, "params": {}, "evidence": e["evidence"],
+                      "reason": "eliminated (backward): " + e["reason"]} for e in eliminated]
+    loc = localise(record, current.theta, sim_kw, bins=bins, alpha=alpha)
+    demoted: list[dict] = []
+    if loc.get("structure_left") and added:
+        def energy(theta: np.ndarray) -> float:
+            r, signals = localisation_signals(record, theta, sim_kw)
+            ok = np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())
+            return structure_energy(r, signals, bins=bins) if ok else float("inf")
+
+        e_with = energy(current.theta)
+        added, demoted = split_explaining(
+            added, e_with, lambda a: energy((a.get("_reduced") or _without(record, current, a["name"], fit_kw)).theta),
+            explain_fraction)
+        for d in [d for d in demoted if any(d["name"] in EFFECTS[k["name"]].requires for k in added)]:
+            demoted.remove(d)  # an effect that an explaining one refines stays with it
+            added.append({k: v for k, v in d.items() if k != "reason"})
+        if demoted:
+            for d in demoted:
+                current = _without(record, current, d["name"], fit_kw)
+            loc = localise(record, current.theta, sim_kw, bins=bins, alpha=alpha)
+            compensating += demoted
+    for a in added + compensating:
+        a.pop("_reduced", None)
+    return current, added, compensating, rejected, loc, {"eliminated": eliminated,
+                                                         "demoted": [d["name"] for d in demoted]}
