@@ -36,7 +36,7 @@ from .problem import FitProblem, JointProblem, free_indices, joint
 from .record import Record
 from .simulate import FAST, PRECISE, STATUS_OK, SolverSettings, extend, simulate, simulations_run
 
-METHODS = ("one_stage", "two_stage")
+METHODS = ("one_stage", "two_stage", "fast")  # fast: multistart least squares in the two stages (toggle_id/fast.py)
 
 
 @dataclass
@@ -398,7 +398,7 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
              noise_var: float | None = None,
              on_generation: Callable[[str, RGA], None] | None = None,
              on_stage: Callable[[StageResult], None] | None = None,
-             curve: RmseCurve | None = None) -> IdentificationResult:
+             curve: RmseCurve | None = None, fast: Any = None) -> IdentificationResult:
     """Identify the plant's parameters from ``record`` by the paper's RGA, one- or two-stage.
 
     ``record``: one record, or several fitted jointly with one parameter vector (multi-experiment; fitness
@@ -407,6 +407,10 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
     values (e.g. from a datasheet). ``extra_free``: effect parameters to fit along (discovery). The same
     ``seed`` gives the same result whatever the evaluator and its number of workers. ``checkpoint_meta`` is
     stored in every checkpoint (the workflow puts the job's identity there, :mod:`toggle_id.jobdir`).
+
+    ``method="fast"``: the two stages by multistart least squares instead of the GA
+    (:func:`toggle_id.fast.identify_fast`, settings ``fast``: a :class:`toggle_id.fast.FastSettings`); ``ga``,
+    ``make_evaluator`` and the checkpoints are not used.
 
     ``curve``: where the best whole-record RMS error against cumulative simulations goes (one more PRECISE
     simulation per generation whose best individual changed; :mod:`toggle_id.curve`), e.g. one whose
@@ -427,6 +431,12 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
         theta = extend(np.asarray(base, float))[0]
     for k, v in (fixed or {}).items():
         theta[free_indices([k])[0]] = float(v)
+    if method == "fast":
+        from .fast import identify_fast
+
+        return identify_fast(records, theta, seed=seed, fixed=fixed, bounds=bounds, extra_free=extra_free,
+                             settings=settings, i_q_weight=i_q_weight, fast=fast, polish_settings=polish,
+                             identifiability=identifiability, noise_var=noise_var, curve=curve, on_stage=on_stage)
     k_cs, plan = joint_plan(records, method, theta, fixed=tuple(fixed or {}), extra_free=extra_free)
     if method == "two_stage":  # D and K_l at the centres of their domains during stage 1 (docs/model.md §7)
         for nm in P.CLAMP_NAMES:

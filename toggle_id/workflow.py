@@ -205,6 +205,16 @@ def polish_settings(cfg: Mapping) -> PolishSettings:
     return ps
 
 
+def fast_settings(cfg: Mapping):
+    """The ``fast`` node (method ``fast``, :class:`toggle_id.fast.FastSettings`), validated."""
+    from .fast import FastSettings
+
+    try:
+        return FastSettings(**dict(cfg.get("fast") or {})).validate()
+    except TypeError as err:
+        raise ConfigError(f"fast: {err}") from err
+
+
 # ------------------------------------------------------------------------------------------ evaluators
 @contextmanager
 def ray_session(ev: Mapping) -> Iterator[None]:
@@ -345,6 +355,7 @@ def _identify_kwargs(cfg: Mapping, run_dir: Path, resume: bool) -> dict:
     return dict(ga=ga_config(cfg), seed=int(cfg.get("seed", 0)), fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
                 extra_free=tuple(cfg.get("extra_free") or ()), settings=solver_tier(cfg),
                 i_q_weight=float(_get(cfg, "outputs.i_q_weight", 0.0) or 0.0), polish=polish_settings(cfg),
+                fast=fast_settings(cfg),
                 identifiability=bool(_get(cfg, "identifiability.enabled", True)),
                 noise_var=None if noise is None else float(noise) ** 2,
                 checkpoint_dir=run_dir, checkpoint_every=int(_get(cfg, "checkpoint.every", 5)), resume=resume)
@@ -358,6 +369,7 @@ def validate_config(cfg: Mapping) -> None:
         raise ConfigError(f"unknown method {cfg.get('method')!r}; known: {', '.join(METHODS)}")
     ga_config(cfg)
     polish_settings(cfg)
+    fast_settings(cfg)
     solver_tier(cfg)
     evaluator_factory(cfg.get("evaluator") or {})
     from .identify import stage_bounds

@@ -91,6 +91,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                 nominal_result = identify(record, method=method, ga=ga, seed=int(cfg.get("seed", 0)),
                                           make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
                                           settings=tier, polish=polish_cfg, identifiability=False,
+                                          fast=workflow.fast_settings(cfg),
                                           progress=lambda total, desc: console.progress(total, desc, enabled=show),
                                           on_stage=lambda st: workflow.stage_child_run(tracker, st, truth),
                                           curve=curve)
