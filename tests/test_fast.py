@@ -83,3 +83,18 @@ def test_fast_job_rejects_a_bad_setting(tmp_path, job_env):
                    cwd=tmp_path, env=job_env, timeout=120)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode != 0 and len(lines) == 1 and "fast.keep" in lines[0]
+
+
+@pytest.mark.slow
+def test_bench_methods_prints_its_table(tmp_path, job_env):
+    from conftest import run_job
+
+    out = tmp_path / "methods.md"
+    proc = run_job("jobs.bench_methods", "--fast", "1", "--two-stage", "0", "--one-stage", "0", "--out", str(out),
+                   "data.duration=1.0", "fast.starts=3", "fast.starts_stage2=2", "fast.final_nfev=10",
+                   cwd=tmp_path, env=job_env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [ln for ln in out.read_text().splitlines() if ln.startswith("| fast |")]
+    assert len(rows) == 1 and " of 1 |" in rows[0]
+    runs = json.loads(out.with_suffix(".json").read_text())
+    assert runs[0]["method"] == "fast" and runs[0]["simulations"] > 0 and runs[0]["curve"]
