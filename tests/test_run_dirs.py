@@ -175,3 +175,33 @@ def test_the_job_refuses_to_resume_another_jobs_checkpoint(tmp_path, job_env):
     assert not (tmp_path / "cut" / "result.json").exists()
     runs = [p for p in (tmp_path / "outputs").glob("*/*") if p.is_dir()]
     assert len(runs) == 2  # each refused job had its own directory, none wrote into the other's
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_five_jobs_started_together_keep_their_directories_results_and_mlflow_runs(tmp_path, job_env):
+    """Five jobs from one checkout in the same second, on one fresh SQLite MLflow store (as the embedded default)."""
+    import os
+
+    from mlflow import MlflowClient
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]), **job_env}
+    args = [a for a in QUICK if not a.startswith("tracking.")]
+    procs = [subprocess.Popen([sys.executable, "-m", "jobs.run", *args, f"seed={seed}"], cwd=tmp_path, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for seed in range(5)]
+    outs = [p.communicate(timeout=900) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0, err[-3000:]
+        assert "tracking disabled" not in err, err[-3000:]
+    reports = [Path(out.strip().splitlines()[-1].removeprefix("report: ")) for out, _ in outs]
+    dirs = {r.parent for r in reports}
+    assert len(dirs) == 5 and dirs == {p for p in (tmp_path / "outputs").glob("*/*") if p.is_dir()}
+    results = [json.loads(r.read_text()) for r in reports]
+    assert [res["config"]["seed"] for res in results] == list(range(5))
+    client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
+    runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
+    parents = {r.info.run_id: r for r in runs if "mlflow.parentRunId" not in r.data.tags}
+    assert len(parents) == 5
+    for res in results:
+        run = parents[res["mlflow_run_id"]]
+        assert run.info.status == "FINISHED" and run.data.params["seed"] == str(res["config"]["seed"])

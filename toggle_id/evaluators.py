@@ -283,7 +283,8 @@ def code_runtime_env() -> dict[str, Any]:
 def join_address(address: str, timeout_s: float = 10.0) -> str:
     """Find and check the Ray cluster ``address`` (``"auto"`` or ``"host:port"``) names; return ``host:port``.
 
-    Within about ``timeout_s`` seconds: the address is found (``auto``: :func:`_auto_address`), something must
+    Within at most ``2 * timeout_s + 5`` seconds (TCP, then the GCS probe in a fresh interpreter), usually well
+    under one: the address is found (``auto``: :func:`_auto_address`), something must
     accept a TCP connection there, and a Ray head must answer a GCS client and accept this machine's
     credentials (the token is sent when one is found, :func:`_send_token_if_found`). Every failure is a one-line
     ConfigError that names the fix. Ray's own ``ray.init`` would wait 20 s for a refused token and minutes for a
@@ -319,7 +320,7 @@ def join_address(address: str, timeout_s: float = 10.0) -> str:
     _send_token_if_found()
     try:
         proc = subprocess.run([sys.executable, "-c", _PROBE, target, str(int(timeout_s * 1000))],
-                              capture_output=True, text=True, timeout=timeout_s + 20.0)
+                              capture_output=True, text=True, timeout=timeout_s + 5.0)  # + interpreter start
     except subprocess.TimeoutExpired:
         proc = None
     if proc is None or proc.returncode == 4 and "timed out" in proc.stdout.replace("TimedOut", "timed out").lower():

@@ -5,6 +5,7 @@
   node is represented by the records themselves) and the records it fits (their samples, input and initial
   position). The identify job stores it in every checkpoint; :func:`check_resume` refuses, in one line naming
   what differs, to continue a checkpoint that another job wrote.
+* **Store.** :func:`store_lock` lets jobs started together open one fresh SQLite MLflow store in turn.
 * **Claim.** :func:`claim` takes an exclusive lock on ``<run dir>/job.lock`` for the rest of the process, so two
   jobs never work in one directory at the same time (a second one stops with one line naming the first's pid).
 
@@ -13,11 +14,13 @@ The unique directory itself comes from the job entry points (``jobs/_cli.py``: a
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
+import tempfile
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -140,6 +143,32 @@ def claim(run_dir: str | os.PathLike) -> Path:
     fh.flush()
     _LOCKS[key] = fh
     return run_dir
+
+
+@contextlib.contextmanager
+def store_lock(uri: str | None) -> Iterator[None]:
+    """Hold an inter-process lock on a local SQLite tracking store (``sqlite:///PATH``) while the block runs.
+
+    MLflow creates a new store's tables without guarding against another process doing the same, so jobs started
+    together on a fresh ``mlflow.db`` lose all but one race (``table ... already exists``, and that job's tracking
+    is off). Opening the store under this lock makes them take turns; other URIs are not locked. The lock file is
+    in the system's temporary directory, named after the store's path.
+    """
+    path = uri[len("sqlite:///"):].split("?")[0] if isinstance(uri, str) and uri.startswith("sqlite:///") else None
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - no flock (Windows)
+        path = None
+    if not path or path.startswith(":memory:"):
+        yield
+        return
+    digest = hashlib.sha256(os.path.abspath(path).encode()).hexdigest()[:16]
+    with open(os.path.join(tempfile.gettempdir(), f"toggle_id-store-{digest}.lock"), "a") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
 def release(run_dir: str | os.PathLike) -> None:

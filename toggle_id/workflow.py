@@ -268,10 +268,12 @@ def make_tracker(cfg: Mapping, project_root: str | Path) -> Tracker:
     from .tracking import absolute_uri
 
     sm = tr.get("system_metrics") or {}
-    return Tracker(absolute_uri(uri, project_root), tr.get("experiment", "toggle-id"), bool(tr.get("enabled", True)),
-                   system_metrics=bool(sm.get("enabled", False)),
-                   system_metrics_interval_s=float(sm.get("sampling_interval_s", 10.0)),
-                   system_metrics_samples=int(sm.get("samples_before_logging", 1)))
+    uri = absolute_uri(uri, project_root)
+    with jobdir.store_lock(uri if tr.get("enabled", True) else None):  # jobs started together: one opens it at a time
+        return Tracker(uri, tr.get("experiment", "toggle-id"), bool(tr.get("enabled", True)),
+                       system_metrics=bool(sm.get("enabled", False)),
+                       system_metrics_interval_s=float(sm.get("sampling_interval_s", 10.0)),
+                       system_metrics_samples=int(sm.get("samples_before_logging", 1)))
 
 
 # ------------------------------------------------------------------------------------------ reporting
