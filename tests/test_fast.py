@@ -98,3 +98,16 @@ def test_bench_methods_prints_its_table(tmp_path, job_env):
     assert len(rows) == 1 and " of 1 |" in rows[0]
     runs = json.loads(out.with_suffix(".json").read_text())
     assert runs[0]["method"] == "fast" and runs[0]["simulations"] > 0 and runs[0]["curve"]
+
+
+def test_fast_one_stage_route_fits_everything_at_once(record):
+    res = identify_fast([record], extend(P.ASSIGNED)[0], seed=1, identifiability=False,
+                        fast=FastSettings(route="one_stage", starts=3, first_nfev=2, finalists=1, final_nfev=5))
+    assert [s.name for s in res.stages] == ["one_stage"]
+    assert len(res.stages[0].free) == 15 and res.stages[0].window == (0, record.n)
+    assert res.rmse_m == pytest.approx(res.stages[0].rmse_m, rel=1e-9)
+
+
+def test_fast_route_is_checked():
+    with pytest.raises(ConfigError, match="fast.route"):
+        FastSettings(route="three_stage").validate()

@@ -10,6 +10,9 @@ goes on with a doubled budget, and so on until a few remain; the best is polishe
 tier. Starts that stall above the others are abandoned early, which is where the time goes otherwise: most
 starts of the free-motion problem end in a local minimum (see the README's method table).
 
+``route: one_stage`` runs the same search on all parameters and the whole record at once (no stages, no joint
+polish).
+
 Deterministic: the starts come from the seed; the polishes are sequential and exact.
 """
 from __future__ import annotations
@@ -48,6 +51,7 @@ class FastSettings:
     the best ``keep`` fraction continued with twice the budget, down to ``finalists`` starts; the best one
     polished with ``final_nfev`` on the PRECISE tier. Stage 2 (two parameters) uses ``starts_stage2``."""
 
+    route: str = "two_stage"
     starts: int = 24
     starts_stage2: int = 8
     first_nfev: int = 4
@@ -57,6 +61,8 @@ class FastSettings:
     fd_rel_step: float = 1e-6
 
     def validate(self) -> FastSettings:
+        if self.route not in ("two_stage", "one_stage"):
+            raise ConfigError(f"fast.route must be 'two_stage' or 'one_stage', got {self.route!r}")
         for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -119,10 +125,10 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     fast = (fast or FastSettings()).validate()
     polish_settings = polish_settings or PolishSettings()
     say = progress or (lambda msg: None)
-    k_cs, plan = joint_plan(records, "two_stage", theta, fixed=tuple(fixed or {}), extra_free=extra_free)
+    k_cs, plan = joint_plan(records, fast.route, theta, fixed=tuple(fixed or {}), extra_free=extra_free)
     theta = theta.copy()
     for nm in ("D", "K_l"):
-        if nm not in (fixed or {}):
+        if nm not in (fixed or {}) and fast.route == "two_stage":
             lo, hi = stage_bounds([nm], bounds)
             theta[ALL_INDEX[nm]] = 0.5 * (lo[0] + hi[0])
     t_start = time.perf_counter()
@@ -135,10 +141,10 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         problem = joint([_stage_problem(r, name, free, w, theta, settings, i_q_weight)
                          for r, w in zip(records, windows)])
         lo, hi = stage_bounds(list(free), bounds)
-        k = fast.starts if name == "stage1" else fast.starts_stage2
+        k = fast.starts_stage2 if name == "stage2" else fast.starts
         say(f"{name}: {k} starts, {len(free)} parameters")
         t0, n0 = time.perf_counter(), simulations_run()
-        starts = _draw(rng, k, lo, hi, centre=None if name == "stage1" else problem.x0())
+        starts = _draw(rng, k, lo, hi, centre=problem.x0() if name == "stage2" else None)
         x, info = successive_halving(problem, starts, lo, hi, fast, settings)
         sse = float(problem.sse(x[None, :], PRECISE)[0])
         st = StageResult(name=name, free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],
@@ -157,16 +163,17 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         if on_stage is not None:
             on_stage(st)
         say(f"{name}: rms {st.rmse_m * 1e6:.4g} µm on its window ({st.seconds_polish:.1f} s)")
-    t_id = time.perf_counter()
-    st = _joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
-                       noise_var)
-    t_report += time.perf_counter() - t_id - st.seconds_polish
-    theta = st.theta.copy()
-    spent += st.n_simulations
-    curve.add(st.name, spent, theta=theta)
-    stages.append(st)
-    if on_stage is not None:
-        on_stage(st)
+    if fast.route == "two_stage":
+        t_id = time.perf_counter()
+        st = _joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
+                           noise_var)
+        t_report += time.perf_counter() - t_id - st.seconds_polish
+        theta = st.theta.copy()
+        spent += st.n_simulations
+        curve.add(st.name, spent, theta=theta)
+        stages.append(st)
+        if on_stage is not None:
+            on_stage(st)
     per_record = []
     for r in records:
         full = FitProblem(r, ("D",), theta, (0, r.n), PRECISE)
