@@ -39,7 +39,8 @@ def run_one(method: str, seed: int, overrides: list[str], run_dir: Path, env: di
     d = json.loads((run_dir / "result.json").read_text(encoding="utf-8"))
     return {"method": method, "seed": seed, "rmse_um": 1e6 * d["rmse_m"], "wall_s": wall,
             "seconds_fit": d.get("seconds_fit", d.get("seconds_total")), "simulations": d.get("n_simulations"),
-            "curve": [(p["seconds"], p["simulations"], 1e6 * p["best_rmse_m"]) for p in d.get("curve") or []]}
+            "curve": [(p["seconds"], p["simulations"], 1e6 * p["best_rmse_m"]) for p in d.get("curve") or []],
+            "params": d.get("params"), "pct_error": d.get("pct_error")}
 
 
 def _time_to(curve: list, floor_um: float) -> tuple[float | None, int | None]:
