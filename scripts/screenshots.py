@@ -51,12 +51,33 @@ def make_demo_runs(store: Path, workdir: Path) -> None:
                        stdout=subprocess.DEVNULL)
 
 
+def stop_server(server: subprocess.Popen) -> None:
+    """Stop the `mlflow server` started here and the workers it spawned (its process group)."""
+    import signal
+
+    for sig, wait in ((signal.SIGTERM, 30), (signal.SIGKILL, 10)):
+        try:
+            os.killpg(server.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            server.wait(timeout=wait)
+            time.sleep(1.0)  # the workers leave after the server
+        except subprocess.TimeoutExpired:
+            continue
+        try:
+            os.killpg(server.pid, 0)
+        except ProcessLookupError:
+            return
+
+
 def start_server(store: Path, artifacts: Path) -> tuple[subprocess.Popen, str]:
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     proc = subprocess.Popen([sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
                              "--backend-store-uri", f"sqlite:///{store}", "--artifacts-destination", str(artifacts),
-                             "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)  # its own process group: the server and its workers
     deadline = time.monotonic() + 120
     while True:
         try:
@@ -64,7 +85,7 @@ def start_server(store: Path, artifacts: Path) -> tuple[subprocess.Popen, str]:
                 return proc, base
         except OSError:
             if proc.poll() is not None or time.monotonic() > deadline:
-                proc.kill()
+                stop_server(proc)
                 raise SystemExit("error: mlflow server did not start")
             time.sleep(0.5)
 
@@ -151,8 +172,7 @@ def main(argv: list[str] | None = None) -> int:
             exp_id, runs = find_runs(base, args.experiment)
             shoot(base, exp_id, runs, Path(args.out), args.chromium)
         finally:
-            server.terminate()
-            server.wait(timeout=30)
+            stop_server(server)
     return 0
 
 

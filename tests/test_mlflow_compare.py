@@ -230,6 +230,26 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def stop_server(server: subprocess.Popen) -> None:
+    """Stop the `mlflow server` started here and the workers it spawned (its process group)."""
+    import signal
+
+    for sig, wait in ((signal.SIGTERM, 30), (signal.SIGKILL, 10)):
+        try:
+            os.killpg(server.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            server.wait(timeout=wait)
+            time.sleep(1.0)  # the workers leave after the server
+        except subprocess.TimeoutExpired:
+            continue
+        try:
+            os.killpg(server.pid, 0)
+        except ProcessLookupError:
+            return
+
+
 def _get(base: str, path: str, **query) -> dict:
     url = f"{base}{path}" + (f"?{urllib.parse.urlencode(query)}" if query else "")
     with urllib.request.urlopen(url, timeout=10) as resp:
@@ -243,7 +263,8 @@ def test_a_job_logged_to_an_mlflow_server_has_metrics_curve_dataset_and_model(tm
     server = subprocess.Popen([sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
                                "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
                                "--artifacts-destination", str(tmp_path / "artifacts"), "--workers", "1"],
-                              cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                              cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                              start_new_session=True)  # its own process group: the server and its workers
     try:
         deadline = time.monotonic() + 120
         while True:
@@ -275,8 +296,4 @@ def test_a_job_logged_to_an_mlflow_server_has_metrics_curve_dataset_and_model(tm
         out = _predict_in_fresh_process(res["model_uri"], _clean_record(tmp_path), base, tmp_path)
         assert out["rms_um"] <= res["rmse_um"] + 1.0 and not math.isnan(out["rms_um"])
     finally:
-        server.terminate()
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_server(server)

@@ -44,6 +44,7 @@ import os
 import posixpath
 import re
 import sys
+import threading
 import time
 import warnings
 from collections import Counter
@@ -535,8 +536,8 @@ class Tracker:
             raise
         finally:
             self._stack.pop()
-            if monitor is not None:
-                self._call("system_metrics", 0, monitor.finish)
+            if monitor is not None:  # a store already found broken: its last values cannot be flushed anyway
+                self._finish_system_metrics(monitor, 15.0 if self.ok else 1.0)
             if handle.run_id is not None:
                 self._call("end_run", 0, self._client.set_terminated, handle.run_id, status)
             total = sum(self._dropped_counts.values())
@@ -565,6 +566,17 @@ class Tracker:
             return None
         monitor.start()
         return monitor
+
+    def _finish_system_metrics(self, monitor: Any, timeout_s: float = 15.0) -> None:
+        """Stop the monitor and flush its last values, waiting at most ``timeout_s``: its thread may be stuck in
+        a request to a server that went away, and the job must not wait for it."""
+        stopper = threading.Thread(target=monitor.finish, name="toggle_id-system-metrics-stop", daemon=True)
+        stopper.start()
+        stopper.join(timeout_s)
+        if stopper.is_alive():
+            self._drop("system_metrics", 0, f"the monitor did not stop within {timeout_s:g} s")
+            logger.warning("MLflow system metrics: the monitor did not stop within %g s; its last values are "
+                           "not logged", timeout_s)
 
     def _start(self, name: str, tags: Mapping[str, Any] | None, nested: bool, run_id: str | None,
                description: str | None) -> RunHandle:
