@@ -2,7 +2,7 @@
 
 Written from docs/model.md alone — scalar kinematics and inertia, M'(q) by the complex-step derivative of M(q),
 scipy's DOP853 with its own location of the contact instant — and shares no code with the compiled kernels
-(``toggle_id/_kernels.py``) or with ``toggle_id/plant.py``. It is used by the tests (``tests/test_outside_plant.py``
+(``toggle_id/kernels/``) or with ``toggle_id/plant.py``. It is used by the tests (``tests/test_outside_plant.py``
 checks it against :func:`toggle_id.simulate.simulate`) and by ``jobs/bench_adversarial.py`` to make records
 with physics outside the discovery library (``toggle_id/effects.py``):
 

@@ -1,4 +1,4 @@
-"""The backlash kernel (toggle_id/_backlash.py) against an independent reference: the same hybrid model written
+"""The backlash kernel (toggle_id/kernels/backlash.py) against an independent reference: the same hybrid model written
 with toggle_id.plant's numpy kinematics, M(q) and finite-difference derivatives, integrated by scipy's DOP853
 with its own event location."""
 from __future__ import annotations

@@ -1,12 +1,14 @@
-"""Tests of toggle_id._kernels against the independent numpy reference in toggle_id.plant: geometry, inertia,
-right-hand side, the analytic Jacobian (against finite differences) and the input."""
+"""Tests of the compiled kernels (toggle_id.kernels) against the independent numpy reference in toggle_id.plant:
+geometry, inertia, right-hand side, the analytic Jacobian (against finite differences) and the input."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from toggle_id import _kernels as K
 from toggle_id import plant
+from toggle_id.kernels import geometry as KG
+from toggle_id.kernels import rhs as KR
+from toggle_id.kernels import slots as K
 from toggle_id.params import ASSIGNED
 from toggle_id.plant import GEOMETRY
 from toggle_id.record import SWEEPS
@@ -19,7 +21,7 @@ NO_SAMPLES = np.zeros(2)
 
 
 def consts(theta: np.ndarray, sweep: str = "simulation") -> np.ndarray:
-    return K._derived(theta, GEO, SWEEPS[sweep].as_array(), True, 0.0, 1e-3)
+    return KR._derived(theta, GEO, SWEEPS[sweep].as_array(), True, 0.0, 1e-3)
 
 
 def with_effects(theta: np.ndarray) -> np.ndarray:
@@ -35,8 +37,8 @@ Q_GRID = np.concatenate([np.linspace(0.105, 1.5, 301), [Q_L - 1e-9, Q_L + 1e-9]]
 
 def test_table_lookup_matches_closed_form_geometry():
     for q in Q_GRID:
-        ref = K._geometry_exact(q, GEO)
-        got = K._lookup(q, GEO, TAB, HEAD)
+        ref = KG._geometry_exact(q, GEO)
+        got = KG._lookup(q, GEO, TAB, HEAD)
         assert got[0] == ref[0]
         if ref[0]:
             np.testing.assert_allclose(got[1:], ref[1:], rtol=1e-8, atol=1e-11)  # cubic Hermite, dq = 5e-4
@@ -45,12 +47,12 @@ def test_table_lookup_matches_closed_form_geometry():
 def test_kinematics_match_plant_reference():
     k = plant.kinematics(Q_GRID)
     for j, q in enumerate(Q_GRID):
-        ok, x_B, dxB, _, dxC, _, _, _, _, _, _, _ = K._geometry(q, GEO)
+        ok, x_B, dxB, _, dxC, _, _, _, _, _, _, _ = KG._geometry(q, GEO)
         assert ok
         assert x_B == pytest.approx(k["x_B"][j], abs=1e-15)
         assert dxB == pytest.approx(k["dx_B"][j], abs=1e-14)
         assert dxC == pytest.approx(k["dx_C"][j], abs=1e-14)
-        assert K._xc_rel(q, GEO) == pytest.approx(k["x_C"][j], abs=1e-15)
+        assert KG._xc_rel(q, GEO) == pytest.approx(k["x_C"][j], abs=1e-15)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -59,7 +61,7 @@ def test_mass_matrix_and_derivative_match_plant_reference(seed):
     pc = consts(th)
     M_ref = plant.mass_matrix(Q_GRID, th[:15])
     for j, q in enumerate(Q_GRID):
-        out = K._forces(q, 0.0, 0.0, 0, pc, GEO, TAB, HEAD)
+        out = KR._forces(q, 0.0, 0.0, 0, pc, GEO, TAB, HEAD)
         M, dM = out[5], out[6]
         assert M == pytest.approx(M_ref[j], rel=1e-9)
         assert dM == pytest.approx(plant.mass_matrix_derivative(q, th[:15]), rel=1e-6, abs=1e-9)
@@ -75,7 +77,7 @@ def test_rhs_matches_plant_rhs_in_both_modes():
         y = np.array([q, rng.uniform(-3.0, 3.0), rng.uniform(-50.0, 400.0)])
         t = rng.uniform(0.0, 5.0)
         contact = int(q <= Q_L)  # plant.rhs decides the mode from the state
-        ok, qd, wd, idot, _ = K._rhs(t, y[0], y[1], y[2], contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
+        ok, qd, wd, idot, _ = KR._rhs(t, y[0], y[1], y[2], contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
         ref = plant.rhs(t, y, th[:15], sweep)
         assert ok
         assert qd == y[1]
@@ -94,11 +96,11 @@ def test_analytic_jacobian_matches_finite_differences(effects, contact):
         q = rng.uniform(0.2, 1.4)
         w = rng.uniform(-3.0, 3.0) * rng.choice([1.0, 1e-3])  # also inside the friction's tanh layer
         iq, t = rng.uniform(-50.0, 400.0), rng.uniform(0.0, 5.0)
-        r = K._rhs_jac(t, q, w, iq, contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
-        f = K._rhs(t, q, w, iq, contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
+        r = KR._rhs_jac(t, q, w, iq, contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
+        f = KR._rhs(t, q, w, iq, contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
         assert r[0] and f[0]
         np.testing.assert_array_equal(r[1:4], f[1:4])
-        J, ft = K._jacobian_fd(t, q, w, iq, contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
+        J, ft = KR._jacobian_fd(t, q, w, iq, contact, pc, GEO, TAB, HEAD, NO_SAMPLES)
         Ja = np.array([[0.0, 1.0, 0.0], r[4:7], r[7:10]])
         dy = np.array([1e-3, max(abs(w), 1e-2), 1.0])  # typical state perturbations, to compare across units
         err = np.abs((Ja - J) * dy)
@@ -111,24 +113,24 @@ def test_input_matches_sweep_and_its_slope():
     for name, sweep in SWEEPS.items():
         pc = consts(extend(ASSIGNED)[0], name)
         t = np.concatenate([np.linspace(0.0, 5.0, 2001), [4.999999, 5.0]])
-        got = np.array([K._input(x, pc, NO_SAMPLES)[0] for x in t])
+        got = np.array([KR._input(x, pc, NO_SAMPLES)[0] for x in t])
         np.testing.assert_allclose(got, sweep(t), rtol=0, atol=1e-12)
         e = 1e-6
         for x in np.linspace(0.01, 4.99, 97):
-            fd = (K._input(x + e, pc, NO_SAMPLES)[0] - K._input(x - e, pc, NO_SAMPLES)[0]) / (2 * e)
-            assert K._input(x, pc, NO_SAMPLES)[1] == pytest.approx(fd, rel=1e-5, abs=1e-7)
+            fd = (KR._input(x + e, pc, NO_SAMPLES)[0] - KR._input(x - e, pc, NO_SAMPLES)[0]) / (2 * e)
+            assert KR._input(x, pc, NO_SAMPLES)[1] == pytest.approx(fd, rel=1e-5, abs=1e-7)
 
 
 def test_sampled_input_interpolates_linearly_and_dead_time_shifts():
     th = extend(ASSIGNED)[0]
     th[K.TAU_D] = 0.0025
     v = np.array([0.0, 1.0, 3.0, 3.0])
-    pc = K._derived(th, GEO, np.zeros(5), False, 0.0, 1e-3)
-    assert K._input(0.0, pc, v) == (0.0, 0.0)  # before the record starts (shifted)
-    val, slope = K._input(0.0025 + 1.5e-3, pc, v)
+    pc = KR._derived(th, GEO, np.zeros(5), False, 0.0, 1e-3)
+    assert KR._input(0.0, pc, v) == (0.0, 0.0)  # before the record starts (shifted)
+    val, slope = KR._input(0.0025 + 1.5e-3, pc, v)
     assert val == pytest.approx(2.0)
     assert slope == pytest.approx(2000.0)
-    assert K._input(1.0, pc, v)[0] == 3.0  # held after the last sample
+    assert KR._input(1.0, pc, v)[0] == 3.0  # held after the last sample
 
 
 def test_output_position_from_taylor_series_matches_closed_form():
@@ -136,11 +138,11 @@ def test_output_position_from_taylor_series_matches_closed_form():
     for q0 in np.linspace(0.25, 1.45, 25):
         c0, s0 = np.cos(q0), np.sin(q0)
         for dl in np.concatenate([rng.uniform(-0.1, 0.1, 20), [0.0, 0.1, -0.1, 0.3]]):
-            x = K._x_near(q0 + dl, q0, c0, s0, GEO)
+            x = KG._x_near(q0 + dl, q0, c0, s0, GEO)
             assert x == pytest.approx(plant.kinematics(q0 + dl)["x_B"], abs=5e-14)  # δ⁸/8! truncation
     other = GEO.copy()
     other[K.G_R3] = 0.08  # r1 ≠ r3: the general formula
     q = 0.7
-    assert K._x_near(q + 0.05, q, np.cos(q), np.sin(q), other) == pytest.approx(K._x_of_q(q + 0.05, other), abs=1e-14)
+    assert KG._x_near(q + 0.05, q, np.cos(q), np.sin(q), other) == pytest.approx(KG._x_of_q(q + 0.05, other), abs=1e-14)
     k = plant.kinematics(q + 0.05, plant.Geometry(r3=0.08))
-    assert K._x_of_q(q + 0.05, other) == pytest.approx(float(k["x_B"]), abs=1e-14)
+    assert KG._x_of_q(q + 0.05, other) == pytest.approx(float(k["x_B"]), abs=1e-14)

@@ -2,9 +2,10 @@
 
 Each effect is a physically meaningful term of the compiled right-hand side with its own parameters, bounds
 and an *off* value at which the term vanishes (the nominal model). An effect's parameters live in the
-extended parameter vector after the 15 physical ones (slots fixed in :mod:`toggle_id._kernels`), so switching
-an effect on is choosing which extended parameters are free; the discovery pipeline never names an effect.
-Adding an effect = adding its term to the kernel's right-hand side and one :class:`Effect` entry here.
+extended parameter vector after the 15 physical ones (slots fixed in :mod:`toggle_id.kernels.slots`), so
+switching an effect on is choosing which extended parameters are free; the discovery pipeline never names an
+effect. Adding an effect = adding its term to the kernel's right-hand side (:mod:`toggle_id.kernels.rhs`) and
+one :class:`Effect` entry here.
 
 Parameters that only shape an effect (a Stribeck velocity, a cogging order) are *nuisance* parameters: they
 have no influence while the effect is off, so the score test probes them on a small grid (``probe``).
@@ -16,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _kernels as K
+from .kernels import slots as K
 from .params import N_PARAMS, PARAM_NAMES
 
 
@@ -86,7 +87,7 @@ EFFECTS: tuple[Effect, ...] = (
     Effect("dead_time", "transport delay of the drive input, v_in(t − τ_d)",
            (EffectParam("tau_d", K.TAU_D, "s", 0.0, 0.05),), ({"tau_d": 1e-4},)),
     Effect("backlash", "dead band b_l in the screw–nut: rotor and linkage move apart while the flank force is "
-           "reversed and meet again in an inelastic impact (toggle_id/_backlash.py)",
+           "reversed and meet again in an inelastic impact (toggle_id/kernels/backlash.py)",
            (EffectParam("b_l", K.B_L, "m", 0.0, 2e-3),), ({"b_l": 1e-5},),
            breaks=("inertia_split",)),  # in the lash the rotor's inertia J_m acts apart from m_C
     Effect("cogging_torque", "torque ripple a·sin(n·θ_r + φ) periodic in the rotor angle θ_r = Z·x_C",

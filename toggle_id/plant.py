@@ -1,7 +1,7 @@
 """Plant constants, kinematics and inertia of the motor-toggle mechanism (docs/model.md §1–4), in plain numpy.
 
 This module is the readable statement of the model and the *independent reference* for the compiled kernel
-in :mod:`toggle_id._kernels`: it computes M'(q) by differentiating M(q) numerically instead of with the
+in :mod:`toggle_id.kernels`: it computes M'(q) by differentiating M(q) numerically instead of with the
 kernel's closed-form second derivatives, and its right-hand side drives ``scipy.integrate.solve_ivp`` in
 tests and benchmarks.
 """
@@ -38,7 +38,7 @@ class Geometry:
         return 2.0 * np.pi * self.gear_ratio / self.screw_lead
 
     def as_array(self) -> np.ndarray:
-        """Constants in the order the kernel reads them (see ``_kernels.G_*``)."""
+        """Constants in the order the kernel reads them (see ``kernels.slots.G_*``)."""
         return np.array([self.r1, self.r2, self.r3, self.r4, self.r5, self.h, self.phi, self.pole_pairs,
                          self.Z, self.g, self.x_B_L, self.eps_friction], dtype=float)
 

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _kernels as K
+from .kernels import slots as K
+from .kernels.driver import simulate_batch_parallel, simulate_batch_serial
+from .kernels.geometry import build_table
 from .errors import ConfigError
 from .params import N_PARAMS
 from .plant import GEOMETRY, Geometry
@@ -142,7 +144,7 @@ def geometry_table(geometry: Geometry = GEOMETRY, dq: float = 5e-4) -> tuple[np.
         q_lo = float(np.arcsin((geometry.h - 0.9 * geometry.r5) / geometry.r4) - geometry.phi)
         q_hi = float(np.arccos(0.0)) - 1e-6
         n = int((q_hi - q_lo) / dq) + 1
-        tab = K._build_table(geometry.as_array(), q_lo, dq, n)
+        tab = build_table(geometry.as_array(), q_lo, dq, n)
         _TABLES[key] = (tab, np.array([q_lo, 1.0 / dq, float(n), dq]))
     return _TABLES[key]
 
@@ -194,7 +196,7 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     good = np.flatnonzero(~bad)
     if good.size:
         sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
-        kern = K._simulate_batch_parallel if parallel else K._simulate_batch_serial
+        kern = simulate_batch_parallel if parallel else simulate_batch_serial
         tab, head = geometry_table(geometry)
         kern(thetas, good, geo, tab, head, record.t, N, record.v_in, sweep, record.sweep is not None, float(t0), y0,
              int(contact0), settings.as_array(), x, i, status, n_steps, events)

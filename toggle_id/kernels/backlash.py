@@ -17,7 +17,7 @@ The simulation starts engaged forward (the nut rests on the driving flank; a sta
 state assumes the same). Integration: DOPRI5 in both modes with the contact switch, the flank opening and the
 gap closing located on the dense output (the step is retaken to end at the event), so every step integrates a
 smooth right-hand side. As b_l → 0 the trajectory tends to the rigid model's. Only parameter vectors with
-b_l > 0 come here (see :func:`toggle_id._kernels._simulate_row`).
+b_l > 0 come here (see :func:`toggle_id.kernels.driver._simulate_row`).
 """
 from __future__ import annotations
 
@@ -26,7 +26,33 @@ import math
 import numba as nb
 import numpy as np
 
-from ._kernels import (
+from .geometry import _geometry, _lookup, _lookup_d, _x_of_q
+from .rhs import _command, _derived, _forces, _motor_force
+from .slots import (
+    B_L,
+    G_R1,
+    G_R3,
+    G_XBL,
+    G_Z,
+    INVALID_PARAMS,
+    J_M,
+    MODEL_FAILURE,
+    OK,
+    PC_ILQ,
+    PC_PLZL,
+    PC_RSL,
+    PC_XOFF,
+    S_ATOL_I,
+    S_ATOL_Q,
+    S_ATOL_W,
+    S_H0,
+    S_HMAX,
+    S_MAXSTEPS,
+    S_RTOL,
+    SOLVER_FAILURE,
+)
+from .stepping import _dense, _first_sample, _illinois, _pi_control
+from .tableaus import (
     _A21,
     _A31,
     _A32,
@@ -63,39 +89,6 @@ from ._kernels import (
     _E5,
     _E6,
     _E7,
-    B_L,
-    G_R1,
-    G_R3,
-    G_XBL,
-    G_Z,
-    INVALID_PARAMS,
-    J_M,
-    MODEL_FAILURE,
-    OK,
-    PC_ILQ,
-    PC_PLZL,
-    PC_RSL,
-    PC_XOFF,
-    S_ATOL_I,
-    S_ATOL_Q,
-    S_ATOL_W,
-    S_H0,
-    S_HMAX,
-    S_MAXSTEPS,
-    S_RTOL,
-    SOLVER_FAILURE,
-    _command,
-    _dense,
-    _derived,
-    _first_sample,
-    _forces,
-    _geometry,
-    _illinois,
-    _lookup,
-    _lookup_d,
-    _motor_force,
-    _pi_control,
-    _x_of_q,
 )
 
 N_Y = 5  # q, q̇, i_q, δ, ẋ_r
@@ -224,7 +217,7 @@ def _crossed(kind, g0, g1, mode, contact):
 @nb.njit(cache=True)
 def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
                   out_x, out_i):
-    """As :func:`toggle_id._kernels._simulate_one` (same arguments, outputs and return value) for a parameter
+    """As :func:`toggle_id.kernels.rigid._simulate_one` (same arguments, outputs and return value) for a parameter
     vector with backlash b_l = th[B_L] > 0. DOPRI5 whatever settings[S_METHOD] says."""
     t_c, qc, wc, ic = np.inf, 0.0, 0.0, 0.0
     b = th[B_L]

@@ -1,0 +1,21 @@
+"""Compiled kernels of the plant (numba): its right-hand side, its Jacobian, and adaptive integrators with dense
+output and exact location of the contact instant, batched over parameter vectors.
+
+Small, pure functions on float64 arrays and scalars; failures are returned as status codes, never raised.
+The readable model and the independent reference for these kernels are in :mod:`toggle_id.plant`.
+
+Modules, each importing only those above it (no cycle; ``tests/test_architecture.py`` checks it):
+
+- :mod:`.slots`: the layouts of the shared arrays (parameter, geometry, settings and constant slots), status codes;
+- :mod:`.tableaus`: the DOPRI5 and Rodas4 coefficients;
+- :mod:`.geometry`: the toggle's kinematics, closed form and Hermite table;
+- :mod:`.rhs`: per-individual constants, the command, the forces with every effect term, dy/dt and its Jacobian;
+- :mod:`.stepping`: what both integrators share (dense output, step-size control, event bracketing);
+- :mod:`.rigid`: Rodas4 and DOPRI5 steps and the rigid plant's integrator :func:`~.rigid._simulate_one`;
+- :mod:`.backlash`: the two-body integrator of the backlash effect, :func:`~.backlash.simulate_lash`;
+- :mod:`.driver`: the batched loops over rows that :mod:`toggle_id.simulate` calls.
+
+Names with a leading underscore are compiled helpers for the other kernels (and the tests); the Python side uses
+:mod:`.slots`, :func:`.geometry.build_table` and :mod:`.driver`'s ``simulate_batch_serial`` /
+``simulate_batch_parallel``. This package imports nothing else of :mod:`toggle_id`.
+"""
