@@ -12,15 +12,17 @@ from toggle_id.errors import CheckpointError, ConfigError, DataError
 from toggle_id.ga import (
     GAConfig,
     RGA,
+    join_state,
+    run_ga,
+    split_state,
+)
+from toggle_id.ga_operators import (
     blend_crossover,
     elite_indices,
     next_generation,
     nonuniform_mutation,
     reflect_unit,
-    join_state,
-    run_ga,
     sanitize_fitness,
-    split_state,
     tournament_select,
 )
 

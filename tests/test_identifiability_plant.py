@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from toggle_id import params as P
-from toggle_id.identify import identifiability_report
 from toggle_id.polish import polish
 from toggle_id.problem import FitProblem
 from toggle_id.record import Record
+from toggle_id.sensitivity import identifiability_report
 from toggle_id.simulate import PRECISE, simulate
 
 DURATION = 1.5  # s: free motion, impact and 1.1 s of clamping

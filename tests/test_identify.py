@@ -10,9 +10,10 @@ from toggle_id import params as P
 from toggle_id.errors import CheckpointError, ConfigError
 from toggle_id.evaluators import RayEvaluator, SerialEvaluator, init_ray
 from toggle_id.ga import GAConfig
-from toggle_id.identify import PolishSettings, identify
+from toggle_id.identify import identify
 from toggle_id.record import Record
 from toggle_id.simulate import PRECISE, simulate
+from toggle_id.stages import PolishSettings
 
 
 def _record(duration: float, noise: float = 1e-6, seed: int = 0) -> Record:

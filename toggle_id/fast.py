@@ -27,22 +27,13 @@ import numpy as np
 from .curve import RmseCurve
 from .effects import ALL_INDEX
 from .errors import ConfigError
-from .identify import (
-    IdentificationResult,
-    PolishSettings,
-    StageResult,
-    _batched_jacobian,
-    _joint_polish,
-    _stage_problem,
-    identifiability_report,
-    joint,
-    joint_plan,
-    stage_bounds,
-)
 from .polish import polish
-from .problem import FitProblem
+from .problem import FitProblem, joint
 from .record import Record
+from .results import IdentificationResult, StageResult
+from .sensitivity import batched_jacobian, identifiability_report
 from .simulate import FAST, PRECISE, SolverSettings, simulations_run
+from .stages import PolishSettings, joint_plan, joint_polish, stage_bounds, stage_problem
 
 
 @dataclass
@@ -82,7 +73,7 @@ def successive_halving(problem: FitProblem, starts: np.ndarray, lower: np.ndarra
         return lambda x: problem.residuals(x[None, :], t)[0]
 
     def jac(t: SolverSettings) -> Callable[[np.ndarray], np.ndarray]:
-        return lambda x: _batched_jacobian(problem, x, settings.fd_rel_step, t)
+        return lambda x: batched_jacobian(problem, x, settings.fd_rel_step, t)
 
     alive = [np.clip(np.asarray(s, float), lower, upper) for s in starts]
     budget = settings.first_nfev
@@ -138,7 +129,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     spent = curve.simulations
     t_report = 0.0  # identifiability reports: not part of the fit
     for name, free, windows in plan:
-        problem = joint([_stage_problem(r, name, free, w, theta, settings, i_q_weight)
+        problem = joint([stage_problem(r, name, free, w, theta, settings, i_q_weight)
                          for r, w in zip(records, windows)])
         lo, hi = stage_bounds(list(free), bounds)
         k = fast.starts_stage2 if name == "stage2" else fast.starts
@@ -165,8 +156,8 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         say(f"{name}: rms {st.rmse_m * 1e6:.4g} µm on its window ({st.seconds_polish:.1f} s)")
     if fast.route == "two_stage":
         t_id = time.perf_counter()
-        st = _joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
-                           noise_var)
+        st = joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
+                          noise_var)
         t_report += time.perf_counter() - t_id - st.seconds_polish
         theta = st.theta.copy()
         spent += st.n_simulations

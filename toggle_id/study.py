@@ -18,10 +18,10 @@ from . import params as P
 from .checkpoint import atomic_write_json, atomic_write_text
 from .console import markdown_table
 from .errors import ConfigError
-from .identify import identifiability_report
 from .plant import GEOMETRY
 from .problem import FitProblem, joint
 from .record import SWEEPS
+from .sensitivity import identifiability_report
 from .simulate import PRECISE
 from .workflow import _flat_config, _jsonable_cfg, build_record, make_tracker
 

@@ -13,9 +13,10 @@ from . import console, figures
 from . import params as P
 from .checkpoint import atomic_write_json, atomic_write_text
 from .errors import ConfigError
-from .identify import METHODS, identify
+from .identify import identify
 from .curve import RmseCurve
 from .mlflow_run import curve_logger
+from .stages import METHODS
 from .workflow import (_identify_kwargs, _jsonable_cfg, _flat_config, build_record, evaluator_factory, make_tracker,
                        ray_session, stage_child_run, validate_config)
 

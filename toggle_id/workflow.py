@@ -23,10 +23,12 @@ from .data import read_csv
 from .effects import ALL_INDEX, ALL_NAMES
 from .errors import ConfigError
 from .ga import GAConfig
-from .identify import METHODS, IdentificationResult, PolishSettings, StageResult, identify, joint_plan
+from .identify import identify
 from .plant import impulse_force
 from .record import COMMANDS, CYCLING, SWEEPS, Record, measure
+from .results import IdentificationResult, StageResult
 from .simulate import PRECISE, TIERS, extend, simulate
+from .stages import METHODS, PolishSettings, joint_plan
 from .tracking import Tracker
 
 log = logging.getLogger("toggle_id")
@@ -374,7 +376,7 @@ def validate_config(cfg: Mapping) -> None:
     fast_settings(cfg)
     solver_tier(cfg)
     evaluator_factory(cfg.get("evaluator") or {})
-    from .identify import stage_bounds
+    from .stages import stage_bounds
 
     names = [n for n in (cfg.get("bounds") or {})]
     if names:
