@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import sys
+import textwrap
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -205,8 +206,12 @@ def render(graph: dict[str, set[str]]) -> str:
     if not graph.get(PACKAGE):  # the root package's __init__, which imports nothing
         order.remove(PACKAGE)
     width = max(len(_short(m)) for m in order)
-    return "\n".join(f"{_short(m):<{width}}  <- {', '.join(_short(d) for d in sorted(graph[m])) or '-'}"
-                     for m in order)
+    lines = []
+    for m in order:
+        deps = ", ".join(_short(d) for d in sorted(graph[m])) or "-"
+        lines += textwrap.wrap(deps, 114, initial_indent=f"{_short(m):<{width}}  <- ",
+                               subsequent_indent=" " * (width + 5), break_on_hyphens=False)
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
@@ -216,5 +221,7 @@ if __name__ == "__main__":
     print("imports inside functions (run when called):")
     for m in sorted(lazy):
         if lazy[m]:
-            print(f"  {_short(m)} -> {', '.join(_short(d) for d in sorted(lazy[m]))}")
+            print("\n".join(textwrap.wrap(", ".join(_short(d) for d in sorted(lazy[m])), 114,
+                                           initial_indent=f"  {_short(m)} -> ", subsequent_indent="      ",
+                                           break_on_hyphens=False)))
     sys.exit(0)

@@ -28,7 +28,7 @@ from .plant import impulse_force
 from .record import COMMANDS, CYCLING, SWEEPS, Record, measure
 from .results import IdentificationResult, StageResult
 from .simulate import PRECISE, TIERS, extend, simulate
-from .stages import METHODS, PolishSettings, joint_plan
+from .stages import METHODS, PolishSettings, joint_plan, stage_bounds
 from .tracking import Tracker
 
 log = logging.getLogger("toggle_id")
@@ -376,8 +376,6 @@ def validate_config(cfg: Mapping) -> None:
     fast_settings(cfg)
     solver_tier(cfg)
     evaluator_factory(cfg.get("evaluator") or {})
-    from .stages import stage_bounds
-
     names = [n for n in (cfg.get("bounds") or {})]
     if names:
         stage_bounds(names, cfg.get("bounds"))
