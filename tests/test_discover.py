@@ -124,6 +124,26 @@ def test_no_effect_no_false_positive():
     json.dumps(d)
 
 
+def test_a_validation_record_the_model_cannot_predict_leaves_it_unexplained():
+    # the fitted record has no effect; the second record of "the same machine" has a dead time the first cannot
+    # show (an effect its command does not excite, say): the nominal model fits the first to its noise and
+    # predicts the second with structure left — the report must say the model still lacks something
+    rec, truth, start = make_record({})
+    other = Record.from_sweep("simulation", 1.0, name="second")
+    shifted = truth.copy()
+    shifted[ALL_INDEX["tau_d"]] = 2e-3
+    other.x_B = simulate(shifted[None, :], other, PRECISE).x_B[0] + NOISE * np.random.default_rng(9).standard_normal(
+        other.n)
+    settings = D.DiscoverSettings(candidates=("sensor_offset",), **FAST)
+    res = D.discover(rec, nominal=start, settings=settings, validation=other)
+    pred = res.to_dict()["validation_prediction"]
+    assert pred["record"] == "second" and pred["rmse_m"] > 2 * NOISE and pred["structure_left"]
+    assert res.unexplained and "validation record second is not predicted to its noise" in res.conclusion
+    # the same record as its own validation is predicted to the noise
+    res2 = D.discover(rec, nominal=start, settings=settings, validation=rec)
+    assert not res2.to_dict()["validation_prediction"]["structure_left"] and not res2.unexplained
+
+
 @pytest.mark.parametrize("name,effects,magnitude", [
     ("sensor_offset", {"x_off": 1e-4}, ("x_off", 1e-4)),
     ("constant_load_force", {"F_load": 500.0}, ("F_load", 500.0)),

@@ -209,12 +209,18 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                  "reason": why_out.get(c["name"], "its scout explains less than the candidates refitted")}
                 for c in cands if c["verdict"] == "rejected"]
     unexplained = bool(diag_after.get("verdict", {}).get("structure_left", False))
-    conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating)
+    # an effect that is real predicts a record it was not fitted on to that record's noise: structure left in the
+    # validation record's residual means the model still lacks something, whatever the fitted record says
+    predicted = _prediction_report(judge.validation, current.theta, settings) if judge.validation else None
+    if predicted is not None and predicted.get("structure_left"):
+        unexplained = True
+    conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted)
     extra = {"symmetry_gauge": {"before": gauge_before, "after": gauge_after}, "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,
              "noise_model": {"before": noise0.to_dict(), "after": noise_after.to_dict()},
              "localisation": diag_after.get("localisation"),
-             "validation_record": validation.name if validation is not None else None}
+             "validation_record": validation.name if validation is not None else None,
+             "validation_prediction": predicted}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
     return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,
@@ -363,6 +369,23 @@ def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held:
     free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
     start = _with(current.theta, _off_values(eff))
     return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+
+
+def _prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings) -> dict:
+    """The final model's prediction of the validation record (never fitted on it): RMS error, noise model and the
+    structure test of its residual (:func:`.localise.locate`)."""
+    x, i_q, status = vmodel.response(theta)
+    rec = vmodel.record
+    r = rec.x_B - x
+    if status != STATUS_OK or not np.all(np.isfinite(r)):
+        return {"error": f"the final model cannot be simulated on the validation record (status {status})",
+                "structure_left": True, "text": "the final model cannot be simulated on the validation record"}
+    states = R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]]))
+    loc = locate(None, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
+                 alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
+    noise = fit_noise(r, settings.noise_max_order)
+    return {"record": rec.name, "rmse_m": float(np.sqrt(np.mean(r ** 2))), "noise_model": noise.to_dict(),
+            "structure_left": bool(loc["structure_left"]), "text": loc["text"], "localisation": loc}
 
 
 def _structure_energy(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> float:

@@ -72,7 +72,7 @@ class DiscoveryResult:
 
 
 def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings,
-                compensating: list[dict] = ()) -> str:
+                compensating: list[dict] = (), predicted: dict | None = None) -> str:
     """A few plain sentences on what was found, what only compensates, and what is left."""
     def noise(d: dict) -> str:
         nm = d.get("noise_model") or {}
@@ -89,11 +89,19 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
         text += (" Compensating (lower the error without explaining it; not added): " +
                  ", ".join(sorted({c['name'] for c in compensating})) + ".")
     loc = after.get("localisation") or {}
-    if unexplained:
+    in_record = bool(after.get("verdict", {}).get("structure_left", unexplained))
+    if in_record:
         text += (" Structure remains that no effect of the library explains — " + loc.get("text", "") +
                  f" (noise model {noise(after)}).")
     else:
         text += f" The residual is consistent with {noise(after)} noise independent of the states and the input."
+    if predicted is not None and predicted.get("structure_left"):
+        text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "
+                 f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm; {predicted.get('text', '')}): the model "
+                 "still lacks something, and the effects above may stand in for it.")
+    elif predicted is not None:
+        text += (f" The validation record {predicted.get('record', '')} is predicted to its noise (RMS "
+                 f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm, no structure left).")
     return text
 
 
