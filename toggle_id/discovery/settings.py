@@ -38,8 +38,9 @@ class DiscoverSettings:
       structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
       its score (global screening; false: only those whose score passes ``screen_alpha``); backward: drop,
       at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
-      an accepted effect still counts as an explanation if removing it raises the residual's structure statistic
-      by this fraction of the total (it explains most of what it was added for); otherwise it is compensating.
+      an accepted effect still counts as an explanation if it removed at least this fraction of the structure
+      energy of the model without it (:func:`.localise.structure_energy`: it explains most of what it was added
+      for); otherwise it is compensating.
     """
 
     top_k: int = 3
