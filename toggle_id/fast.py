@@ -44,17 +44,21 @@ class FastSettings:
 
     route: str = "two_stage"
     starts: int = 24
-    starts_stage2: int = 8
+    starts_stage2: int = 4
     first_nfev: int = 4
     keep: float = 0.5
     finalists: int = 2
     final_nfev: int = 60
+    joint_prepolish: bool = True
+    joint_final_nfev: int = 15
     fd_rel_step: float = 1e-6
 
     def validate(self) -> FastSettings:
         if self.route not in ("two_stage", "one_stage"):
             raise ConfigError(f"fast.route must be 'two_stage' or 'one_stage', got {self.route!r}")
-        for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev"):
+        if not isinstance(self.joint_prepolish, bool):
+            raise ConfigError(f"fast.joint_prepolish must be true or false, got {self.joint_prepolish!r}")
+        for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev", "joint_final_nfev"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"fast.{name} must be a whole number >= 1, got {v!r}")
@@ -157,7 +161,8 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     if fast.route == "two_stage":
         t_id = time.perf_counter()
         st = joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
-                          noise_var)
+                          noise_var, pre_tier=settings if fast.joint_prepolish else None,
+                          final_nfev=fast.joint_final_nfev if fast.joint_prepolish else None)
         t_report += time.perf_counter() - t_id - st.seconds_polish
         theta = st.theta.copy()
         spent += st.n_simulations

@@ -136,11 +136,14 @@ def stage_problem(record: Record, name: str, free: tuple[str, ...], window: tupl
 
 def joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, settings: SolverSettings,
                  i_q_weight: float, bounds: Mapping[str, Sequence[float]] | None, polish: PolishSettings,
-                 identifiability: bool, noise_var: float | None) -> StageResult:
+                 identifiability: bool, noise_var: float | None, pre_tier: SolverSettings | None = None,
+                 final_nfev: int | None = None) -> StageResult:
     """After the two GA stages: all their free parameters polished together on the whole record(s).
 
     Stage 1 sees only the free motion, where several parameter combinations are not determined; the clamped
     phase then exposes them (e.g. the stall current K_i·v/R_s). The paper's stage values stay in the report.
+    ``pre_tier`` (e.g. FAST): polish on that tier first (``polish.max_nfev``), then on PRECISE with
+    ``final_nfev`` evaluations — most of the way at the cheaper tier's cost.
     """
     free = tuple(dict.fromkeys(n for _, names, _ in plan for n in names))
     problem = joint([FitProblem(r, free, theta, (0, r.n), settings, i_q_weight=i_q_weight) for r in records])
@@ -149,9 +152,22 @@ def joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, setti
     x0 = problem.x0()
     t0 = time.perf_counter()
     n0 = simulations_run()
-    resid = lambda x: problem.residuals(x[None, :], PRECISE)[0]  # noqa: E731
-    jac = lambda x: batched_jacobian(problem, x, polish.fd_rel_step, PRECISE)  # noqa: E731
-    res = polish_many(resid, x0[None, :], lo, hi, jac_fn=jac, max_nfev=polish.max_nfev)
+    def resid(tier: SolverSettings):
+        return lambda x: problem.residuals(x[None, :], tier)[0]
+
+    def jac(tier: SolverSettings):
+        return lambda x: batched_jacobian(problem, x, polish.fd_rel_step, tier)
+
+    start = x0
+    if pre_tier is not None:
+        pre = polish_many(resid(pre_tier), x0[None, :], lo, hi, jac_fn=jac(pre_tier), max_nfev=polish.max_nfev)
+        start = pre.x if pre.improved else x0
+    res = polish_many(resid(PRECISE), start[None, :], lo, hi, jac_fn=jac(PRECISE),
+                      max_nfev=polish.max_nfev if final_nfev is None else final_nfev)
+    if pre_tier is not None:  # the PRECISE polish judged against the nominal start, not the pre-polished one
+        sse0 = float(problem.sse(x0[None, :], PRECISE)[0])
+        res.improved = bool(res.sse < sse0)
+        res.sse0 = sse0
     x = res.x if res.improved else x0
     sse = float(problem.sse(x[None, :], PRECISE)[0])
     n_sims = simulations_run() - n0
