@@ -33,7 +33,7 @@ from .record import Record
 from .results import IdentificationResult, StageResult
 from .sensitivity import batched_jacobian, identifiability_report
 from .simulate import FAST, PRECISE, SolverSettings, simulations_run
-from .stages import PolishSettings, joint_plan, joint_polish, stage_bounds, stage_problem
+from .stages import PolishSettings, joint_plan, joint_polish, stage_bounds, stage_problem, whole_record_result
 
 
 @dataclass
@@ -170,17 +170,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         stages.append(st)
         if on_stage is not None:
             on_stage(st)
-    per_record = []
-    for r in records:
-        full = FitProblem(r, ("D",), theta, (0, r.n), PRECISE)
-        per_record.append(float(full.sse(theta[None, ALL_INDEX["D"]][:, None])[0]))
-    sse = sum(per_record)
-    extra: dict = {"seconds_fit": time.perf_counter() - t_start - t_report, "seconds_reports": t_report,
-                   "fast_settings": vars(fast)}
-    if len(records) > 1:
-        extra["records"] = [{"name": r.name, "n_samples": r.n, "clamp_index": kc, "sse_m2": e,
-                             "rmse_m": float(np.sqrt(e / r.n))} for r, kc, e in zip(records, k_cs, per_record)]
-    return IdentificationResult(method="fast", theta=theta, stages=stages,
-                                fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse,
-                                n_samples=sum(r.n for r in records), seconds=time.perf_counter() - t_start,
-                                clamp_index=k_cs[0], extra=extra, curve=list(curve.points))
+    extra = {"seconds_fit": time.perf_counter() - t_start - t_report, "seconds_reports": t_report,
+             "fast_settings": vars(fast)}
+    return whole_record_result("fast", records, k_cs, theta, stages, time.perf_counter() - t_start, curve.points,
+                               extra)

@@ -40,7 +40,8 @@ from .results import IdentificationResult, StageResult, converged_generation
 from .sensitivity import batched_jacobian, identifiability_report
 from .simulate import FAST, PRECISE, SolverSettings, extend, simulations_run
 from .stage_checkpoint import Checkpointer, stage_from_dict, stage_to_dict
-from .stages import PolishSettings, as_records, joint_plan, joint_polish, stage_bounds, stage_problem
+from .stages import (PolishSettings, as_records, joint_plan, joint_polish, stage_bounds, stage_problem,
+                     whole_record_result)
 
 
 def _noop_progress(total: int, desc: str):
@@ -211,19 +212,7 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
         stages.append(st)
         if on_stage is not None:
             on_stage(st)
-    per_record = []
-    for r in records:
-        full = FitProblem(r, ("D",), theta, (0, r.n), PRECISE)
-        per_record.append(float(full.sse(theta[None, ALL_INDEX["D"]][:, None])[0]))
-    sse = sum(per_record)
-    extra = {}
-    if many:
-        extra["records"] = [{"name": r.name, "n_samples": r.n, "clamp_index": k, "sse_m2": e,
-                             "rmse_m": float(np.sqrt(e / r.n))} for r, k, e in zip(records, k_cs, per_record)]
-    return IdentificationResult(method=method, theta=theta, stages=stages,
-                                fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse,
-                                n_samples=sum(r.n for r in records), seconds=time.perf_counter() - t_start,
-                                clamp_index=k_cs[0], extra=extra, curve=list(curve.points))
+    return whole_record_result(method, records, k_cs, theta, stages, time.perf_counter() - t_start, curve.points)
 
 
 def _curve_hook(curve: RmseCurve, problem: FitProblem | JointProblem, spent: int,

@@ -21,7 +21,7 @@ from .plant import GEOMETRY
 from .polish import polish_many
 from .problem import FitProblem, joint
 from .record import Record
-from .results import StageResult
+from .results import IdentificationResult, StageResult
 from .sensitivity import batched_jacobian, identifiability_report
 from .simulate import FAST, PRECISE, STATUS_OK, SolverSettings, simulate, simulations_run
 
@@ -181,3 +181,23 @@ def joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, setti
     if identifiability:
         st.identifiability = identifiability_report(problem, x, noise_var)
     return st
+
+
+def whole_record_result(method: str, records: Sequence[Record], k_cs: Sequence[int], theta: np.ndarray,
+                        stages: list[StageResult], seconds: float, curve_points: list, extra: dict | None = None
+                        ) -> IdentificationResult:
+    """The identification result of ``theta`` on the whole record(s) (PRECISE), with every record's own error
+    when there are several."""
+    per_record = []
+    for r in records:
+        full = FitProblem(r, ("D",), theta, (0, r.n), PRECISE)
+        per_record.append(float(full.sse(theta[None, ALL_INDEX["D"]][:, None])[0]))
+    sse = sum(per_record)
+    extra = dict(extra or {})
+    if len(records) > 1:
+        extra["records"] = [{"name": r.name, "n_samples": r.n, "clamp_index": k, "sse_m2": e,
+                             "rmse_m": float(np.sqrt(e / r.n))} for r, k, e in zip(records, k_cs, per_record)]
+    return IdentificationResult(method=method, theta=theta, stages=stages,
+                                fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse,
+                                n_samples=sum(r.n for r in records), seconds=seconds, clamp_index=k_cs[0],
+                                extra=extra, curve=list(curve_points))
