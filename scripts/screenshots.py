@@ -128,19 +128,37 @@ def shoot(base: str, exp_id: str, runs: list[dict], out: Path, chromium: str, se
         browser = pw.chromium.launch(executable_path=chromium, args=CHROMIUM_FLAGS, headless=True)
         page = browser.new_page(viewport={"width": 1600, "height": 1000}, device_scale_factor=1)
 
-        def save(name: str, url: str) -> None:
+        def show_columns(names: tuple[str, ...]) -> None:
+            """Tick metric columns in the runs table's "Columns" menu (the table shows none by default)."""
+            page.get_by_role("button", name="Columns").first.click()
+            time.sleep(1.0)
+            box = page.get_by_placeholder("Search columns")
+            for col in names:
+                box.fill(col)
+                time.sleep(0.8)
+                item = page.get_by_text(col, exact=True)
+                if item.count():
+                    item.last.click()
+                    time.sleep(0.5)
+            box.fill("")
+            page.keyboard.press("Escape")
+            time.sleep(1.5)
+
+        def save(name: str, url: str, columns: tuple[str, ...] = ()) -> None:
             page.goto(url, wait_until="load")
             time.sleep(settle_s)
             close = page.get_by_role("button", name="Close")  # the UI's assistant panel
             if close.count():
                 close.first.click()
                 time.sleep(1.0)
+            if columns:
+                show_columns(columns)
             path = out / name
             page.screenshot(path=str(path))
             shots.append(path)
             print("wrote", path, flush=True)
 
-        save("runs_table.png", f"{base}/#/experiments/{exp_id}/runs")
+        save("runs_table.png", f"{base}/#/experiments/{exp_id}/runs", columns=("rmse_um", "n_simulations"))
         if all(pair):
             ids = json.dumps([r["info"]["run_id"] for r in pair])
             save("best_rmse_one_vs_two_stage.png",
