@@ -471,5 +471,11 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
                        "mlflow_run_id": run.run_id, "config": json.loads(json.dumps(dict(cfg), default=str)),
                        "wall_seconds": time.perf_counter() - t0})
         tracker.log_metrics(_parent_metrics(report))
+        val = (report.get("validation") or {}).get("position_rel_error_pct")
+        tracker.set_tags({"mlflow.note.content": (
+            f"EMPS discovery on {record.name} ({record.n} samples): effects added "
+            f"{', '.join(a['name'] for a in report['effects_added']) or 'none'}; position error "
+            f"{report['position_rel_error_pct_before']:.4g} → {report['position_rel_error_pct_after']:.4g} %"
+            + (f"; validation record predicted to {val:.4g} %" if val is not None else ""))})
         path = publish_report(tracker, run_dir, console_text(report), report)
     return path

@@ -70,6 +70,10 @@ def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         path = atomic_write_json(run_dir / "result.json", report)
         for f in ("table1.md", "table1.csv", "table1_runs.csv", "table1_errors.png", "result.json"):
             tracker.log_artifact(run_dir / f)
+        best = {m: min(1e6 * r["result"].rmse_m for r in runs if r["method"] == m) for m in methods}
+        tracker.set_tags({"mlflow.note.content": f"Table 1 on {record.name}: {', '.join(methods)} × seeds "
+                          f"{', '.join(map(str, seeds))}; best RMS error " +
+                          ", ".join(f"{m} {v:.4g} µm" for m, v in best.items())})
         print(md)
     return Path(path).resolve()
 
