@@ -82,6 +82,8 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
                                                          "config": _jsonable_cfg(cfg)})
         tracker.log_artifact(run_dir / "identifiability.md")
         tracker.log_artifact(path)
+        tracker.set_tags({"mlflow.note.content": f"identifiability study on {record.name}: " + "; ".join(
+            f"{r[0]} rank {r[4]} of {r[1]}" for r in rows)})
     return Path(path).resolve()
 
 
