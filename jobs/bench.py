@@ -13,6 +13,10 @@ the clamp) and stage-2 restarts (from the contact state, D and K_l varied);
 and the cost of ``scipy.integrate.solve_ivp`` (Radau and LSODA on :func:`toggle_id.plant.rhs` with a contact
 event) per simulation on a few near-assigned individuals, at about the same accuracy.
 
+``--polish`` instead times one bounded least-squares polish (:func:`toggle_id.polish.polish`, 15 parameters 5 %
+off, the 5-s record, FAST tier, batched finite-difference Jacobian) with the BLAS pool as it is and with one BLAS
+thread, interleaved, and checks that both end at the same point.
+
 Timings on a shared machine are noisy: read medians, and compare figures taken in the same run.
 """
 from __future__ import annotations
@@ -108,6 +112,48 @@ def row(name: str, n: int, med: float, times: list[float], res: SimResult | None
     return d
 
 
+def polish_rows(repeat: int, max_nfev: int = 30) -> list[dict]:
+    """One polish of the 15 parameters (5 % off) on the noisy 5-s record, with the BLAS pool as it is and with one
+    thread (:func:`toggle_id.polish.polish` ``blas_threads``), interleaved; median wall and CPU seconds."""
+    from toggle_id.polish import polish
+
+    rec = Record.from_sweep("simulation")
+    rng = np.random.default_rng(5)
+    x_meas = simulate(ASSIGNED[None], rec, FAST).x_B[0] + 1e-6 * rng.standard_normal(rec.n)
+    x0 = ASSIGNED * np.exp(0.05 * rng.standard_normal(ASSIGNED.size))
+
+    def resid_many(X: np.ndarray) -> np.ndarray:
+        res = simulate(X, rec, FAST, parallel=True)
+        return x_meas[None, :] - res.x_B
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        h = 1e-6 * np.abs(x)
+        R = resid_many(np.vstack([x, x + np.diag(h)]))
+        return ((R[1:] - R[0]) / h[:, None]).T
+
+    def run(threads: int | None):
+        return polish(lambda x: resid_many(x[None])[0], x0, LOWER, UPPER, log_mask=np.ones(x0.size, bool),
+                      jac_fn=jac, max_nfev=max_nfev, blas_threads=threads)
+
+    run(1)  # warm-up: compilation or cache load
+    out = {None: ([], [], None), 1: ([], [], None)}
+    for _ in range(repeat):
+        for threads in (None, 1):
+            c0, t0 = time.process_time(), time.perf_counter()
+            res = run(threads)
+            out[threads][0].append(time.perf_counter() - t0)
+            out[threads][1].append(time.process_time() - c0)
+            out[threads] = (out[threads][0], out[threads][1], res)
+    same = float(np.max(np.abs(np.log(out[None][2].x / out[1][2].x))))
+    rows = []
+    for threads, label in ((None, "BLAS pool as it is"), (1, "one BLAS thread")):
+        times, cpu, res = out[threads]
+        rows.append({"case": f"polish, {label}", "n": repeat, "median_s": float(np.median(times)), "times_s": times,
+                     "cpu_s": float(np.median(cpu)), "nfev": res.nfev, "sse": res.sse,
+                     "max_log_diff_of_results": same})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=1000, help="individuals per population")
@@ -115,7 +161,20 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--n-scipy", type=int, default=3, help="individuals for the solve_ivp comparison (0: skip)")
     ap.add_argument("--json", type=str, default=None, help="also write the table as JSON")
     ap.add_argument("--quick", action="store_true", help="only the FAST near-assigned cases")
+    ap.add_argument("--polish", action="store_true", help="time one least-squares polish with and without one "
+                                                          "BLAS thread instead")
     args = ap.parse_args(argv)
+    if args.polish:
+        rows = polish_rows(args.repeat)
+        print(f"{'case':32s} {'n':>3s} {'median s':>9s} {'CPU s':>7s} {'nfev':>5s}  SSE (m²)")
+        for r in rows:
+            print(f"{r['case']:32s} {r['n']:3d} {r['median_s']:9.3f} {r['cpu_s']:7.2f} {r['nfev']:5d}  {r['sse']:.6g}")
+        print(f"speed-up with one BLAS thread: {rows[0]['median_s'] / rows[1]['median_s']:.2f}x (medians); largest "
+              f"|log ratio| between the two results: {rows[0]['max_log_diff_of_results']:.2g}")
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as fh:
+                json.dump(rows, fh, indent=1)
+        return rows
 
     rec = Record.from_sweep("simulation")
     near = near_assigned(args.n)

@@ -172,3 +172,27 @@ def test_bad_input_raises_config_error(kwargs, msg):
     x0 = args.pop("x0")
     with pytest.raises(ConfigError, match=msg):
         polish(lambda p: model(p) - data(), x0, args.pop("lower"), args.pop("upper"), **args)
+
+
+def test_one_blas_thread_inside_the_polish_only_and_the_same_result():
+    """scipy iterates with one BLAS thread (the tall, thin SVDs of its steps); the pool is restored afterwards and
+    the result is that of the pool as it is."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    before = blas_threads()
+    inside = []
+
+    def residual(p):
+        inside.append(blas_threads())
+        return model(p) - data(0.01)
+
+    one = polish(residual, [0.3, 4.0, 3.0], LOWER, UPPER, jac_fn=model_jac)
+    # the start is evaluated before scipy runs; every call from scipy's iterations sees one thread
+    assert len(inside) > 1 and all(all(n == 1 for n in seen) for seen in inside[1:])
+    assert blas_threads() == before
+    pool = polish(lambda p: model(p) - data(0.01), [0.3, 4.0, 3.0], LOWER, UPPER, jac_fn=model_jac,
+                  blas_threads=None)
+    np.testing.assert_array_equal(one.x, pool.x)

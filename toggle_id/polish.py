@@ -19,14 +19,20 @@ Failures are data: at a trial point where ``residual_fn`` returns NaN/inf or rai
 residual), which the trust-region method simply rejects (a vector of the wrong length is a bug and raises).
 The polished point is accepted only if it lowers the sum of squares (:attr:`PolishResult.improved`);
 otherwise the start is returned unchanged (as scipy's differential evolution does with its own ``polish``).
+
+The trust-region steps take the SVD of a tall, thin Jacobian (thousands of samples × a dozen parameters). A
+multi-threaded BLAS is far slower at that than one thread, and more so beside the simulator's own threads
+(``python -m jobs.bench --polish``), so :func:`polish` runs scipy with one BLAS thread (``blas_threads``).
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
+from threadpoolctl import ThreadpoolController
 
 from .errors import ConfigError
 
@@ -235,11 +241,26 @@ def _fd_jacobian_u(obj: _Objective, u: np.ndarray, r: np.ndarray, diff_step: flo
     return jac
 
 
+_CONTROLLER: ThreadpoolController | None = None
+
+
+def blas_limit(threads: int | None):
+    """A context that runs BLAS with ``threads`` threads (a no-op for None); the controller, which scans the
+    loaded libraries, is made once."""
+    global _CONTROLLER
+    if threads is None:
+        return contextlib.nullcontext()
+    if _CONTROLLER is None:
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=int(threads), user_api="blas")
+
+
 def polish(residual_fn: ResidualFn, x0: Sequence[float], lower: Sequence[float], upper: Sequence[float], *,
            log_mask: Sequence[bool] | None = None, jac_fn: JacobianFn | None = None, max_nfev: int = 200,
            ftol: float = 1e-12, xtol: float = 1e-12, gtol: float = 1e-12, diff_step: float | None = None,
            fd_method: str = "2-point", log_floor_rel: float = LOG_FLOOR_REL,
-           min_rel_improvement: float = MIN_REL_IMPROVEMENT, penalty: float | None = None) -> PolishResult:
+           min_rel_improvement: float = MIN_REL_IMPROVEMENT, penalty: float | None = None,
+           blas_threads: int | None = 1) -> PolishResult:
     """Refine ``x0`` by bounded least squares on ``residual_fn`` in the scaled parameterisation.
 
     residual_fn: x (n,) physical → residual (m,); may return NaN/inf (or raise one of :data:`TRIAL_ERRORS`)
@@ -254,6 +275,7 @@ def polish(residual_fn: ResidualFn, x0: Sequence[float], lower: Sequence[float],
     min_rel_improvement: the polished point is accepted only if ``sse < sse0 · (1 - min_rel_improvement)``.
     penalty: value of each entry of the residual at a failed trial point; default
         ``1e3 · max(1, max|r(x0)|)``, so that a failed point has a sum of squares ≥ 1e6 × the start's.
+    blas_threads: BLAS threads while scipy iterates (see the module docstring); None leaves the pool as it is.
     Returns a :class:`PolishResult`; never raises for a failing trial point.
     """
     scaling = make_scaling(x0, lower, upper, log_mask=log_mask, log_floor_rel=log_floor_rel)
@@ -278,9 +300,10 @@ def polish(residual_fn: ResidualFn, x0: Sequence[float], lower: Sequence[float],
     obj = _Objective(residual_fn, jac_fn, scaling, m, float(penalty))
     obj.nfev = 1
     u0 = np.clip(scaling.to_u(x0), scaling.lower_u, scaling.upper_u)
-    res = least_squares(obj.residual, u0, jac=obj.jacobian if jac_fn is not None else fd_method,
-                        bounds=(scaling.lower_u, scaling.upper_u), method="trf", x_scale=1.0,
-                        ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev, diff_step=diff_step)
+    with blas_limit(blas_threads):
+        res = least_squares(obj.residual, u0, jac=obj.jacobian if jac_fn is not None else fd_method,
+                            bounds=(scaling.lower_u, scaling.upper_u), method="trf", x_scale=1.0,
+                            ftol=ftol, xtol=xtol, gtol=gtol, max_nfev=max_nfev, diff_step=diff_step)
     r_new = np.asarray(res.fun, dtype=float)
     sse_new = float(r_new @ r_new)
     improved = bool(np.all(np.isfinite(r_new)) and sse_new < sse0 * (1.0 - min_rel_improvement))

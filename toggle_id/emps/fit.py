@@ -182,9 +182,12 @@ def _least_squares(residual: Callable, jac: Callable, x0: np.ndarray, lower: np.
         return np.asarray(res.x, float), int(res.nfev), bool(res.success), f"polish: {res.message}"
     from scipy.optimize import least_squares
 
+    from ..polish import blas_limit
+
     scale = 1e6  # residuals in µm for the optimiser's tolerances
-    res = least_squares(lambda x: scale * residual(x), x0, jac=lambda x: scale * jac(x), bounds=(lower, upper),
-                        x_scale=x_scale, method="trf", max_nfev=max_nfev, ftol=1e-10, xtol=1e-10, gtol=1e-10)
+    with blas_limit(1):  # the tall, thin SVDs of the trust-region steps (see toggle_id.polish)
+        res = least_squares(lambda x: scale * residual(x), x0, jac=lambda x: scale * jac(x), bounds=(lower, upper),
+                            x_scale=x_scale, method="trf", max_nfev=max_nfev, ftol=1e-10, xtol=1e-10, gtol=1e-10)
     return res.x, int(res.nfev), bool(res.success), str(res.message)
 
 
