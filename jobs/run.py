@@ -1,6 +1,7 @@
 """`python -m jobs.run [+experiment=NAME] [key=value ...]`: the identification workflow (Hydra entry point).
 
-Experiments: one_stage, two_stage (default method), table1, discover, emps. Multirun sweeps work:
+Experiments: one_stage, two_stage (default method), table1, discover, emps, excite (propose the input that tells
+rival explanations apart, toggle_id/excite/). Multirun sweeps work:
 `python -m jobs.run -m +experiment=two_stage ga.population=200,1000 seed=0,1,2`.
 The last line of output is `report: <absolute path of the job's report>`.
 """
@@ -40,9 +41,13 @@ def run(cfg: dict, run_dir: str, project_root: str) -> str:
         from toggle_id.emps_job import run_emps
 
         return str(run_emps(cfg, run_dir, project_root))
+    if job == "excite":
+        from toggle_id.excite import run_excite
+
+        return str(run_excite(cfg, run_dir, project_root))
     from toggle_id.errors import ConfigError
 
-    raise ConfigError(f"unknown job {job!r}; known: identify, table1, discover, emps, identifiability")
+    raise ConfigError(f"unknown job {job!r}; known: identify, table1, discover, emps, identifiability, excite")
 
 
 def tracking_context(hc, project_root: str) -> tuple[list[str], dict]:

@@ -1,0 +1,155 @@
+"""The numbers of the excite job a user may change (``excite`` node of conf/experiment/excite.yaml)."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from ..effects import ALL_INDEX, EFFECTS_BY_NAME
+from ..errors import ConfigError
+
+#: The input families the search knows (:mod:`toggle_id.excite.inputs`).
+FAMILIES = ("sweep", "cycling", "multisine", "steps")
+
+
+@dataclass
+class RivalSpec:
+    """A rival explanation named in the configuration: the effect ``effect`` switched on with ``params``
+    (effect parameter → value; its magnitude must be non-zero) against the nominal model without it."""
+
+    effect: str
+    params: dict[str, float]
+
+    @classmethod
+    def from_dict(cls, d: Any, where: str = "excite.rivals") -> RivalSpec:
+        if isinstance(d, str):
+            raise ConfigError(f"{where}: {d!r} needs its magnitude, e.g. {{effect: {d}, params: {{...}}}}")
+        if not isinstance(d, Mapping) or set(d) - {"effect", "params"} or "effect" not in d:
+            raise ConfigError(f"{where}: each rival is {{effect: NAME, params: {{NAME: VALUE}}}}, got {d!r}")
+        name = d["effect"]
+        if name not in EFFECTS_BY_NAME:
+            raise ConfigError(f"{where}: unknown effect {name!r}; known: {', '.join(EFFECTS_BY_NAME)}")
+        eff = EFFECTS_BY_NAME[name]
+        params = dict(d.get("params") or {})
+        for k, v in params.items():
+            if k not in eff.names:
+                raise ConfigError(f"{where}: {k!r} is not a parameter of {name} ({', '.join(eff.names)})")
+            p = next(q for q in eff.params if q.name == k)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise ConfigError(f"{where}: {name}.{k} must be a number, got {v!r}") from None
+            if not p.lower <= v <= p.upper:
+                raise ConfigError(f"{where}: {name}.{k} = {v:g} is outside its domain [{p.lower:g}, {p.upper:g}]")
+            params[k] = v
+        mag = eff.magnitude
+        if params.get(mag.name, mag.off) == mag.off:
+            raise ConfigError(f"{where}: {name} needs a non-zero magnitude {mag.name} ({mag.unit})")
+        return cls(name, params)
+
+
+@dataclass
+class ExciteSettings:
+    """Numbers of the excite job (conf/experiment/excite.yaml, node ``excite``).
+
+    - Machine limits of a proposed input: ``v_max`` (V, |v_in| ≤ v_max), ``duration`` (s), ``rate_hz`` (Hz);
+      ``x_B_min`` (m): slider B must stay above it; ``clamp_margin`` (m): x_B must pass x_B^L by this much to
+      count as clamped; ``min_clamp_samples``: samples before the first clamp; ``min_exits``: times the
+      slider must leave the clamp again ("into the clamp and back").
+    - Search: ``families`` (of :data:`FAMILIES`), ``n_random`` random candidates per family, ``n_refine`` local
+      refinement steps around the best (radius ``refine_radius`` in the unit cube of the family's parameters,
+      grown ×1.5 on success, shrunk ×0.6 on failure), ``seed``.
+    - Scores: ``refit_top`` candidates (the best by the linearised score) verified by full refits of
+      ``refit_nfev`` residual evaluations (``refit_rounds`` restarts); ``rival_nfev``: the fit of rival A to the
+      record; ``fd_rel_step``: forward-difference step of the refits; ``jac_rel_step``: (log-)step of the
+      linearised separation.
+    - Rivals: ``rivals`` (:class:`RivalSpec`), ``discovery`` (a discovery.json whose accepted and compensating
+      effects become rivals), ``parameters`` (the weak directions of the 15 parameters as a rival),
+      ``sv_index`` (the k-th singular value compared, 1-based).
+    - Goals: ``separation_target`` (σ) and ``sv_gain_target`` (×) — a candidate's score is the smallest share of
+      its goals it meets; ``noise_std_m``: σ (m; None: the simulated record's noise, else the nominal RMS).
+    """
+
+    v_max: float = 0.3
+    duration: float = 5.0
+    rate_hz: float = 1000.0
+    x_B_min: float = 0.008
+    clamp_margin: float = 3e-4
+    min_clamp_samples: int = 30
+    min_exits: int = 1
+    families: tuple[str, ...] = FAMILIES
+    n_random: int = 6
+    n_refine: int = 10
+    refine_radius: float = 0.15
+    seed: int = 0
+    refit_top: int = 3
+    refit_nfev: int = 30
+    refit_rounds: int = 2
+    rival_nfev: int = 40
+    fd_rel_step: float = 1e-4
+    jac_rel_step: float = 1e-5
+    rivals: tuple[RivalSpec, ...] = field(default_factory=tuple)
+    discovery: str | None = None
+    parameters: bool = True
+    sv_index: int = 8
+    separation_target: float = 3.0
+    sv_gain_target: float = 10.0
+    noise_std_m: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping | None) -> ExciteSettings:
+        d = dict(d or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ConfigError(f"excite: unknown setting(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        if "families" in d:
+            fam = d["families"]
+            d["families"] = (fam,) if isinstance(fam, str) else tuple(fam or ())
+        if "rivals" in d:
+            d["rivals"] = tuple(r if isinstance(r, RivalSpec) else RivalSpec.from_dict(r) for r in (d["rivals"] or ()))
+        return cls(**d).validate()
+
+    def validate(self) -> ExciteSettings:
+        def number(name: str, lo: float, hi: float, open_lo: bool = True) -> None:
+            v = getattr(self, name)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and (lo < v if open_lo else lo <= v) and v <= hi
+            if not ok:
+                raise ConfigError(f"excite.{name} must lie in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {v!r}")
+
+        def whole(name: str, lo: int) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ConfigError(f"excite.{name} must be a whole number >= {lo}, got {v!r}")
+
+        number("v_max", 0.0, 10.0)
+        number("duration", 0.0, 60.0)
+        number("rate_hz", 0.0, 1e5)
+        number("x_B_min", 0.0, 0.056, open_lo=False)
+        number("clamp_margin", 0.0, 0.01, open_lo=False)
+        number("refine_radius", 0.0, 1.0)
+        number("fd_rel_step", 0.0, 0.1)
+        number("jac_rel_step", 0.0, 0.1)
+        number("separation_target", 0.0, 1e6)
+        number("sv_gain_target", 0.0, 1e9)
+        for name, lo in (("min_clamp_samples", 1), ("min_exits", 0), ("n_random", 1), ("n_refine", 0), ("seed", 0),
+                         ("refit_top", 1), ("refit_nfev", 1), ("refit_rounds", 1), ("rival_nfev", 1),
+                         ("sv_index", 1)):
+            whole(name, lo)
+        if self.sv_index > 15:
+            raise ConfigError(f"excite.sv_index must be at most 15 (the parameters), got {self.sv_index}")
+        if not self.families or any(f not in FAMILIES for f in self.families):
+            raise ConfigError(f"excite.families must name some of {', '.join(FAMILIES)}, got {list(self.families)}")
+        if round(self.duration * self.rate_hz) < 100:
+            raise ConfigError(f"excite: duration × rate_hz must give at least 100 samples, got "
+                              f"{self.duration:g} s × {self.rate_hz:g} Hz")
+        if not isinstance(self.parameters, bool):
+            raise ConfigError(f"excite.parameters must be true or false, got {self.parameters!r}")
+        if self.noise_std_m is not None:
+            number("noise_std_m", 0.0, 1e-2)
+        if self.discovery is not None and not isinstance(self.discovery, str):
+            raise ConfigError(f"excite.discovery must be the path of a discovery.json, got {self.discovery!r}")
+        for r in self.rivals:
+            for k in r.params:
+                assert k in ALL_INDEX
+        return self
