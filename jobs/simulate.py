@@ -1,15 +1,20 @@
 """`python -m jobs.simulate out=FILE.csv [command=sweep|cycling] [sweep=simulation|experiment] [params.NAME=VALUE ...]
-[effects.NAME=VALUE ...] [noise_m=SIGMA] [noise_ar=RHO] [quantum_m=Q] [seed=N]`
+[effects.NAME=VALUE ...] [noise_m=SIGMA] [noise_ar=RHO] [quantum_m=Q] [seed=N] [input.path=INPUT.csv]`
 
 Simulates the plant (PRECISE tier) and writes a record in the CSV format of docs/model.md §8 (t, v_in, x_B, i_q):
 the paper's swept sine or the open/close cycling command (``command=cycling``), x_B with white or AR(1)
-Gaussian noise (``noise_ar``) and optionally quantised to an encoder's resolution (``quantum_m``). The last line
+Gaussian noise (``noise_ar``) and optionally quantised to an encoder's resolution (``quantum_m``).
+``input.path=INPUT.csv`` simulates under any given input instead: a CSV with columns ``t`` (s) and ``v_in`` (V),
+uniformly sampled at ``rate_hz``, |v_in| ≤ ``input.v_max``, at most ``input.max_duration`` s (e.g. the
+``excitation.csv`` of ``+experiment=excite``); a bad file is one line on stderr and exit status 2. The last line
 of output is `report: <absolute path of the CSV>`.
 """
 from __future__ import annotations
 
 import sys
 from pathlib import Path
+
+import numpy as np
 
 import hydra
 from hydra.utils import get_original_cwd
@@ -35,13 +40,61 @@ def write_record(cfg: dict, cwd: str) -> Path:
         duration = float("nan")
     if not duration > 0:
         raise ConfigError(f"duration must be a positive time in seconds, got {data.get('duration')}")
-    record, _ = build_record(data)
     path = Path(out).expanduser()
     if not path.is_absolute():
         path = Path(cwd) / path
+    inp = cfg.get("input") or {}
+    if inp.get("path"):
+        record = record_under_input(data, inp, cwd)
+    else:
+        record, _ = build_record(data)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_csv(record, path)
     return path.resolve()
+
+
+def record_under_input(data: dict, inp: dict, cwd: str):
+    """The record of ``data``'s truth and noise under the input of the CSV ``inp['path']`` (t, v_in)."""
+    from toggle_id.data import read_csv
+    from toggle_id.errors import ConfigError, DataError
+    from toggle_id.record import Record, measure
+    from toggle_id.simulate import PRECISE, simulate
+    from toggle_id.workflow import truth_vector
+
+    try:
+        v_max, max_duration = float(inp.get("v_max", 0.3)), float(inp.get("max_duration", 60.0))
+        rate = float(data.get("rate_hz", 1000.0))
+    except (TypeError, ValueError):
+        raise ConfigError("input.v_max, input.max_duration and rate_hz must be numbers") from None
+    if not (v_max > 0 and max_duration > 0 and rate > 0):
+        raise ConfigError(f"input.v_max ({v_max:g}), input.max_duration ({max_duration:g}) and rate_hz ({rate:g}) "
+                          "must be positive")
+    src = Path(str(inp["path"])).expanduser()
+    src = src if src.is_absolute() else Path(cwd) / src
+    given = read_csv(src, require_x_B=False, expect_rate_hz=rate)
+    k = int(np.argmax(np.abs(given.v_in)))
+    if abs(given.v_in[k]) > v_max:
+        raise DataError(f"input file {src}: |v_in| = {abs(given.v_in[k]):.6g} V at t = {given.t[k]:.9g} s is over the "
+                        f"machine's limit input.v_max = {v_max:g} V")
+    duration = float(given.t[-1] - given.t[0])
+    if duration > max_duration:
+        raise DataError(f"input file {src}: {duration:g} s long, longer than input.max_duration = {max_duration:g} s")
+    if given.t[0] != 0.0:
+        raise DataError(f"input file {src}: time must start at 0 s, starts at {given.t[0]:.9g} s")
+    x_B0 = float(data.get("x_B0", 0.020))
+    rec = Record.from_input(given.t, given.v_in, x_B0=x_B0, name=src.stem)
+    theta = truth_vector({**data, "params": data.get("params") or {}, "effects": data.get("effects") or {}})
+    sim = simulate(theta[None, :], rec, PRECISE)
+    if sim.status[0] != 0:
+        raise DataError(f"input file {src}: the plant cannot be simulated under this input ({sim.status_counts()})")
+    try:
+        rec.x_B = measure(sim.x_B[0], noise_m=float(data.get("noise_m", 0.0) or 0.0),
+                          noise_ar=float(data.get("noise_ar", 0.0) or 0.0),
+                          quantum_m=float(data.get("quantum_m", 0.0) or 0.0), seed=int(data.get("noise_seed", 0)))
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    rec.i_q = sim.i_q[0].copy()
+    return rec
 
 
 @hydra.main(config_path="../conf", config_name="simulate", version_base="1.3")

@@ -7,7 +7,7 @@ of what is left, y_A − y_B(refitted), is the separation (m) — divided by the
 explanations stay apart on that input. :func:`linear_separation` is its first-order estimate (the part of
 y_A − y_B outside the range of B's sensitivities: one batched simulation, the search's score);
 :func:`refit_separation` the real refit (bounded least squares, :func:`toggle_id.discovery.fit_free`, from B's
-parameters and from A's nominal part; the better one counts).
+parameters, from A's nominal part and from the first-order Gauss–Newton point; the best one counts).
 
 *Spectrum.* :func:`spectrum` gives the singular values of the x_B sensitivities w.r.t. the log-parameters
 (fourth-order differences), the numerical rank the Jacobian's own error resolves
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import params as P
-from ..discovery.model import Model, fit_free, sensitivities
+from ..discovery.model import Model, _coords, fit_free, sensitivities
 from ..effects import ALL_INDEX
 from ..identifiability import analyze
 from ..problem import FitProblem
@@ -68,34 +68,49 @@ def _with_output(record: Record, x_B: np.ndarray) -> Record:
     return Record(t=record.t, v_in=record.v_in, x_B=x_B, sweep=record.sweep, x_B0=record.x_B0, name=record.name)
 
 
-def linear_separation(record: Record, rival: Rival, y_a: np.ndarray, y_b: np.ndarray, rel_step: float = 1e-5
-                      ) -> float:
+def linear_separation(record: Record, rival: Rival, y_a: np.ndarray, y_b: np.ndarray, rel_step: float = 1e-5,
+                      return_step: bool = False):
     """First-order separation (m RMS): the part of y_A − y_B outside the range of B's sensitivities on ``record``
-    (the least-squares step of B's free parameters taken exactly, in the linear model). NaN on failure."""
+    (the least-squares step of B's free parameters taken exactly, in the linear model). NaN on failure. With
+    ``return_step`` also B's vector moved by that step (the Gauss–Newton point; None on failure)."""
     d = y_a - y_b
     if not np.all(np.isfinite(d)):
-        return float("nan")
+        return (float("nan"), None) if return_step else float("nan")
     J = sensitivities(Model(_with_output(record, y_b), parallel=True), rival.theta_b, rival.free_b, rel_step)
     if not np.all(np.isfinite(J)):
-        return float("nan")
+        return (float("nan"), None) if return_step else float("nan")
     # columns scaled to unit norm (the least-squares solution is invariant; the conditioning is not)
     norms = np.linalg.norm(J, axis=0)
     keep = norms > 0
     Jn = J[:, keep] / norms[keep]
     coef, *_ = np.linalg.lstsq(Jn, d, rcond=1e-10)
     r = d - Jn @ coef
-    return float(np.sqrt(np.mean(r * r)))
+    sep = float(np.sqrt(np.mean(r * r)))
+    if not return_step:
+        return sep
+    du = np.zeros(len(rival.free_b))
+    du[keep] = coef / norms[keep]
+    mask, scale = _coords(rival.free_b, rival.theta_b)
+    theta = rival.theta_b.copy()
+    for j, nm in enumerate(rival.free_b):
+        i = ALL_INDEX[nm]
+        theta[i] = theta[i] * np.exp(du[j]) if mask[j] else theta[i] + du[j] * scale[j]
+    return sep, theta
 
 
 def refit_separation(record: Record, rival: Rival, y_a: np.ndarray, *, max_nfev: int, rounds: int,
                      fd_rel_step: float = 1e-4) -> dict:
     """Refit B's free parameters to A's response ``y_a`` on ``record`` (from B's parameters and from A's nominal
-    part; the better counts). Returns separation_m (RMS of what is left), the refitted vector and response."""
+    part and from B's Gauss–Newton point of the first-order separation; the best counts). Returns separation_m
+    (RMS of what is left), the refitted vector and response."""
     model = Model(_with_output(record, y_a), parallel=True)
     start_a = rival.theta_b.copy()
     start_a[:P.N_PARAMS] = rival.theta_a[:P.N_PARAMS]
+    y_b0, _ = responses(record, rival.theta_b)
+    _, start_gn = linear_separation(record, rival, y_a, y_b0[0], return_step=True)
+    starts = [rival.theta_b, start_a] + ([start_gn] if start_gn is not None else [])
     best = None
-    for start in (rival.theta_b, start_a):
+    for start in starts:
         fit = fit_free(model, start, rival.free_b, max_nfev, fd_rel_step, rounds=rounds)
         if best is None or fit.sse < best.sse:
             best = fit
