@@ -1,7 +1,7 @@
 """An adversarial set of records on which the discovery loop is judged.
 
-``python -m jobs.bench_adversarial --out DIR [--only NAME,...] [--duration S] [--calibrate] [--run] [--jobs N]
-[--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
+``python -m jobs.bench_adversarial --out DIR [--only NAME,...] [--duration S] [--calibrate] [--validation] [--run]
+[--jobs N] [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
 
 Writes CSV records (docs/model.md §8, via :func:`toggle_id.data.write_csv`) and ``manifest.json`` (the truth of each:
 parameters, effects, noise model, command) into DIR. A record's name (``rec01`` …) says nothing about what is in
@@ -27,6 +27,11 @@ The set (:data:`SPECS`):
 The calibrated magnitudes are constants here (:data:`CALIBRATED`, with the measured ratios); ``--calibrate``
 measures them again (for the records selected) and prints the new table. ``--duration`` shortens the records
 (tests); the calibration holds for 5-s records only.
+
+``--validation`` also writes each machine's second record, ``recNN_validation.csv``: the same truth, effects and
+noise model under the other kind of command (:data:`SECOND_COMMAND`: a swept machine is also cycled, a cycled one
+swept at A = 0.25 V) with independent noise; the discover runs get it as ``validation.path`` (predicted, never
+fitted: an effect must predict it better, and structure left in its prediction makes the result unexplained).
 
 ``--run`` then runs the discover job on every record (``python -m jobs.run +experiment=discover data=csv
 data.path=… seed=0 progress=false``; MLflow off unless ``--mlflow-uri``; ``--override`` adds Hydra overrides),
@@ -236,8 +241,20 @@ def noise_seed(spec: Spec) -> int:
     return 7000 + spec.seed
 
 
-def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration: float = DURATION):
-    """(record with noisy x_B, manifest entry) of ``spec`` with its ``calibrated`` {parameter: (value, ratio)}."""
+#: The validation record's command for a record's command: the other kind of motion (a swept machine is also run
+#: open/close; a cycling one is also swept, with the experiment sweep's larger amplitude).
+SECOND_COMMAND = {"simulation": "cycling", "experiment": "cycling", "cycling": "experiment"}
+#: Offset of the validation record's noise seed: independent noise of the same model.
+VALIDATION_SEED_OFFSET = 5000
+
+
+def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration: float = DURATION,
+                validation: bool = False):
+    """(record with noisy x_B, manifest entry) of ``spec`` with its ``calibrated`` {parameter: (value, ratio)}.
+
+    ``validation``: the second record of the same machine (truth, effects, noise model) under
+    :data:`SECOND_COMMAND` with independent noise, named ``<name>_validation`` — what a user would record to check
+    a model on data it was not fitted on."""
     from toggle_id.effects import EFFECTS_BY_NAME
     from toggle_id.params import PARAM_NAMES
     from toggle_id.record import measure
@@ -246,26 +263,27 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
     magnitudes = {k: float(v[0]) for k, v in calibrated.items()}
     theta, draw = draw_truth(spec)
     effects = effect_values(spec, magnitudes)
-    name = NAMES[spec.key]
+    name = NAMES[spec.key] + ("_validation" if validation else "")
+    kind = SECOND_COMMAND[spec.command] if validation else spec.command
+    seed = noise_seed(spec) + (VALIDATION_SEED_OFFSET if validation else 0)
     if spec.outside:
-        rec = base_record(spec.command, duration)
+        rec = base_record(kind, duration)
         x, i = clean_response(spec, theta, effects, magnitudes, rec)
-        rec.x_B = measure(x, noise_m=spec.noise_m, noise_ar=spec.noise_ar, quantum_m=spec.quantum_m,
-                          seed=noise_seed(spec))
+        rec.x_B = measure(x, noise_m=spec.noise_m, noise_ar=spec.noise_ar, quantum_m=spec.quantum_m, seed=seed)
         rec.i_q = i
         simulator = "tests/outside_plant.py (scipy DOP853, rtol 1e-11)"
     else:
-        data = {"source": "simulated", "command": "cycling" if spec.command == "cycling" else "sweep",
-                "sweep": spec.command if spec.command != "cycling" else "simulation", "duration": duration,
+        data = {"source": "simulated", "command": "cycling" if kind == "cycling" else "sweep",
+                "sweep": kind if kind != "cycling" else "simulation", "duration": duration,
                 "params": dict(zip(PARAM_NAMES, map(float, theta))), "effects": effects, "noise_m": spec.noise_m,
-                "noise_ar": spec.noise_ar, "quantum_m": spec.quantum_m, "noise_seed": noise_seed(spec)}
+                "noise_ar": spec.noise_ar, "quantum_m": spec.quantum_m, "noise_seed": seed}
         rec, _ = build_record(data)
         simulator = "toggle_id.simulate (PRECISE)"
     rec.name = name
     from toggle_id.record import CYCLING, SWEEPS
 
-    command = (CYCLING.to_dict() if spec.command == "cycling" else
-               {"kind": "sweep", "sweep": spec.command, **SWEEPS[spec.command].__dict__})
+    command = (CYCLING.to_dict() if kind == "cycling" else
+               {"kind": "sweep", "sweep": kind, **SWEEPS[kind].__dict__})
     entry = {
         "name": name, "file": f"{name}.csv", "key": spec.key, "category": spec.category,
         "effects": list(spec.effects),
@@ -275,7 +293,7 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
         "params": dict(zip(PARAM_NAMES, map(float, theta))), "perturbation": draw,
         "noise": {"model": "none" if spec.noise_m == 0 else ("ar1" if spec.noise_ar else "white"),
                   "sigma_m": spec.noise_m, "ar": spec.noise_ar, "quantum_m": spec.quantum_m,
-                  "seed": noise_seed(spec), "effective_sigma_m": effective_sigma(spec.noise_m, spec.quantum_m)},
+                  "seed": seed, "effective_sigma_m": effective_sigma(spec.noise_m, spec.quantum_m)},
         "command": command, "duration_s": duration, "samples": rec.n, "simulator": simulator,
         "calibration": ({"target_ratio": spec.target, "magnitudes": magnitudes,
                          "measured_ratio": {k: float(v[1]) for k, v in calibrated.items()},
@@ -288,7 +306,7 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
         entry["jobs_simulate"] = " ".join(
             ["python -m jobs.simulate", f"out={name}.csv", f"command={data['command']}", f"sweep={data['sweep']}",
              f"duration={duration}", f"noise_m={spec.noise_m}", f"noise_ar={spec.noise_ar}",
-             f"quantum_m={spec.quantum_m}", f"seed={noise_seed(spec)}", *over])
+             f"quantum_m={spec.quantum_m}", f"seed={seed}", *over])
     return rec, entry
 
 
@@ -437,8 +455,9 @@ def sha256(path: Path) -> str:
 
 
 def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple[float, float]]],
-             duration: float = DURATION, log=print) -> dict:
-    """Write the records of ``specs`` and the manifest (merged with an existing one); return the manifest."""
+             duration: float = DURATION, log=print, validation: bool = False) -> dict:
+    """Write the records of ``specs`` and the manifest (merged with an existing one); return the manifest.
+    ``validation``: also each record's second record (:func:`make_record`), named in its entry's ``validation``."""
     from toggle_id.checkpoint import atomic_write_json
     from toggle_id.data import write_csv
 
@@ -453,6 +472,11 @@ def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple
         rec, entry = make_record(spec, calibrated.get(spec.key, {}), duration)
         csv = write_csv(rec, out / entry["file"])
         entry["sha256"] = sha256(csv)
+        if validation:
+            vrec, ventry = make_record(spec, calibrated.get(spec.key, {}), duration, validation=True)
+            vcsv = write_csv(vrec, out / ventry["file"])
+            entry["validation"] = {"file": ventry["file"], "command": ventry["command"],
+                                   "noise_seed": ventry["noise"]["seed"], "sha256": sha256(vcsv)}
         records[entry["name"]] = entry
         log(f"{entry['name']}: {rec.n} samples ({time.perf_counter() - t0:.1f} s)")
     manifest = {"generated_by": "python -m jobs.bench_adversarial", "sigma_m": SIGMA,
@@ -509,6 +533,14 @@ def verdict(entry: dict, report: dict) -> str:
     return "+".join(v for v, c in (("spurious", extra), ("missed", missing)) if c)
 
 
+def _validation(report: dict, key: str, scale: float | None = None):
+    """A figure of the final model's prediction of the validation record (None without one)."""
+    pred = report.get("validation_prediction")
+    if not isinstance(pred, dict) or key not in pred:
+        return None
+    return pred[key] * scale if scale is not None and pred[key] is not None else pred[key]
+
+
 def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict:
     sig = entry["noise"].get("effective_sigma_m") or SIGMA
     before, after = report.get("rmse_before_m"), report.get("rmse_after_m")
@@ -530,6 +562,9 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         "rmse_after_um": None if after is None else after * 1e6,
         "before_sigma": None if before is None else before / sig, "after_sigma": None if after is None else after / sig,
         "verdict": verdict(entry, report), "wall_s": wall, "report": report_path, "csv_sha256": entry.get("sha256"),
+        "validation_rmse_um": _validation(report, "rmse_m", 1e6),
+        "validation_structure_left": _validation(report, "structure_left"),
+        "validation_localisation": _validation(report, "text") if _validation(report, "structure_left") else None,
         "localisation": (report.get("localisation") or {}).get("text")
         if isinstance(report.get("localisation"), dict) and report["localisation"].get("structure_left") else None,
     }
@@ -538,16 +573,19 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
 def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, timeout: float, log=print) -> dict:
     """Run the discover job on one record (skipped if it already succeeded on the same CSV with the same
     overrides); its result row."""
+    if entry.get("validation"):  # the machine's second record: predicted, never fitted
+        extra = [*extra, f"validation.path={(out / entry['validation']['file']).resolve()}"]
     run_dir = out / "runs" / entry["name"]
     row_path = run_dir / "result_row.json"
     if row_path.exists():
         row = json.loads(row_path.read_text())
         if (row.get("verdict") != "error" and row.get("csv_sha256") == entry.get("sha256")
+                and row.get("validation_sha256") == (entry.get("validation") or {}).get("sha256")
                 and row.get("overrides", []) == list(extra)):
             report = Path(row.get("report") or "")
             if report.is_file():  # judged again from its report (the judging may have changed, not the run)
                 row = {**result_row(entry, json.loads(report.read_text()), row["wall_s"], str(report)),
-                       "overrides": list(extra)}
+                       "overrides": list(extra), "validation_sha256": row.get("validation_sha256")}
                 from toggle_id.checkpoint import atomic_write_json
 
                 atomic_write_json(row_path, row)
@@ -580,6 +618,7 @@ def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, ti
     else:
         row = result_row(entry, json.loads(Path(report_path).read_text()), wall, report_path)
     row["overrides"] = list(extra)
+    row["validation_sha256"] = (entry.get("validation") or {}).get("sha256")
     from toggle_id.checkpoint import atomic_write_json
 
     atomic_write_json(row_path, row)
@@ -603,20 +642,25 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def results_markdown(rows: list[dict], summary: dict) -> str:
+    val = any(r.get("validation_rmse_um") is not None for r in rows)
     head = ("| record | kind | command | truth | noise | accepted | compensating | noise model found | "
-            "RMS before → after (µm) | before → after (σ) | verdict | wall (s) |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|")
+            "RMS before → after (µm) | before → after (σ) | " + ("validation record predicted (µm) | " if val else "")
+            + "verdict | wall (s) |\n|" + "---|" * (13 if val else 12))
     body = []
     for r in rows:
         if r["verdict"] == "error":
-            body.append(f"| {r['record']} | {r['category']} | | | | | | | | | error: {r.get('error', '')[:120]} | "
-                        f"{r['wall_s']:.0f} |")
+            body.append(f"| {r['record']} | {r['category']} | | | | | | | | |{' |' if val else ''} "
+                        f"error: {r.get('error', '')[:120]} | {r['wall_s']:.0f} |")
             continue
+        pred = ""
+        if val:
+            pred = (f"{_fmt(r.get('validation_rmse_um'))}"
+                    f"{' (structure left)' if r.get('validation_structure_left') else ''} | ")
         body.append(f"| {r['record']} | {r['category']} | {r['command']} | {', '.join(r['truth']) or 'none'} | "
                     f"{r['noise']} | {', '.join(r['accepted']) or 'none'}{' (unexplained)' if r['unexplained'] else ''}"
                     f" | {', '.join(r['compensating']) or '–'} | {r.get('noise_model') or '–'} | "
                     f"{_fmt(r['rmse_before_um'])} → "
-                    f"{_fmt(r['rmse_after_um'])} | {_fmt(r['before_sigma'])} → {_fmt(r['after_sigma'])} | "
+                    f"{_fmt(r['rmse_after_um'])} | {_fmt(r['before_sigma'])} → {_fmt(r['after_sigma'])} | {pred}"
                     f"{r['verdict']} | {r['wall_s']:.0f} |")
     s = summary
     text = [head, *body, "",
@@ -627,6 +671,8 @@ def results_markdown(rows: list[dict], summary: dict) -> str:
             + (f"; {s['errors']} run(s) failed" if s["errors"] else "") + "."]
     where = [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}): {r['localisation']}" for r in rows
              if r.get("localisation")]
+    where += [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}), its validation record: "
+              f"{r['validation_localisation']}" for r in rows if r.get("validation_localisation")]
     if where:
         text += ["", "Where the residual concentrates (records with structure left):", *where]
     return "\n".join(text)
@@ -668,6 +714,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=7200.0, help="seconds per discover job")
     ap.add_argument("--mlflow-uri", default=None, help="track the runs in this MLflow store (default: no tracking)")
     ap.add_argument("--override", action="append", default=[], help="extra Hydra override of every run (repeatable)")
+    ap.add_argument("--validation", action="store_true",
+                    help="also write each machine's second record (the other command, independent noise) and give it "
+                         "to the discover job as validation.path: predicted, never fitted")
     args = ap.parse_args(argv)
     if not (args.duration > 0):
         ap.error(f"--duration must be positive, got {args.duration}")
@@ -683,7 +732,7 @@ def main(argv: list[str] | None = None) -> int:
             calibrated[key] = {p: (c["value"], c["ratio"]) for p, c in params.items()}
         (out / "calibration.json").write_text(json.dumps(cal, indent=1))
         print("CALIBRATED entries (paste into jobs/bench_adversarial.py):\n" + calibration_table(cal), flush=True)
-    manifest = generate(out, specs, calibrated, args.duration)
+    manifest = generate(out, specs, calibrated, args.duration, validation=args.validation)
     if args.run:
         _, summary = run_all(out, manifest, [NAMES[s.key] for s in specs], args.override, args.mlflow_uri, args.jobs,
                              args.timeout)

@@ -74,6 +74,40 @@ def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp
         assert read_csv(tmp_path / r["file"]).n == 501
 
 
+def test_validation_records_are_the_same_machine_under_the_other_command(tmp_path):
+    B.main(["--out", str(tmp_path), "--only", "dead_time,outside_bump_cycling", "--duration", "0.5", "--validation"])
+    man = {r["key"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
+    for key, command in (("dead_time", "cycling"), ("outside_bump_cycling", "sweep")):
+        entry = man[key]
+        val = entry["validation"]
+        assert val["command"]["kind"] == command and val["noise_seed"] == entry["noise"]["seed"] + 5000
+        main, second = read_csv(tmp_path / entry["file"]), read_csv(tmp_path / val["file"])
+        assert second.name.endswith("_validation") and second.n == main.n
+        assert not np.allclose(main.v_in, second.v_in)  # another input
+    # the truth is the record's: the second record of the dead-time machine is the simulator's output of it
+    from toggle_id.workflow import build_record
+
+    dt = man["dead_time"]
+    clean, _ = build_record({"source": "simulated", "command": "cycling", "duration": 0.5, "params": dt["params"],
+                             "effects": {"tau_d": dt["effect_params"]["dead_time"]["tau_d"]}, "noise_m": 0.0})
+    noise = read_csv(tmp_path / dt["validation"]["file"]).x_B - clean.x_B
+    assert 0.5e-6 < np.std(noise) < 1.5e-6  # only the noise differs
+
+
+def test_rows_and_table_show_the_validation_prediction():
+    report = {"effects_added": [], "rmse_before_m": 3e-6, "rmse_after_m": 3e-6, "unexplained": True,
+              "validation_prediction": {"rmse_m": 3.4e-6, "structure_left": True,
+                                        "text": "structure left: grows with model current i_q above 640 A"}}
+    row = B.result_row(_entry("outside"), report, 5.0, "r")
+    assert row["validation_rmse_um"] == pytest.approx(3.4) and row["validation_structure_left"] is True
+    md = B.results_markdown([row], B.summarise([row]))
+    assert "validation record predicted (µm)" in md and "3.4 (structure left)" in md
+    assert "its validation record: structure left: grows with model current" in md
+    plain = B.results_markdown([B.result_row(_entry("noise"), {"effects_added": []}, 1.0, "r")],
+                               B.summarise([]))
+    assert "validation record predicted" not in plain
+
+
 def test_a_truth_the_command_cannot_drive_is_redrawn():
     theta = ASSIGNED.copy()
     assert B._valid_truth(theta, "cycling")
