@@ -61,7 +61,8 @@ def summary_text(report: Mapping) -> str:
     if not best:
         lines.append(f"no candidate input passed the checks ({report['n_candidates']} tried); nothing proposed")
         return "\n".join(lines)
-    lines.append(f"proposed input: {best['family']} {_fmt_params(best['params'])} (candidate {best['index'] + 1} "
+    lines.append(f"proposed input: {best['family']} {_fmt_params(best['params'])} (levels as fractions of v_max; "
+                 f"candidate {best['index'] + 1} "
                  f"of {report['n_candidates']}; |v_in| ≤ {report['limits']['v_max']:g} V, "
                  f"{report['limits']['duration']:g} s)")
     for r in report.get("rivals", []):
