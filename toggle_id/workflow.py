@@ -30,7 +30,7 @@ from .stages import METHODS, PolishSettings, joint_plan, stage_bounds
 from .tracking import Tracker
 
 log = logging.getLogger("toggle_id")
-JOBS = ("identify", "table1", "discover", "emps", "identifiability")
+JOBS = ("identify", "table1", "discover", "emps", "identifiability", "excite")
 
 
 from .job_report import model_response, stage_child_run, write_figures, console_report  # noqa: F401 — the jobs take them from here too

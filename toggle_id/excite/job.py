@@ -14,7 +14,6 @@ from ..data import write_csv
 from ..effects import ALL_INDEX
 from ..errors import ConfigError, DataError
 from ..record import Record
-from ..stages import stage_bounds
 from .report import summary_text, write_figure
 from .rivals import build_rivals, specs_from_discovery
 from .score import spectrum, sv_at
@@ -46,6 +45,7 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
     from .. import mlflow_run, workflow
     from ..identify import identify
 
+    workflow.validate_config(cfg)
     settings = excite_settings(cfg)
     fast = workflow.fast_settings(cfg)
     tier = workflow.solver_tier(cfg)
@@ -54,8 +54,6 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         if nm not in ALL_INDEX:
             raise ConfigError(f"fixed: unknown parameter {nm!r}")
     bounds = dict(cfg.get("bounds") or {})
-    if bounds:
-        stage_bounds(list(bounds), bounds)
     specs = [(s, "config") for s in settings.rivals]
     if settings.discovery:
         dp = Path(settings.discovery).expanduser()
