@@ -17,6 +17,7 @@ Deterministic: the starts come from the seed; the polishes are sequential and ex
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -39,8 +40,11 @@ from .stages import PolishSettings, joint_plan, joint_polish, stage_bounds, stag
 @dataclass
 class FastSettings:
     """Successive halving per stage: ``starts`` random starts, polished with ``first_nfev`` residual evaluations,
-    the best ``keep`` fraction continued with twice the budget, down to ``finalists`` starts; the best one
-    polished with ``final_nfev`` on the PRECISE tier. Stage 2 (two parameters) uses ``starts_stage2``."""
+    the best ``keep`` fraction continued with twice the budget, down to ``finalists`` starts, each polished with
+    ``final_nfev`` on the PRECISE tier. Stage 2 (two parameters) uses ``starts_stage2``. ``paths``: how many of
+    stage 1's finalists (best first) go on through stage 2 and the joint polish; the lowest whole-record error
+    wins. Stage 1 sees only the free motion, and when the record clamps early (the experiment sweep: 79
+    samples) the best fit of those few samples is often not the start of the best whole-record fit."""
 
     route: str = "two_stage"
     starts: int = 24
@@ -52,13 +56,14 @@ class FastSettings:
     joint_prepolish: bool = True
     joint_final_nfev: int = 15
     fd_rel_step: float = 1e-6
+    paths: int = 1
 
     def validate(self) -> FastSettings:
         if self.route not in ("two_stage", "one_stage"):
             raise ConfigError(f"fast.route must be 'two_stage' or 'one_stage', got {self.route!r}")
         if not isinstance(self.joint_prepolish, bool):
             raise ConfigError(f"fast.joint_prepolish must be true or false, got {self.joint_prepolish!r}")
-        for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev", "joint_final_nfev"):
+        for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev", "joint_final_nfev", "paths"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"fast.{name} must be a whole number >= 1, got {v!r}")
@@ -66,13 +71,19 @@ class FastSettings:
             raise ConfigError(f"fast.keep must lie in (0, 1), got {self.keep!r}")
         if not 0.0 < float(self.fd_rel_step) < 0.1:
             raise ConfigError(f"fast.fd_rel_step must lie in (0, 0.1), got {self.fd_rel_step!r}")
+        if self.paths > 1 and self.route != "two_stage":
+            raise ConfigError(f"fast.paths > 1 needs route two_stage (the paths are stage 1's finalists), got "
+                              f"route {self.route!r}")
+        if self.paths > self.finalists:
+            raise ConfigError(f"fast.paths ({self.paths}) cannot exceed fast.finalists ({self.finalists}): the paths "
+                              f"are stage 1's finalists")
         return self
 
 
 def successive_halving(problem: FitProblem, starts: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                       settings: FastSettings, tier: SolverSettings = FAST) -> tuple[np.ndarray, dict]:
+                       settings: FastSettings, tier: SolverSettings = FAST) -> tuple[list[np.ndarray], dict]:
     """Multistart bounded least squares on ``problem`` from the rows of ``starts`` (see the module docstring).
-    Returns the best point (the PRECISE polish of the best finalist) and a record of the rounds."""
+    Returns the PRECISE polishes of the finalists, best first, and a record of the rounds."""
     def resid(t: SolverSettings) -> Callable[[np.ndarray], np.ndarray]:
         return lambda x: problem.residuals(x[None, :], t)[0]
 
@@ -94,9 +105,9 @@ def successive_halving(problem: FitProblem, starts: np.ndarray, lower: np.ndarra
         budget *= 2
     finals = [polish(resid(PRECISE), results[i].x, lower, upper, jac_fn=jac(PRECISE), max_nfev=settings.final_nfev)
               for i in order[:settings.finalists]]
-    best = min(finals, key=lambda r: r.sse)
-    return best.x, {"rounds": rounds, "final_sse_m2": [float(f.sse) for f in finals], "nfev_final": int(best.nfev),
-                    "message": str(best.message)}
+    finals = sorted(finals, key=lambda r: r.sse)
+    return [f.x for f in finals], {"rounds": rounds, "final_sse_m2": [float(f.sse) for f in finals],
+                                   "nfev_final": int(finals[0].nfev), "message": str(finals[0].message)}
 
 
 def _draw(rng: np.random.Generator, k: int, lower: np.ndarray, upper: np.ndarray, centre: np.ndarray | None = None
@@ -129,10 +140,12 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     t_start = time.perf_counter()
     curve = curve if curve is not None else RmseCurve(records, t0=t_start)
     rng = np.random.default_rng(np.random.SeedSequence(seed))
-    stages: list[StageResult] = []
-    spent = curve.simulations
-    t_report = 0.0  # identifiability reports: not part of the fit
-    for name, free, windows in plan:
+    reports = [0.0]  # seconds of the identifiability reports: not part of the fit
+
+    def fit_stage(name: str, free: tuple[str, ...], windows, theta: np.ndarray, rng: np.random.Generator
+                  ) -> tuple[StageResult, list[np.ndarray], FitProblem]:
+        """One stage's successive halving from ``theta``: its result (the best finalist), all finalists (extended
+        vectors, best first) and the stage's problem."""
         problem = joint([stage_problem(r, name, free, w, theta, settings, i_q_weight)
                          for r, w in zip(records, windows)])
         lo, hi = stage_bounds(list(free), bounds)
@@ -140,7 +153,8 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         say(f"{name}: {k} starts, {len(free)} parameters")
         t0, n0 = time.perf_counter(), simulations_run()
         starts = _draw(rng, k, lo, hi, centre=problem.x0() if name == "stage2" else None)
-        x, info = successive_halving(problem, starts, lo, hi, fast, settings)
+        finals, info = successive_halving(problem, starts, lo, hi, fast, settings)
+        x = finals[0]
         sse = float(problem.sse(x[None, :], PRECISE)[0])
         st = StageResult(name=name, free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],
                          fitness_ga=float("nan"), fitness=1.0 / sse if sse > 0 else float("inf"), sse=sse,
@@ -150,26 +164,68 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         if identifiability:
             t_id = time.perf_counter()
             st.identifiability = identifiability_report(problem, x, noise_var)
-            t_report += time.perf_counter() - t_id
-        spent += st.n_simulations
-        curve.add(name, spent, theta=st.theta)
-        theta = st.theta.copy()
-        stages.append(st)
-        if on_stage is not None:
-            on_stage(st)
+            reports[0] += time.perf_counter() - t_id
         say(f"{name}: rms {st.rmse_m * 1e6:.4g} µm on its window ({st.seconds_polish:.1f} s)")
-    if fast.route == "two_stage":
-        t_id = time.perf_counter()
-        st = joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
-                          noise_var, pre_tier=settings if fast.joint_prepolish else None,
-                          final_nfev=fast.joint_final_nfev if fast.joint_prepolish else None)
-        t_report += time.perf_counter() - t_id - st.seconds_polish
-        theta = st.theta.copy()
-        spent += st.n_simulations
-        curve.add(st.name, spent, theta=theta)
-        stages.append(st)
+        return st, [problem.thetas(f[None, :])[0] for f in finals], problem
+
+    spent = [curve.simulations]
+
+    def emit(st: StageResult) -> None:
+        """A stage of the result: on the fitness curve and to ``on_stage``."""
+        spent[0] += st.n_simulations
+        curve.add(st.name, spent[0], theta=st.theta)
         if on_stage is not None:
             on_stage(st)
+
+    def finish(theta: np.ndarray, rng: np.random.Generator, now: bool) -> list[StageResult]:
+        """The stages after the first (stage 2, then the joint polish) from stage 1's ``theta``; ``now``: emit each
+        as it ends (a single path)."""
+        stages = []
+        for name, free, windows in plan[1:]:
+            st, _, _ = fit_stage(name, free, windows, theta, rng)
+            theta = st.theta.copy()
+            stages.append(st)
+            if now:
+                emit(st)
+        if fast.route == "two_stage":
+            t_id = time.perf_counter()
+            st = joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
+                              noise_var, pre_tier=settings if fast.joint_prepolish else None,
+                              final_nfev=fast.joint_final_nfev if fast.joint_prepolish else None)
+            reports[0] += time.perf_counter() - t_id - st.seconds_polish
+            stages.append(st)
+            if now:
+                emit(st)
+        return stages
+
+    name, free, windows = plan[0]
+    first, finals, problem1 = fit_stage(name, free, windows, theta, rng)
+    if fast.paths == 1:
+        emit(first)
+        stages = [first, *finish(finals[0], rng, now=True)]
+    else:  # every path draws stage 2's starts from the same stream; the lowest whole-record error wins
+        paths = []
+        for j in range(min(fast.paths, len(finals))):
+            say(f"path {j + 1}: from stage 1's finalist {j + 1}")
+            paths.append(finish(finals[j], copy.deepcopy(rng), now=False))
+        whole = [p[-1].sse for p in paths]
+        chosen = int(np.argmin(whole))
+        say(f"path {chosen + 1} chosen: its error on the whole record is the lowest")
+        if chosen > 0:  # stage 1's point is that finalist's
+            sse = first.polish["multistart"]["final_sse_m2"][chosen]
+            first.theta, first.x = finals[chosen].copy(), finals[chosen][[ALL_INDEX[n] for n in first.free]].copy()
+            first.sse, first.fitness = sse, 1.0 / sse if sse > 0 else float("inf")
+            if identifiability:
+                t_id = time.perf_counter()
+                first.identifiability = identifiability_report(problem1, first.x, noise_var)
+                reports[0] += time.perf_counter() - t_id
+        emit(first)
+        for st in paths[chosen]:
+            emit(st)
+        stages = [first, *paths[chosen]]
+        stages[-1].polish["paths"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1}
+    theta = stages[-1].theta.copy()
+    t_report = reports[0]
     extra = {"seconds_fit": time.perf_counter() - t_start - t_report, "seconds_reports": t_report,
              "fast_settings": vars(fast)}
     return whole_record_result("fast", records, k_cs, theta, stages, time.perf_counter() - t_start, curve.points,
