@@ -31,7 +31,7 @@ def test_default_config_is_the_paper_two_stage_run():
 def test_every_experiment_composes(experiment):
     cfg = _compose([f"+experiment={experiment}"])
     plain = OmegaConf.to_container(cfg, resolve=False)
-    assert plain["job"] in ("identify", "table1", "discover", "emps", "identifiability")
+    assert plain["job"] in ("identify", "table1", "discover", "emps", "identifiability", "excite")
 
 
 def test_experiments_select_their_method_and_job():
