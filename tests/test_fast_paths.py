@@ -34,6 +34,9 @@ def test_the_chosen_path_has_the_lowest_whole_record_error_and_one_path_is_the_d
     one = identify_fast([record], extend(P.ASSIGNED)[0], seed=1, fast=FastSettings(**SMALL, paths=1),
                         identifiability=False)
     assert "paths" not in one.stages[-1].polish
+    # every path's simulations are counted: the last stage holds those of the path not chosen
+    assert info["n_simulations_other_paths"] > 0
+    assert two.n_simulations == sum(st.n_simulations for st in two.stages) > one.n_simulations
     # the first path is the single-path method: with two paths the result is never worse
     assert two.stages[-1].sse <= one.stages[-1].sse * (1 + 1e-12)
     if info["chosen"] == 1:

@@ -220,10 +220,14 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
                 first.identifiability = identifiability_report(problem1, first.x, noise_var)
                 reports[0] += time.perf_counter() - t_id
         emit(first)
+        # the paths not chosen were simulated too: the last stage (where the choice is made) counts them
+        others = sum(st.n_simulations for j, p in enumerate(paths) if j != chosen for st in p)
+        paths[chosen][-1].n_simulations += others
+        paths[chosen][-1].polish["paths"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1,
+                                             "n_simulations_other_paths": int(others)}
         for st in paths[chosen]:
             emit(st)
         stages = [first, *paths[chosen]]
-        stages[-1].polish["paths"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1}
     theta = stages[-1].theta.copy()
     t_report = reports[0]
     extra = {"seconds_fit": time.perf_counter() - t_start - t_report, "seconds_reports": t_report,
