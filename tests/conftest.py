@@ -1,9 +1,13 @@
-"""Fixtures: a scratch MLflow store, job runners, and the EMPS benchmark records where the job would find them."""
+"""Fixtures: a scratch MLflow store, job runners (a new interpreter, or this one), one Ray session for the suite,
+and the EMPS benchmark records where the job would find them."""
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -17,6 +21,142 @@ def run_job(module: str, *args: str, cwd: Path, env: dict | None = None, timeout
     full_env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {})}
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=full_env, capture_output=True,
                           text=True, timeout=timeout)
+
+
+# ------------------------------------------------------------------------------------------ jobs in this process
+@dataclass
+class JobOutcome:
+    """What a job run by :func:`run_in_process` left: exit status, standard output and error (as a process's)."""
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def _run_identify_job(cfg: dict, run_dir: Path, cwd: str, overrides: list[str]) -> str:
+    from jobs._cli import guarded
+    from jobs.run import run
+    from toggle_id.tracking import run_context
+
+    with run_context(overrides, {}):
+        return guarded(lambda: run(cfg, str(run_dir), cwd))
+
+
+def _run_simulate_job(cfg: dict, run_dir: Path, cwd: str, overrides: list[str]) -> str:
+    from jobs._cli import guarded
+    from jobs.simulate import write_record
+
+    return guarded(lambda: write_record(cfg, cwd))
+
+
+#: module -> (its Hydra config, what its ``main`` does with the composed configuration)
+_ENTRY_POINTS = {"jobs.run": ("config", _run_identify_job), "jobs.simulate": ("simulate", _run_simulate_job)}
+
+
+def run_in_process(module: str, *args: str, cwd: Path, env: dict | None = None) -> JobOutcome:
+    """Run the job of ``python -m module args...`` in this interpreter, through its entry point's own path.
+
+    As ``__main__`` and ``main`` do: ``jobs._cli.precheck`` on the command line (a bad key or override is one line,
+    exit status 2), Hydra's composition of the same overrides, the run directory (``hydra.run.dir``, created), then
+    the job inside ``jobs._cli.guarded`` (a library input error is one line, exit status 2) and ``report: PATH``.
+    In ``cwd`` with ``env`` added (a value None removes the variable), both restored afterwards; the run directories the job claimed are released, as
+    at the end of its process. What it saves over :func:`run_job` is an interpreter, the imports and the numba
+    cache per case: for matrices of bad input, each job keeping one case through :func:`run_job`. An exception
+    the guarded path does not turn into one line (a bug, ``KeyboardInterrupt``) propagates.
+    """
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf, open_dict
+
+    from jobs import _cli
+    from toggle_id import jobdir
+
+    config, job = _ENTRY_POINTS[module]
+    out, err = io.StringIO(), io.StringIO()
+    saved_env, saved_cwd = dict(os.environ), os.getcwd()
+    claimed: list = []
+    code = 0
+    try:
+        for key, value in (env or {}).items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+        os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                _cli.precheck(config, list(args))
+                with initialize_config_dir(config_dir=_cli.CONF_DIR, version_base="1.3"):
+                    cfg = compose(config_name=config, overrides=list(args), return_hydra_config=True)
+                run_dir = Path(cwd) / str(cfg.hydra.run.dir)
+                run_dir.mkdir(parents=True, exist_ok=True)
+                overrides = list(cfg.hydra.overrides.task)
+                with open_dict(cfg):
+                    del cfg["hydra"]
+                    if "run_dir" in cfg:
+                        cfg.run_dir = str(run_dir)
+                plain = OmegaConf.to_container(cfg, resolve=True)
+                claimed = [run_dir, plain.get("resume")]
+                report = job(plain, run_dir, str(cwd), overrides)
+                print(f"report: {report}", flush=True)
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else 1
+    finally:
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
+        for path in claimed:
+            if path:
+                jobdir.release(path)
+    return JobOutcome(code, out.getvalue(), err.getvalue())
+
+
+def one_line_error(proc) -> str:
+    """The one line a job that refused its input printed to stderr (a non-zero exit, no traceback)."""
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert proc.returncode != 0, proc.stdout[-2000:]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    return lines[0]
+
+
+# ------------------------------------------------------------------------------------------ one identify job
+#: A 1-s record and a tiny GA on the serial evaluator, seed 1: the two-stage identify job in seconds.
+TWO_STAGE_QUICK = ["ga=small", "ga.population=16", "ga.generations=3", "evaluator=serial", "data.duration=1.0",
+                   "polish.max_nfev=5", "progress=false", "seed=1"]
+
+
+@pytest.fixture(scope="session")
+def two_stage_job(tmp_path_factory):
+    """One tiny two-stage job, run as a user runs it (``python -m jobs.run +experiment=two_stage``, TWO_STAGE_QUICK)
+    on a scratch MLflow store, and what it left: ``tmp`` (its run directory is ``tmp/run``), ``uri``, ``proc``,
+    ``result`` (result.json), ``client`` and its parent ``run``. Shared by the tests of the job's report, figures
+    and MLflow run (tests/test_jobs.py, tests/test_mlflow_compare.py)."""
+    import json
+    from types import SimpleNamespace
+
+    tmp = tmp_path_factory.mktemp("two_stage")
+    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    proc = run_job("jobs.run", "+experiment=two_stage", f"hydra.run.dir={tmp / 'run'}", *TWO_STAGE_QUICK, cwd=tmp,
+                   env={"MLFLOW_TRACKING_URI": uri})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads((tmp / "run" / "result.json").read_text())
+    from mlflow import MlflowClient
+
+    client = MlflowClient(uri)
+    return SimpleNamespace(tmp=tmp, uri=uri, proc=proc, result=result, client=client,
+                           run=client.get_run(result["mlflow_run_id"]))
+
+
+# ------------------------------------------------------------------------------------------ Ray
+@pytest.fixture(scope="session")
+def ray_session():
+    """One small local Ray (2 CPUs) for the whole suite: started by the first test that needs it, shut down at the
+    end (each start costs seconds: processes, the object store, the workers' imports)."""
+    ray = pytest.importorskip("ray")
+    from toggle_id.evaluators import init_ray
+
+    started = init_ray(num_cpus=2)
+    yield ray
+    if started:
+        ray.shutdown()
 
 
 @pytest.fixture

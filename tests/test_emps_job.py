@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_job
+from conftest import one_line_error, run_in_process, run_job
 
 from toggle_id.emps import PUBLISHED, PUBLISHED_THETA, theta_from_dict
 from toggle_id.emps.synthetic import back_and_forth, pulse_train, simulated_record, write_record
@@ -27,13 +27,6 @@ REPORT_KEYS = {"position_rel_error_pct_before", "position_rel_error_pct_after", 
 
 
 from conftest import needs_records  # noqa: E402
-
-
-def _one_line_error(proc) -> str:
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert proc.returncode != 0
-    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
-    return lines[0]
 
 
 def _report(proc, run_dir: Path) -> dict:
@@ -153,7 +146,6 @@ def test_job_on_the_benchmark_records(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ bad input
-@pytest.mark.integration
 @pytest.mark.parametrize("args,needle", [
     (["emps.path=/nonexistent/emps.csv"], "not found"),
     (["validation.path=/nonexistent/pulses.mat"], "not found"),
@@ -161,10 +153,20 @@ def test_job_on_the_benchmark_records(tmp_path):
     (["emps.data_dir=/nonexistent/dir"], "not a directory"),
 ])
 def test_job_rejects_missing_files_and_bad_settings_in_one_line(tmp_path, sim_files, args, needle):
+    proc = run_in_process("jobs.run", "+experiment=emps", "tracking.enabled=false",
+                          f"hydra.run.dir={tmp_path / 'run'}", f"emps.path={sim_files['est']}", *args, cwd=tmp_path)
+    line = one_line_error(proc)
+    assert proc.returncode == 2 and line.startswith("error: ") and needle in line
+    assert not (tmp_path / "run" / "result.json").exists()
+
+
+@pytest.mark.integration
+def test_job_rejects_a_missing_file_on_the_command_line_in_one_line(tmp_path, sim_files):
     proc = run_job("jobs.run", "+experiment=emps", "tracking.enabled=false", f"hydra.run.dir={tmp_path / 'run'}",
-                   f"emps.path={sim_files['est']}", *args, cwd=tmp_path, timeout=120)
-    line = _one_line_error(proc)
-    assert line.startswith("error: ") and needle in line
+                   f"emps.path={sim_files['est']}", "validation.path=/nonexistent/pulses.mat", cwd=tmp_path,
+                   timeout=120)
+    line = one_line_error(proc)
+    assert proc.returncode == 2 and line.startswith("error: ") and "not found" in line and "pulses.mat" in line
     assert not (tmp_path / "run" / "result.json").exists()
 
 

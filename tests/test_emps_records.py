@@ -34,7 +34,7 @@ from toggle_id.errors import ConfigError, DataError
 ROOT = Path(__file__).resolve().parents[1]
 
 
-from conftest import EMPS_FILES as FILES, needs_records  # noqa: E402
+from conftest import EMPS_FILES as FILES, needs_records, run_in_process  # noqa: E402
 
 
 def _clean_env(home: Path, **extra: str) -> dict:
@@ -125,9 +125,10 @@ def test_wrong_file_stops_the_job_in_one_line(tmp_path):
     data = tmp_path / "data"
     _fake_pair(data)
     (tmp_path / "home").mkdir()
-    proc = _job("+experiment=emps", f"emps.data_dir={data}", cwd=tmp_path, env=_clean_env(tmp_path / "home"))
+    proc = run_in_process("jobs.run", "+experiment=emps", f"emps.data_dir={data}", cwd=tmp_path,
+                          env={**_clean_env(tmp_path / "home"), ENV_DIR: None})
     line = _one_line_error(proc)
-    assert "sha256" in line and str(data / ESTIMATION_FILE) in line and SHA256[ESTIMATION_FILE] in line
+    assert proc.returncode == 2 and "sha256" in line and str(data / ESTIMATION_FILE) in line and SHA256[ESTIMATION_FILE] in line
     assert "nonlinearbenchmark.org" in line
 
 
@@ -224,15 +225,17 @@ def test_real_records_found_in_the_loader_cache(tmp_path):
 
 @needs_records
 def test_job_finds_the_records_in_the_loader_cache(tmp_path):
-    """The job as a user runs it after `nonlinear_benchmarks.EMPS()`: HOME with the cache, no configuration."""
+    """The job as a user runs it after `nonlinear_benchmarks.EMPS()`: HOME with the cache, no configuration (in
+    this process; the EMPS job's command line: test_job_without_records_stops_in_one_line and
+    tests/test_emps_job.py)."""
     home = tmp_path / "home"
     cache = home / ".nonlinear_benchmarks" / "EMPS"
     cache.mkdir(parents=True)
     for f in (FILES.estimation, FILES.validation):
         (cache / f.name).symlink_to(f.path)
-    proc = _job("+experiment=emps", "emps.samples=3000", "emps.candidates=[coulomb_friction]",
-                "emps.reference_fit=false", "identifiability.enabled=false", "tracking.enabled=false",
-                f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, env=_clean_env(home))
+    proc = run_in_process("jobs.run", "+experiment=emps", "emps.samples=3000", "emps.candidates=[coulomb_friction]",
+                          "emps.reference_fit=false", "identifiability.enabled=false", "tracking.enabled=false",
+                          f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, env={**_clean_env(home), ENV_DIR: None})
     assert proc.returncode == 0, proc.stderr[-3000:]
     import json
 

@@ -12,7 +12,7 @@ import pytest
 from conftest import wait_until_dead
 
 from toggle_id.errors import ConfigError, DataError
-from toggle_id.evaluators import RayEvaluator, SerialEvaluator, init_ray, make_evaluator
+from toggle_id.evaluators import RayEvaluator, SerialEvaluator, make_evaluator
 from toggle_id.ga import GAConfig, run_ga
 
 ray = pytest.importorskip("ray")
@@ -65,15 +65,6 @@ class RaisingProblem(ToyProblem):
 class WrongShapeProblem(ToyProblem):
     def evaluate(self, X: np.ndarray) -> np.ndarray:
         return np.zeros(X.shape[0] + 1)
-
-
-@pytest.fixture(scope="module")
-def ray_session():
-    """One small local Ray (2 CPUs) for the whole module."""
-    started = init_ray(num_cpus=2)
-    yield ray
-    if started:
-        ray.shutdown()
 
 
 @pytest.fixture

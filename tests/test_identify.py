@@ -8,7 +8,7 @@ from conftest import wait_until_dead
 
 from toggle_id import params as P
 from toggle_id.errors import CheckpointError, ConfigError
-from toggle_id.evaluators import RayEvaluator, SerialEvaluator, init_ray
+from toggle_id.evaluators import RayEvaluator, SerialEvaluator
 from toggle_id.ga import GAConfig
 from toggle_id.identify import identify
 from toggle_id.record import Record
@@ -46,16 +46,6 @@ def test_two_stage_needs_the_clamping_instant():
     with pytest.raises(ConfigError, match="clamping"):
         identify(rec, method="two_stage", ga=GAConfig(population=4, generations=1), polish=NO_POLISH,
                  identifiability=False)
-
-
-@pytest.fixture(scope="module")
-def ray_session():
-    import ray
-
-    started = init_ray(num_cpus=2)
-    yield
-    if started:
-        ray.shutdown()
 
 
 def test_same_seed_same_result_serial_and_ray_1_or_2_workers(ray_session):

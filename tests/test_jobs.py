@@ -1,4 +1,9 @@
-"""End-to-end tests of the jobs as a user runs them: `python -m jobs.simulate`, `python -m jobs.run`."""
+"""End-to-end tests of the jobs as a user runs them: `python -m jobs.simulate`, `python -m jobs.run`.
+
+Each job runs at least once through its command line (:func:`conftest.run_job`: exit status, the report line,
+a one-line error); the matrices of bad input run the same entry points in this process
+(:func:`conftest.run_in_process`), which saves an interpreter, the imports and Ray per case.
+"""
 from __future__ import annotations
 
 import json
@@ -7,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import run_job
-from toggle_id.data import read_csv
+from conftest import one_line_error, run_in_process, run_job
+from toggle_id.data import read_csv, write_csv
 
 pytestmark = pytest.mark.integration
 
@@ -20,14 +25,6 @@ QUICK = ["ga=small", "ga.population=16", "ga.generations=3", "evaluator=serial",
 def _last_line(proc) -> str:
     lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
     return lines[-1] if lines else ""
-
-
-def _one_line_error(proc) -> str:
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert proc.returncode != 0
-    assert len(lines) == 1, proc.stderr
-    assert "Traceback" not in proc.stderr
-    return lines[0]
 
 
 def test_simulate_job_writes_a_record(tmp_path):
@@ -46,28 +43,26 @@ def test_simulate_job_writes_a_record(tmp_path):
     ([], "out"),
 ])
 def test_simulate_job_rejects_bad_arguments_in_one_line(tmp_path, args, needle):
-    proc = run_job("jobs.simulate", *args, cwd=tmp_path)
-    assert needle in _one_line_error(proc)
+    # in process; through the command line: tests/test_simulate.py (noise_ar=1.2)
+    proc = run_in_process("jobs.simulate", *args, cwd=tmp_path)
+    assert proc.returncode == 2
+    assert needle in one_line_error(proc)
     assert not (tmp_path / "a.csv").exists()
 
 
-def test_identify_job_two_stage_end_to_end(tmp_path, job_env):
-    proc = run_job("jobs.run", "+experiment=two_stage", f"hydra.run.dir={tmp_path / 'run'}", *QUICK,
-                   cwd=tmp_path, env=job_env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    report = Path(_last_line(proc).removeprefix("report: "))
-    assert report == (tmp_path / "run" / "result.json").resolve()
+def test_identify_job_two_stage_end_to_end(two_stage_job):
+    job = two_stage_job  # `python -m jobs.run +experiment=two_stage` on a 1-s record, a tiny GA (conftest)
+    report = Path(_last_line(job.proc).removeprefix("report: "))
+    assert report == (job.tmp / "run" / "result.json").resolve()
     res = json.loads(report.read_text())
     assert res["method"] == "two_stage" and set(res["params"]) >= {"K_t", "D", "K_l"}
     assert [s["name"] for s in res["stages"]] == ["stage1", "stage2", "joint_polish"]
     assert res["stages"][0]["generations"] == 3 and len(res["stages"][0]["fitness_history"]) == 3
     assert res["fitness"] > 0 and set(res["seconds_per_stage"]) == {"stage1", "stage2", "joint_polish"}
-    assert (tmp_path / "run" / "fitness_history.png").stat().st_size > 1000
-    assert (tmp_path / "run" / "response.png").stat().st_size > 1000
+    assert (job.tmp / "run" / "fitness_history.png").stat().st_size > 1000
+    assert (job.tmp / "run" / "response.png").stat().st_size > 1000
     # MLflow: a parent run with one child per stage, fitness history as a stepped metric
-    from mlflow import MlflowClient
-
-    client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
+    client = job.client
     exp = client.get_experiment_by_name("toggle-id")
     runs = client.search_runs([exp.experiment_id])
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
@@ -80,10 +75,15 @@ def test_identify_job_two_stage_end_to_end(tmp_path, job_env):
 
 
 def test_identify_job_on_a_csv_record(tmp_path, job_env):
-    assert run_job("jobs.simulate", "out=rec.csv", "duration=1.0", "noise_m=1e-6", cwd=tmp_path).returncode == 0
-    proc = run_job("jobs.run", "+experiment=one_stage", "data=csv", f"data.path={tmp_path / 'rec.csv'}",
-                   f"hydra.run.dir={tmp_path / 'run'}", *[a for a in QUICK if not a.startswith("data.")],
-                   cwd=tmp_path, env=job_env)
+    from toggle_id.workflow import build_record
+
+    # the record jobs.simulate writes (test_simulate_job_writes_a_record); the job in process (the one-stage job's
+    # command line: test_multirun_sweep_gives_one_mlflow_run_per_config)
+    record, _ = build_record({"source": "simulated", "duration": 1.0, "noise_m": 1e-6})
+    write_csv(record, tmp_path / "rec.csv")
+    proc = run_in_process("jobs.run", "+experiment=one_stage", "data=csv", f"data.path={tmp_path / 'rec.csv'}",
+                          f"hydra.run.dir={tmp_path / 'run'}", *[a for a in QUICK if not a.startswith("data.")],
+                          cwd=tmp_path, env=job_env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads((tmp_path / "run" / "result.json").read_text())
     assert res["method"] == "one_stage" and "pct_error" not in res  # no truth for a measured record
@@ -120,16 +120,25 @@ def test_multirun_sweep_gives_one_mlflow_run_per_config(tmp_path, job_env):
 ])
 def test_bad_configuration_fails_fast_in_one_line(tmp_path, job_env, args, needle):
     quick = [a for a in QUICK if not (a.startswith("data.") and "data=csv" in args)]
-    proc = run_job("jobs.run", f"hydra.run.dir={tmp_path / 'run'}", *quick, *args, cwd=tmp_path, env=job_env)
-    assert needle in _one_line_error(proc)
+    proc = run_in_process("jobs.run", f"hydra.run.dir={tmp_path / 'run'}", *quick, *args, cwd=tmp_path, env=job_env)
+    assert proc.returncode == 2 and needle in one_line_error(proc)
     assert not (tmp_path / "run" / "result.json").exists()
+
+
+def test_a_mistyped_key_fails_on_the_command_line_in_one_line(tmp_path, job_env):
+    proc = run_job("jobs.run", f"hydra.run.dir={tmp_path / 'run'}", *QUICK, "ga.populaton=10", cwd=tmp_path,
+                   env=job_env)
+    line = one_line_error(proc)
+    assert proc.returncode == 2 and line.startswith("error: bad configuration") and "populaton" in line, line
+    assert not (tmp_path / "run").exists()
 
 
 def test_bad_csv_fails_fast_in_one_line(tmp_path, job_env):
     (tmp_path / "bad.csv").write_text("t,v_in,xB\n0,0.05,0.02\n0.001,0.05,0.02\n")
     proc = run_job("jobs.run", "data=csv", f"data.path={tmp_path / 'bad.csv'}", f"hydra.run.dir={tmp_path / 'run'}",
                    *[a for a in QUICK if not a.startswith("data.")], cwd=tmp_path, env=job_env)
-    assert "x_B" in _one_line_error(proc)
+    assert proc.returncode == 2 and "x_B" in one_line_error(proc)
+    assert not (tmp_path / "run" / "result.json").exists()
 
 
 def _good_rows(n: int = 400) -> list[str]:
@@ -160,10 +169,10 @@ BAD_CSVS = {
 def test_every_bad_record_is_rejected_in_one_line(tmp_path, job_env, kind):
     path = tmp_path / f"{kind}.csv"
     path.write_text(BAD_CSVS[kind])
-    proc = run_job("jobs.run", "+experiment=two_stage", "data=csv", f"data.path={path}",
-                   f"hydra.run.dir={tmp_path / 'run'}", *[a for a in QUICK if not a.startswith("data.")],
-                   cwd=tmp_path, env=job_env)
-    line = _one_line_error(proc)
+    proc = run_in_process("jobs.run", "+experiment=two_stage", "data=csv", f"data.path={path}",
+                          f"hydra.run.dir={tmp_path / 'run'}", *[a for a in QUICK if not a.startswith("data.")],
+                          cwd=tmp_path, env=job_env)
+    line = one_line_error(proc)
     assert proc.returncode == 2 and line.startswith("error:")
     assert not (tmp_path / "run" / "result.json").exists()
 
@@ -200,11 +209,14 @@ def test_table1_job_writes_markdown_and_csv(tmp_path, job_env):
 def test_interrupted_job_resumes_to_the_uninterrupted_result(tmp_path, job_env):
     args = ["+experiment=two_stage", "checkpoint.every=1", "ga.generations=4", *QUICK[:1], *QUICK[2:]]
     args = [a for a in args if not a.startswith("ga.generations=3")]
-    full = run_job("jobs.run", *args, f"hydra.run.dir={tmp_path / 'full'}", cwd=tmp_path, env=job_env)
+    # the uninterrupted job and the interrupted one (as a kill would: KeyboardInterrupt) in process; the resume as
+    # a user types it, in a new process
+    full = run_in_process("jobs.run", *args, f"hydra.run.dir={tmp_path / 'full'}", cwd=tmp_path, env=job_env)
     assert full.returncode == 0, full.stderr[-2000:]
-    cut = run_job("jobs.run", *args, "debug.stop_after_generations=6", f"hydra.run.dir={tmp_path / 'cut'}",
-                  cwd=tmp_path, env=job_env)
-    assert cut.returncode != 0 and (tmp_path / "cut" / "checkpoint.json").exists()
+    with pytest.raises(KeyboardInterrupt, match="stop_after_generations=6"):
+        run_in_process("jobs.run", *args, "debug.stop_after_generations=6", f"hydra.run.dir={tmp_path / 'cut'}",
+                       cwd=tmp_path, env=job_env)
+    assert (tmp_path / "cut" / "checkpoint.json").exists()
     assert not (tmp_path / "cut" / "result.json").exists()
     resumed = run_job("jobs.run", *args, f"resume={tmp_path / 'cut'}", f"hydra.run.dir={tmp_path / 'other'}",
                       cwd=tmp_path, env=job_env)
@@ -253,9 +265,9 @@ def test_joint_job_fits_both_sweeps_and_reports_identifiability(tmp_path, job_en
 def test_joint_job_rejects_bad_records_in_one_line(tmp_path, job_env, records, needle):
     bad = tmp_path / "bad.csv"
     bad.write_text("t,v_in,xB\n0,0.05,0.02\n0.001,0.05,0.02\n")
-    proc = run_job("jobs.run", "+experiment=joint", f"data.records={records.replace('BAD', str(bad))}",
-                   f"hydra.run.dir={tmp_path / 'run'}", *QUICK, cwd=tmp_path, env=job_env)
-    line = _one_line_error(proc)
+    proc = run_in_process("jobs.run", "+experiment=joint", f"data.records={records.replace('BAD', str(bad))}",
+                          f"hydra.run.dir={tmp_path / 'run'}", *QUICK, cwd=tmp_path, env=job_env)
+    line = one_line_error(proc)
     assert proc.returncode == 2 and line.startswith("error:") and needle in line, line
     assert not (tmp_path / "run" / "result.json").exists()
 

@@ -13,18 +13,16 @@ import time
 import urllib.parse
 import urllib.request
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from conftest import ROOT, run_job
+from conftest import ROOT, TWO_STAGE_QUICK, run_job
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*noload.*")
 
-# a 1-s record and a tiny GA on the serial evaluator (as tests/test_jobs.py), and one more override: the seed
-QUICK = ["ga=small", "ga.population=16", "ga.generations=3", "evaluator=serial", "data.duration=1.0",
-         "polish.max_nfev=5", "progress=false", "seed=1"]
+# a 1-s record and a tiny GA on the serial evaluator, seed 1 (conftest.TWO_STAGE_QUICK)
+QUICK = TWO_STAGE_QUICK
 NAME = "two_stage ga=small ga.population=16 ga.generations=3 evaluator=serial data.duration=1.0 polish.max_nfev=5 seed=1"
 
 # Loads the logged model in a fresh interpreter (the tracking URI from the environment, as a user would) and prints
@@ -49,26 +47,19 @@ def _predict_in_fresh_process(model_uri: str, csv: Path, tracking_uri: str, cwd:
 
 
 def _clean_record(tmp: Path) -> Path:
-    """A noiseless 1-s record simulated by `jobs.simulate` with the default (assigned) parameters."""
-    proc = run_job("jobs.simulate", "out=clean.csv", "duration=1.0", "noise_m=0", cwd=tmp)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return tmp / "clean.csv"
+    """A noiseless 1-s record with the default (assigned) parameters, as `jobs.simulate out=clean.csv duration=1.0
+    noise_m=0` writes it (that job's command line: tests/test_jobs.py)."""
+    from toggle_id.data import write_csv
+    from toggle_id.workflow import build_record
+
+    record, _ = build_record({"source": "simulated", "duration": 1.0, "noise_m": 0.0})
+    return write_csv(record, tmp / "clean.csv")
 
 
 @pytest.fixture(scope="module")
-def two_stage(tmp_path_factory):
-    """One tiny two-stage job, run as a user runs it, and what it left in its MLflow store."""
-    tmp = tmp_path_factory.mktemp("compare")
-    uri = f"sqlite:///{tmp / 'mlflow.db'}"
-    proc = run_job("jobs.run", "+experiment=two_stage", f"hydra.run.dir={tmp / 'run'}", *QUICK, cwd=tmp,
-                   env={"MLFLOW_TRACKING_URI": uri})
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    result = json.loads((tmp / "run" / "result.json").read_text())
-    from mlflow import MlflowClient
-
-    client = MlflowClient(uri)
-    return SimpleNamespace(tmp=tmp, uri=uri, proc=proc, result=result, client=client,
-                           run=client.get_run(result["mlflow_run_id"]))
+def two_stage(two_stage_job):
+    """The tiny two-stage job of conftest (run once for the suite), seed 1."""
+    return two_stage_job
 
 
 @pytest.mark.integration

@@ -280,13 +280,16 @@ def test_bad_synthetic_record_options_are_one_line_config_errors(override, needl
 
 @pytest.mark.integration
 def test_simulate_job_writes_a_cycling_record_and_rejects_bad_noise_in_one_line(tmp_path):
-    from conftest import run_job
+    from conftest import run_in_process, run_job
 
     from toggle_id.data import read_csv
 
-    proc = run_job("jobs.simulate", "out=c.csv", "command=cycling", "duration=1.5", "noise_m=1e-6", "noise_ar=0.5",
-                   "quantum_m=1e-6", "seed=4", cwd=tmp_path, timeout=300)
+    # the record in this process (the job's command line writing one: tests/test_jobs.py), the refusal as a user
+    # meets it
+    proc = run_in_process("jobs.simulate", "out=c.csv", "command=cycling", "duration=1.5", "noise_m=1e-6",
+                          "noise_ar=0.5", "quantum_m=1e-6", "seed=4", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip().splitlines()[-1] == f"report: {tmp_path / 'c.csv'}"
     rec = read_csv(tmp_path / "c.csv")
     assert rec.n == 1501 and rec.v_in.min() < 0 < rec.v_in.max() and np.max(np.abs(rec.v_in)) <= 0.3
     assert np.max(np.abs(rec.x_B / 1e-6 - np.round(rec.x_B / 1e-6))) < 1e-6
