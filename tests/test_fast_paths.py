@@ -18,7 +18,8 @@ def record():
                          "effects": {}, "noise_m": 1e-6, "noise_seed": 4})[0]
 
 
-SMALL = dict(starts=4, starts_stage2=2, first_nfev=3, finalists=2, final_nfev=10, joint_final_nfev=5)
+SMALL = dict(starts=4, starts_stage2=2, first_nfev=3, finalists=2, final_nfev=10, joint_final_nfev=5,
+             short_samples_per_param=0.0)  # no automatic paths: the tests set them
 
 
 def test_the_chosen_path_has_the_lowest_whole_record_error_and_one_path_is_the_default_method(record):
@@ -43,9 +44,23 @@ def test_the_chosen_path_has_the_lowest_whole_record_error_and_one_path_is_the_d
         np.testing.assert_array_equal(two.theta, one.theta)
 
 
-@pytest.mark.parametrize("bad,msg", [({"paths": 3, "finalists": 2}, "cannot exceed fast.finalists"),
+def test_an_early_clamp_takes_more_paths(record):
+    """The experiment sweep clamps after 79 samples: 13 parameters have fewer than 10 samples each in stage 1, so
+    ``paths_short`` of its finalists go on (the finalists raised to as many)."""
+    said = []
+    res = identify_fast([record], extend(P.ASSIGNED)[0], seed=1, identifiability=False, progress=said.append,
+                        fast=FastSettings(**{**SMALL, "short_samples_per_param": 10.0, "paths_short": 3}))
+    assert any("3 paths" in m for m in said)
+    assert len(res.stages[0].polish["multistart"]["final_sse_m2"]) == 3
+    assert len(res.stages[-1].polish["paths"]["whole_record_sse_m2"]) == 3
+    long_enough = identify_fast([record], extend(P.ASSIGNED)[0], seed=1, identifiability=False,
+                                fast=FastSettings(**{**SMALL, "short_samples_per_param": 1.0, "paths_short": 3}))
+    assert "paths" not in long_enough.stages[-1].polish
+
+
+@pytest.mark.parametrize("bad,msg", [({"short_samples_per_param": -1.0}, "fast.short_samples_per_param"),
                                      ({"paths": 2, "route": "one_stage"}, "needs route two_stage"),
-                                     ({"paths": 0}, "fast.paths")])
+                                     ({"paths": 0}, "fast.paths"), ({"paths_short": 0}, "fast.paths_short")])
 def test_paths_are_checked(bad, msg):
     with pytest.raises(ConfigError, match=msg):
         FastSettings(**bad).validate()

@@ -18,6 +18,7 @@ Deterministic: the starts come from the seed; the polishes are sequential and ex
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -43,8 +44,10 @@ class FastSettings:
     the best ``keep`` fraction continued with twice the budget, down to ``finalists`` starts, each polished with
     ``final_nfev`` on the PRECISE tier. Stage 2 (two parameters) uses ``starts_stage2``. ``paths``: how many of
     stage 1's finalists (best first) go on through stage 2 and the joint polish; the lowest whole-record error
-    wins. Stage 1 sees only the free motion, and when the record clamps early (the experiment sweep: 79
-    samples) the best fit of those few samples is often not the start of the best whole-record fit."""
+    wins. Stage 1 sees only the free motion, and when the record clamps early (the experiment sweep: 79 samples
+    for 13 parameters) the best fit of those few samples is often not the start of the best whole-record fit:
+    when stage 1 has fewer than ``short_samples_per_param`` samples per free parameter, ``paths_short`` paths
+    are taken instead (and at least as many finalists)."""
 
     route: str = "two_stage"
     starts: int = 24
@@ -57,13 +60,16 @@ class FastSettings:
     joint_final_nfev: int = 15
     fd_rel_step: float = 1e-6
     paths: int = 1
+    paths_short: int = 4
+    short_samples_per_param: float = 10.0
 
     def validate(self) -> FastSettings:
         if self.route not in ("two_stage", "one_stage"):
             raise ConfigError(f"fast.route must be 'two_stage' or 'one_stage', got {self.route!r}")
         if not isinstance(self.joint_prepolish, bool):
             raise ConfigError(f"fast.joint_prepolish must be true or false, got {self.joint_prepolish!r}")
-        for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev", "joint_final_nfev", "paths"):
+        for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev", "joint_final_nfev", "paths",
+                     "paths_short"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"fast.{name} must be a whole number >= 1, got {v!r}")
@@ -74,9 +80,9 @@ class FastSettings:
         if self.paths > 1 and self.route != "two_stage":
             raise ConfigError(f"fast.paths > 1 needs route two_stage (the paths are stage 1's finalists), got "
                               f"route {self.route!r}")
-        if self.paths > self.finalists:
-            raise ConfigError(f"fast.paths ({self.paths}) cannot exceed fast.finalists ({self.finalists}): the paths "
-                              f"are stage 1's finalists")
+        if not (isinstance(self.short_samples_per_param, (int, float)) and self.short_samples_per_param >= 0):
+            raise ConfigError(f"fast.short_samples_per_param must be a number >= 0, got "
+                              f"{self.short_samples_per_param!r}")
         return self
 
 
@@ -153,7 +159,8 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         say(f"{name}: {k} starts, {len(free)} parameters")
         t0, n0 = time.perf_counter(), simulations_run()
         starts = _draw(rng, k, lo, hi, centre=problem.x0() if name == "stage2" else None)
-        finals, info = successive_halving(problem, starts, lo, hi, fast, settings)
+        halving = fast if name != plan[0][0] else dataclasses.replace(fast, finalists=max(fast.finalists, n_paths))
+        finals, info = successive_halving(problem, starts, lo, hi, halving, settings)
         x = finals[0]
         sse = float(problem.sse(x[None, :], PRECISE)[0])
         st = StageResult(name=name, free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],
@@ -199,13 +206,19 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         return stages
 
     name, free, windows = plan[0]
+    n_paths = fast.paths
+    if fast.route == "two_stage":  # an early clamp: stage 1 has few samples per parameter to choose its start on
+        n_stage1 = sum(hi - lo for lo, hi in windows)
+        if n_stage1 < fast.short_samples_per_param * len(free):
+            n_paths = max(n_paths, fast.paths_short)
+            say(f"stage 1 has {n_stage1} samples for {len(free)} parameters: {n_paths} paths")
     first, finals, problem1 = fit_stage(name, free, windows, theta, rng)
-    if fast.paths == 1:
+    if n_paths == 1:
         emit(first)
         stages = [first, *finish(finals[0], rng, now=True)]
     else:  # every path draws stage 2's starts from the same stream; the lowest whole-record error wins
         paths = []
-        for j in range(min(fast.paths, len(finals))):
+        for j in range(min(n_paths, len(finals))):
             say(f"path {j + 1}: from stage 1's finalist {j + 1}")
             paths.append(finish(finals[j], copy.deepcopy(rng), now=False))
         whole = [p[-1].sse for p in paths]
