@@ -104,9 +104,11 @@ def test_job_on_simulated_records_end_to_end(sim_files, tmp_path):
 def test_job_on_the_benchmark_records(tmp_path):
     """`python -m jobs.run +experiment=emps` on DATA_EMPS.mat, predicting DATA_EMPS_PULSES.mat: the estimation
     acceptance (M within 2 %, Fv and Fc within 5 % of the published values, position error ≤ 0.0011 %) and the
-    validation error of the fitted model (nothing fitted on the validation record)."""
+    validation error of the fitted model (nothing fitted on the validation record). In this process (the job's
+    command line: test_job_on_simulated_records_end_to_end)."""
     run = tmp_path / "run"
-    proc = run_job("jobs.run", "+experiment=emps", f"hydra.run.dir={run}", "tracking.enabled=false", cwd=tmp_path)
+    proc = run_in_process("jobs.run", "+experiment=emps", f"hydra.run.dir={run}", "tracking.enabled=false",
+                          cwd=tmp_path)
     rep = _report(proc, run)
     assert rep["data"]["estimation"]["sha256_verified"] and rep["data"]["validation"]["sha256_verified"]
     assert rep["n_samples"] == 24841 and rep["effects_added"][0]["name"] == "coulomb_friction"

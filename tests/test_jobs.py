@@ -235,8 +235,9 @@ def test_interrupted_job_resumes_to_the_uninterrupted_result(tmp_path, job_env):
 
 
 def test_joint_job_fits_both_sweeps_and_reports_identifiability(tmp_path, job_env):
-    proc = run_job("jobs.run", "+experiment=joint", f"hydra.run.dir={tmp_path / 'run'}", *QUICK, cwd=tmp_path,
-                   env=job_env)
+    # in this process: the identify job's command line is test_identify_job_two_stage_end_to_end's
+    proc = run_in_process("jobs.run", "+experiment=joint", f"hydra.run.dir={tmp_path / 'run'}", *QUICK,
+                          cwd=tmp_path, env=job_env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = Path(_last_line(proc).removeprefix("report: "))
     assert _last_line(proc).startswith("report: ") and report == (tmp_path / "run" / "result.json").resolve()
