@@ -58,10 +58,12 @@ def run_in_process(module: str, *args: str, cwd: Path, env: dict | None = None) 
     As ``__main__`` and ``main`` do: ``jobs._cli.precheck`` on the command line (a bad key or override is one line,
     exit status 2), Hydra's composition of the same overrides, the run directory (``hydra.run.dir``, created), then
     the job inside ``jobs._cli.guarded`` (a library input error is one line, exit status 2) and ``report: PATH``.
-    In ``cwd`` with ``env`` added (a value None removes the variable), both restored afterwards; the run directories the job claimed are released, as
-    at the end of its process. What it saves over :func:`run_job` is an interpreter, the imports and the numba
-    cache per case: for matrices of bad input, each job keeping one case through :func:`run_job`. An exception
-    the guarded path does not turn into one line (a bug, ``KeyboardInterrupt``) propagates.
+    In ``cwd`` with ``env`` added (a value None removes the variable), both restored afterwards; the run
+    directories the job claimed are released, as at the end of its process. What it saves over :func:`run_job` is
+    an interpreter, the imports and the numba cache per case: for matrices of bad input, each job keeping one case
+    through :func:`run_job`. An exception the guarded path does not turn into one line (a bug,
+    ``KeyboardInterrupt``) propagates. Library modules are those imported by this process, ``conf/`` is read
+    at the call: a suite running while someone edits both may see them disagree (a new process would not).
     """
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf, open_dict
@@ -98,7 +100,7 @@ def run_in_process(module: str, *args: str, cwd: Path, env: dict | None = None) 
                 report = job(plain, run_dir, str(cwd), overrides)
                 print(f"report: {report}", flush=True)
             except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else 1
+                code = 0 if exc.code is None else exc.code if isinstance(exc.code, int) else 1
     finally:
         os.chdir(saved_cwd)
         os.environ.clear()

@@ -125,10 +125,12 @@ def test_wrong_file_stops_the_job_in_one_line(tmp_path):
     data = tmp_path / "data"
     _fake_pair(data)
     (tmp_path / "home").mkdir()
+    # in this process (the job's command line: test_job_without_records_stops_in_one_line)
     proc = run_in_process("jobs.run", "+experiment=emps", f"emps.data_dir={data}", cwd=tmp_path,
                           env={**_clean_env(tmp_path / "home"), ENV_DIR: None})
     line = _one_line_error(proc)
-    assert proc.returncode == 2 and "sha256" in line and str(data / ESTIMATION_FILE) in line and SHA256[ESTIMATION_FILE] in line
+    assert proc.returncode == 2 and "sha256" in line
+    assert str(data / ESTIMATION_FILE) in line and SHA256[ESTIMATION_FILE] in line
     assert "nonlinearbenchmark.org" in line
 
 
