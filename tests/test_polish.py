@@ -196,3 +196,22 @@ def test_one_blas_thread_inside_the_polish_only_and_the_same_result():
     pool = polish(lambda p: model(p) - data(0.01), [0.3, 4.0, 3.0], LOWER, UPPER, jac_fn=model_jac,
                   blas_threads=None)
     np.testing.assert_array_equal(one.x, pool.x)
+
+
+def test_the_discovery_loops_run_with_one_blas_thread():
+    """The toggle and EMPS loops (many small, tall least-squares problems) run under one BLAS thread; the pool is
+    restored after them."""
+    from threadpoolctl import threadpool_info
+
+    from toggle_id.discovery.loop import discover
+    from toggle_id.emps.loop import run_emps_loop
+    from toggle_id.polish import one_blas_thread
+
+    def blas_threads() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    before = blas_threads()
+    assert one_blas_thread(blas_threads)() == [1] * len(before)
+    assert blas_threads() == before
+    for loop in (discover, run_emps_loop):
+        assert loop.__wrapped__ is not None and "record" in loop.__doc__

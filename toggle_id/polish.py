@@ -27,6 +27,7 @@ multi-threaded BLAS is far slower at that than one thread, and more so beside th
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -253,6 +254,16 @@ def blas_limit(threads: int | None):
     if _CONTROLLER is None:
         _CONTROLLER = ThreadpoolController()
     return _CONTROLLER.limit(limits=int(threads), user_api="blas")
+
+
+def one_blas_thread(fn: Callable) -> Callable:
+    """Run ``fn`` with one BLAS thread (for whole loops of small, tall least-squares problems: the fits, the
+    structure tests' projections; see the module docstring)."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with blas_limit(1):
+            return fn(*args, **kwargs)
+    return wrapper
 
 
 def polish(residual_fn: ResidualFn, x0: Sequence[float], lower: Sequence[float], upper: Sequence[float], *,

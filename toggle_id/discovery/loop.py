@@ -12,6 +12,7 @@ from .. import params as P
 from .. import residuals as R
 from ..effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME, Effect
 from ..errors import ConfigError, DataError
+from ..polish import one_blas_thread
 from ..identify import IdentificationResult
 from ..plant import GEOMETRY
 from ..record import Record
@@ -70,6 +71,7 @@ def _nominal_theta(nominal: IdentificationResult | np.ndarray | Mapping[str, flo
     return extend(np.asarray(nominal, float))[0]
 
 
+@one_blas_thread
 def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Mapping[str, float] | None = None,
              effects: Sequence[Effect] = EFFECTS, settings: DiscoverSettings | None = None,
              free: Sequence[str] | None = None, fixed: Mapping[str, float] | None = None,

@@ -32,6 +32,7 @@ from ..discovery.localise import locate, structure_energy
 from ..discovery.noise import fit_noise, whitened_sse
 from ..discovery.validation import Evidence
 from ..errors import ConfigError, DataError
+from ..polish import one_blas_thread
 from .data import EmpsRecord
 from .fit import (
     OEFitResult,
@@ -151,6 +152,7 @@ def three_lists(names: Sequence[str], tried: Sequence[dict], evidence: Mapping[i
     return added, compensating, rejected
 
 
+@one_blas_thread
 def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
                   max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
