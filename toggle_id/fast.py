@@ -222,7 +222,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
             say(f"path {j + 1}: from stage 1's finalist {j + 1}")
             paths.append(finish(finals[j], copy.deepcopy(rng), now=False))
         whole = [p[-1].sse for p in paths]
-        chosen = int(np.argmin(whole))
+        chosen = int(np.argmin(np.where(np.isfinite(whole), whole, np.inf)))  # a failed path (NaN) never wins
         say(f"path {chosen + 1} chosen: its error on the whole record is the lowest")
         if chosen > 0:  # stage 1's point is that finalist's
             sse = first.polish["multistart"]["final_sse_m2"][chosen]
