@@ -14,8 +14,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
 import hydra
 from hydra.utils import get_original_cwd
 from omegaconf import DictConfig, OmegaConf
@@ -55,45 +53,19 @@ def write_record(cfg: dict, cwd: str) -> Path:
 
 def record_under_input(data: dict, inp: dict, cwd: str):
     """The record of ``data``'s truth and noise under the input of the CSV ``inp['path']`` (t, v_in)."""
-    from toggle_id.data import read_csv
-    from toggle_id.errors import ConfigError, DataError
-    from toggle_id.record import Record, measure
-    from toggle_id.simulate import PRECISE, simulate
-    from toggle_id.workflow import truth_vector
+    from toggle_id.data import read_input
+    from toggle_id.errors import ConfigError
+    from toggle_id.workflow import measure_truth
 
-    try:
-        v_max, max_duration = float(inp.get("v_max", 0.3)), float(inp.get("max_duration", 60.0))
-        rate = float(data.get("rate_hz", 1000.0))
-    except (TypeError, ValueError):
-        raise ConfigError("input.v_max, input.max_duration and rate_hz must be numbers") from None
-    if not (v_max > 0 and max_duration > 0 and rate > 0):
-        raise ConfigError(f"input.v_max ({v_max:g}), input.max_duration ({max_duration:g}) and rate_hz ({rate:g}) "
-                          "must be positive")
+    limits = {"v_max": inp.get("v_max", 0.3), "max_duration": inp.get("max_duration", 60.0),
+              "rate_hz": data.get("rate_hz", 1000.0), "x_B0": data.get("x_B0", 0.020)}
+    for key, value in limits.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+            raise ConfigError(f"{key if key in ('rate_hz', 'x_B0') else 'input.' + key} must be a positive number, "
+                              f"got {value!r}")
     src = Path(str(inp["path"])).expanduser()
-    src = src if src.is_absolute() else Path(cwd) / src
-    given = read_csv(src, require_x_B=False, expect_rate_hz=rate)
-    k = int(np.argmax(np.abs(given.v_in)))
-    if abs(given.v_in[k]) > v_max:
-        raise DataError(f"input file {src}: |v_in| = {abs(given.v_in[k]):.6g} V at t = {given.t[k]:.9g} s is over the "
-                        f"machine's limit input.v_max = {v_max:g} V")
-    duration = float(given.t[-1] - given.t[0])
-    if duration > max_duration:
-        raise DataError(f"input file {src}: {duration:g} s long, longer than input.max_duration = {max_duration:g} s")
-    if given.t[0] != 0.0:
-        raise DataError(f"input file {src}: time must start at 0 s, starts at {given.t[0]:.9g} s")
-    x_B0 = float(data.get("x_B0", 0.020))
-    rec = Record.from_input(given.t, given.v_in, x_B0=x_B0, name=src.stem)
-    theta = truth_vector({**data, "params": data.get("params") or {}, "effects": data.get("effects") or {}})
-    sim = simulate(theta[None, :], rec, PRECISE)
-    if sim.status[0] != 0:
-        raise DataError(f"input file {src}: the plant cannot be simulated under this input ({sim.status_counts()})")
-    try:
-        rec.x_B = measure(sim.x_B[0], noise_m=float(data.get("noise_m", 0.0) or 0.0),
-                          noise_ar=float(data.get("noise_ar", 0.0) or 0.0),
-                          quantum_m=float(data.get("quantum_m", 0.0) or 0.0), seed=int(data.get("noise_seed", 0)))
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    rec.i_q = sim.i_q[0].copy()
+    rec = read_input(src if src.is_absolute() else Path(cwd) / src, **limits)
+    measure_truth(rec, data)
     return rec
 
 

@@ -207,6 +207,26 @@ def read_csv(path: str | os.PathLike, *, x_B0: float | None = None, require_x_B:
     return record
 
 
+def read_input(path: str | os.PathLike, *, rate_hz: float, v_max: float, max_duration: float,
+               x_B0: float | None = None) -> Record:
+    """An input to simulate under (e.g. the excite job's ``excitation.csv``): a CSV with columns ``t`` (s, from 0,
+    uniform at ``rate_hz``) and ``v_in`` (V, |v_in| ≤ ``v_max``, the machine's limit), at most ``max_duration``
+    s long; any other column is dropped. DataError (one line) otherwise."""
+    rec = read_csv(path, x_B0=x_B0, require_x_B=False, expect_rate_hz=rate_hz)
+    src = f"input file {path}"
+    k = int(np.argmax(np.abs(rec.v_in)))
+    if abs(rec.v_in[k]) > v_max:
+        raise DataError(f"{src}: |v_in| = {abs(rec.v_in[k]):.6g} V at t = {rec.t[k]:.9g} s is over the machine's "
+                        f"limit input.v_max = {v_max:g} V")
+    duration = float(rec.t[-1] - rec.t[0])
+    if duration > max_duration:
+        raise DataError(f"{src}: {duration:g} s long, longer than input.max_duration = {max_duration:g} s")
+    if rec.t[0] != 0.0:
+        raise DataError(f"{src}: time must start at 0 s, starts at {rec.t[0]:.9g} s")
+    rec.x_B, rec.i_q = None, None
+    return rec
+
+
 def _read_rows(path: Path, src: str) -> tuple[list[str], list[list[str]], list[int]]:
     """Header, data rows (all with the header's field count) and the file line of each row."""
     if not path.exists():

@@ -205,23 +205,6 @@ class Record:
         rec.meta.setdefault("command", cycling.to_dict())
         return rec
 
-    @classmethod
-    def from_input(cls, t: np.ndarray, v_in: np.ndarray, **kw) -> Record:
-        """An input-only record of a given sampled input: uniform times ``t`` (s) and ``v_in`` (V), e.g. a proposed
-        excitation (``sweep`` is None: the simulator interpolates the samples linearly, as for a measured record).
-        Raises ValueError for non-finite samples or times that are not strictly increasing and uniform."""
-        t = np.asarray(t, dtype=float)
-        v_in = np.asarray(v_in, dtype=float)
-        if t.ndim != 1 or t.shape != v_in.shape or t.size < 2:
-            raise ValueError("t and v_in must be 1-D arrays of the same length (at least 2 samples)")
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(v_in))):
-            raise ValueError("t and v_in must be finite")
-        dt = np.diff(t)
-        mean = (t[-1] - t[0]) / (t.size - 1)
-        if not (mean > 0 and np.all(np.abs(dt - mean) <= 1e-6 * mean)):
-            raise ValueError("t must be strictly increasing and uniformly sampled")
-        return cls(t=t, v_in=v_in, **kw)
-
     def clamp_index(self, x_B_L: float) -> int:
         """Index of the first sample with measured x_B ≥ x_B_L (docs/model.md §7); ``n`` if never reached."""
         if self.x_B is None:

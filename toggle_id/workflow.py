@@ -97,6 +97,25 @@ def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
     sweep = data.get("sweep", "simulation")
     if command == "sweep" and sweep not in SWEEPS:
         raise ConfigError(f"unknown data.sweep {sweep!r}; known: {', '.join(SWEEPS)}")
+    noise_model(data)  # checked before any simulation
+    duration, rate = _number(data, "duration", 5.0), _number(data, "rate_hz", 1000.0)
+    x_B0 = _number(data, "x_B0", 0.020)
+    try:
+        if command == "cycling":
+            rec = Record.from_cycling(CYCLING, duration, rate, x_B0=x_B0, name="simulated_cycling")
+        else:
+            rec = Record.from_sweep(sweep, duration, rate, x_B0=x_B0, name=f"simulated_{sweep}")
+    except ValueError as err:
+        raise ConfigError(f"data: {err}") from err
+    theta = measure_truth(rec, data)
+    rec.meta["command"] = (CYCLING.to_dict() if command == "cycling" else
+                           {"kind": "sweep", "sweep": sweep, **SWEEPS[sweep].__dict__})
+    return rec, theta
+
+
+def noise_model(data: Mapping) -> tuple[float, float, float, int]:
+    """(noise_m, noise_ar, quantum_m, noise_seed) of a simulated record's ``data`` node, checked (one-line
+    ConfigError)."""
     noise = _number(data, "noise_m", 0.0)
     if not (np.isfinite(noise) and noise >= 0):
         raise ConfigError(f"data.noise_m must be a non-negative number, got {noise}")
@@ -109,27 +128,25 @@ def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
     seed = data.get("noise_seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"data.noise_seed must be a non-negative integer, got {seed!r}")
-    duration, rate = _number(data, "duration", 5.0), _number(data, "rate_hz", 1000.0)
-    x_B0 = _number(data, "x_B0", 0.020)
-    try:
-        if command == "cycling":
-            rec = Record.from_cycling(CYCLING, duration, rate, x_B0=x_B0, name="simulated_cycling")
-        else:
-            rec = Record.from_sweep(sweep, duration, rate, x_B0=x_B0, name=f"simulated_{sweep}")
-    except ValueError as err:
-        raise ConfigError(f"data: {err}") from err
+    return noise, rho, quantum, int(seed)
+
+
+def measure_truth(rec: Record, data: Mapping) -> np.ndarray:
+    """Fill the input-only record ``rec`` with the PRECISE response of ``data``'s truth (params, effects): x_B
+    with its noise model (:func:`noise_model`), i_q noiseless, the truth and noise in ``meta``. Returns the
+    truth's extended vector."""
+    noise, rho, quantum, seed = noise_model(data)
     theta = truth_vector(data)
     sim = simulate(theta[None, :], rec, PRECISE)
     if sim.status[0] != 0:
-        raise ConfigError(f"the truth of data.params/effects cannot be simulated ({sim.status_counts()})")
-    rec.x_B = measure(sim.x_B[0], noise_m=noise, noise_ar=rho, quantum_m=quantum, seed=int(seed))
+        raise ConfigError(f"the truth of data.params/effects cannot be simulated under {rec.name!r} "
+                          f"({sim.status_counts()})")
+    rec.x_B = measure(sim.x_B[0], noise_m=noise, noise_ar=rho, quantum_m=quantum, seed=seed)
     rec.i_q = sim.i_q[0].copy()
     rec.meta.update({"truth": {n: float(v) for n, v in zip(ALL_NAMES, theta)}, "noise_m": noise,
-                     "noise": {"model": "none" if noise == 0 else "ar1" if rho > 0 else "white", "sigma_m": noise, "ar": rho,
-                               "quantum_m": quantum},
-                     "command": (CYCLING.to_dict() if command == "cycling" else
-                                 {"kind": "sweep", "sweep": sweep, **SWEEPS[sweep].__dict__})})
-    return rec, theta
+                     "noise": {"model": "none" if noise == 0 else "ar1" if rho > 0 else "white", "sigma_m": noise,
+                               "ar": rho, "quantum_m": quantum}})
+    return theta
 
 
 #: Keys of a joint data node that are not defaults of its records.
