@@ -174,14 +174,10 @@ def _valid_truth(theta: np.ndarray, command: str) -> bool:
     sim = simulate(extend(theta), rec, PRECISE)
     if sim.status[0] != 0:
         return False
-    x = sim.x_B[0]
-    clamped = x >= 0.056
-    if x.min() < 0.008 or not np.any(x >= 0.0563) or int(np.argmax(clamped)) < 30:
-        return False
-    if command == "cycling":
-        exits = np.count_nonzero(clamped[:-1] & ~clamped[1:])
-        return exits >= 2
-    return True
+    from toggle_id.excite.inputs import clamp_check
+
+    return clamp_check(sim.x_B[0], 0.056, x_B_min=0.008, clamp_margin=3e-4, min_clamp_samples=30,
+                       min_exits=2 if command == "cycling" else 0) == "ok"
 
 
 def draw_truth(spec: Spec) -> tuple[np.ndarray, dict]:
