@@ -146,12 +146,13 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     t_start = time.perf_counter()
     curve = curve if curve is not None else RmseCurve(records, t0=t_start)
     rng = np.random.default_rng(np.random.SeedSequence(seed))
-    reports = [0.0]  # seconds of the identifiability reports: not part of the fit
+    t_report = 0.0  # seconds of the identifiability reports: not part of the fit
 
     def fit_stage(name: str, free: tuple[str, ...], windows, theta: np.ndarray, rng: np.random.Generator
                   ) -> tuple[StageResult, list[np.ndarray], FitProblem]:
         """One stage's successive halving from ``theta``: its result (the best finalist), all finalists (extended
         vectors, best first) and the stage's problem."""
+        nonlocal t_report
         problem = joint([stage_problem(r, name, free, w, theta, settings, i_q_weight)
                          for r, w in zip(records, windows)])
         lo, hi = stage_bounds(list(free), bounds)
@@ -171,22 +172,24 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         if identifiability:
             t_id = time.perf_counter()
             st.identifiability = identifiability_report(problem, x, noise_var)
-            reports[0] += time.perf_counter() - t_id
+            t_report += time.perf_counter() - t_id
         say(f"{name}: rms {st.rmse_m * 1e6:.4g} µm on its window ({st.seconds_polish:.1f} s)")
         return st, [problem.thetas(f[None, :])[0] for f in finals], problem
 
-    spent = [curve.simulations]
+    spent = curve.simulations
 
     def emit(st: StageResult) -> None:
         """A stage of the result: on the fitness curve and to ``on_stage``."""
-        spent[0] += st.n_simulations
-        curve.add(st.name, spent[0], theta=st.theta)
+        nonlocal spent
+        spent += st.n_simulations
+        curve.add(st.name, spent, theta=st.theta)
         if on_stage is not None:
             on_stage(st)
 
     def finish(theta: np.ndarray, rng: np.random.Generator, now: bool) -> list[StageResult]:
         """The stages after the first (stage 2, then the joint polish) from stage 1's ``theta``; ``now``: emit each
         as it ends (a single path)."""
+        nonlocal t_report
         stages = []
         for name, free, windows in plan[1:]:
             st, _, _ = fit_stage(name, free, windows, theta, rng)
@@ -199,7 +202,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
             st = joint_polish(records, plan, theta, settings, i_q_weight, bounds, polish_settings, identifiability,
                               noise_var, pre_tier=settings if fast.joint_prepolish else None,
                               final_nfev=fast.joint_final_nfev if fast.joint_prepolish else None)
-            reports[0] += time.perf_counter() - t_id - st.seconds_polish
+            t_report += time.perf_counter() - t_id - st.seconds_polish
             stages.append(st)
             if now:
                 emit(st)
@@ -231,7 +234,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
             if identifiability:
                 t_id = time.perf_counter()
                 first.identifiability = identifiability_report(problem1, first.x, noise_var)
-                reports[0] += time.perf_counter() - t_id
+                t_report += time.perf_counter() - t_id
         emit(first)
         # the paths not chosen were simulated too: the last stage (where the choice is made) counts them
         others = sum(st.n_simulations for j, p in enumerate(paths) if j != chosen for st in p)
@@ -242,7 +245,6 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
             emit(st)
         stages = [first, *paths[chosen]]
     theta = stages[-1].theta.copy()
-    t_report = reports[0]
     extra = {"seconds_fit": time.perf_counter() - t_start - t_report, "seconds_reports": t_report,
              "fast_settings": vars(fast)}
     return whole_record_result("fast", records, k_cs, theta, stages, time.perf_counter() - t_start, curve.points,
