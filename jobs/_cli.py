@@ -47,6 +47,7 @@ def register_resolvers() -> None:
 
 
 register_resolvers()  # importing the CLI plumbing (every entry point does) makes the configs resolvable
+from jobs import schema  # noqa: E402,F401 — ... and registers the typed nodes (conf/ names them as schema/<node>)
 
 
 def fail(message: str, code: int = 2) -> None:

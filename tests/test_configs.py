@@ -8,6 +8,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+import jobs.schema  # noqa: F401 — registers the typed nodes the configs name (schema/<node>)
 from toggle_id.params import PARAM_NAMES
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
