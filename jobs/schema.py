@@ -14,10 +14,12 @@ from __future__ import annotations
 from hydra.core.config_store import ConfigStore
 
 from toggle_id.ga import GAConfig
+from toggle_id.stages import PolishSettings
 
 #: config node -> the library dataclass that is its schema and the home of its defaults
 SCHEMAS: dict[str, type] = {
     "ga": GAConfig,
+    "polish": PolishSettings,
 }
 
 
