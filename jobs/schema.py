@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from hydra.core.config_store import ConfigStore
 
+from toggle_id.fast import FastSettings
 from toggle_id.ga import GAConfig
 from toggle_id.stages import PolishSettings
 
@@ -20,6 +21,7 @@ from toggle_id.stages import PolishSettings
 SCHEMAS: dict[str, type] = {
     "ga": GAConfig,
     "polish": PolishSettings,
+    "fast": FastSettings,
 }
 
 

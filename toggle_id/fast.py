@@ -49,19 +49,19 @@ class FastSettings:
     when stage 1 has fewer than ``short_samples_per_param`` samples per free parameter, ``paths_short`` paths
     are taken instead (and at least as many finalists)."""
 
-    route: str = "two_stage"
-    starts: int = 24
-    starts_stage2: int = 4
-    first_nfev: int = 4
-    keep: float = 0.5
-    finalists: int = 2
-    final_nfev: int = 60
-    joint_prepolish: bool = True
-    joint_final_nfev: int = 15
-    fd_rel_step: float = 1e-6
-    paths: int = 1
-    paths_short: int = 4
-    short_samples_per_param: float = 10.0
+    route: str = "two_stage"      # two_stage (the paper's stages, then a joint polish) | one_stage (all, whole record)
+    starts: int = 24              # random starts of stage 1 (or the one stage), uniform in the domain, seeded by `seed`
+    starts_stage2: int = 4        # starts of stage 2 (D, K_l); the first at the centre of the domain
+    first_nfev: int = 4           # residual evaluations of each start's first polish; doubled every round
+    keep: float = 0.5             # share of the starts continued after each round (successive halving)
+    finalists: int = 2            # starts polished to convergence on the PRECISE tier ...
+    final_nfev: int = 60          # ... with this many evaluations each
+    joint_prepolish: bool = True  # the joint polish on the GA's (fast) tier first, then on PRECISE ...
+    joint_final_nfev: int = 15    # ... with this many evaluations
+    fd_rel_step: float = 1e-6     # relative step of the forward-difference Jacobians
+    paths: int = 1                # stage 1's finalists carried through stage 2 and the joint polish ...
+    paths_short: int = 4          # ... or this many (and as many finalists) when stage 1 has fewer than
+    short_samples_per_param: float = 10.0  # this many samples per free parameter (an early clamp)
 
     def validate(self) -> FastSettings:
         if self.route not in ("two_stage", "one_stage"):
