@@ -15,6 +15,7 @@ from hydra.core.config_store import ConfigStore
 
 from toggle_id.fast import FastSettings
 from toggle_id.ga import GAConfig
+from toggle_id.simulate import SolverChoice
 from toggle_id.stages import PolishSettings
 
 #: config node -> the library dataclass that is its schema and the home of its defaults
@@ -22,6 +23,7 @@ SCHEMAS: dict[str, type] = {
     "ga": GAConfig,
     "polish": PolishSettings,
     "fast": FastSettings,
+    "solver": SolverChoice,
 }
 
 

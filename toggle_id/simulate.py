@@ -92,6 +92,14 @@ TIERS = {"fast": FAST, "precise": PRECISE}
 
 
 @dataclass
+class SolverChoice:
+    """The ``solver`` node of a job's configuration: which tier of :data:`TIERS` simulates the GA's
+    populations. The polish, the sensitivities and the residuals always use PRECISE."""
+
+    ga_tier: str = "fast"  # fast | precise
+
+
+@dataclass
 class SimResult:
     """x_B (P, N) in m and i_q (P, N) in A at the record's samples; ``status`` (P,) codes (0 = ok); rows that
     failed hold NaN. ``n_steps`` accepted+rejected integrator steps; ``contact`` (P, 4): first contact instant

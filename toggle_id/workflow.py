@@ -25,7 +25,7 @@ from .errors import ConfigError
 from .ga import GAConfig
 from .identify import identify
 from .record import COMMANDS, CYCLING, SWEEPS, Record, measure
-from .simulate import PRECISE, TIERS, extend, simulate
+from .simulate import PRECISE, TIERS, SolverChoice, extend, simulate
 from .stages import METHODS, PolishSettings, joint_plan, stage_bounds
 from .tracking import Tracker
 
@@ -207,7 +207,7 @@ def ga_config(cfg: Mapping) -> GAConfig:
 
 
 def solver_tier(cfg: Mapping):
-    tier = _get(cfg, "solver.ga_tier", "fast")
+    tier = _get(cfg, "solver.ga_tier", SolverChoice.ga_tier)
     if tier not in TIERS:
         raise ConfigError(f"unknown solver.ga_tier {tier!r}; known: {', '.join(TIERS)}")
     return TIERS[tier]
