@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from hydra.core.config_store import ConfigStore
 
+from toggle_id.excite.settings import ExciteSettings
 from toggle_id.fast import FastSettings
 from toggle_id.ga import GAConfig
 from toggle_id.simulate import SolverChoice
@@ -24,6 +25,7 @@ SCHEMAS: dict[str, type] = {
     "polish": PolishSettings,
     "fast": FastSettings,
     "solver": SolverChoice,
+    "excite": ExciteSettings,
 }
 
 

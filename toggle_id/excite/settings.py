@@ -18,7 +18,7 @@ class RivalSpec:
     (effect parameter → value; its magnitude must be non-zero) against the nominal model without it."""
 
     effect: str
-    params: dict[str, float]
+    params: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_dict(cls, d: Any, where: str = "excite.rivals") -> RivalSpec:
@@ -70,31 +70,36 @@ class ExciteSettings:
       its goals it meets; ``noise_std_m``: σ (m; None: the simulated record's noise, else the nominal RMS).
     """
 
-    v_max: float = 0.3
-    duration: float = 5.0
-    rate_hz: float = 1000.0
-    x_B_min: float = 0.008
-    clamp_margin: float = 3e-4
-    min_clamp_samples: int = 30
-    min_exits: int = 1
-    families: tuple[str, ...] = FAMILIES
-    n_random: int = 6
-    n_refine: int = 10
-    refine_radius: float = 0.15
+    # machine limits of the proposed input
+    v_max: float = 0.3              # V: |v_in| <= v_max
+    duration: float = 5.0           # s
+    rate_hz: float = 1000.0         # Hz: the samples of excitation.csv
+    x_B_min: float = 0.008          # m: slider B must stay above this (the stroke's short end)
+    clamp_margin: float = 3e-4      # m: x_B must pass x_B^L = 56 mm by this to count as clamped ...
+    min_clamp_samples: int = 30     # ... not before this sample ...
+    min_exits: int = 1              # ... and leave the clamp again at least this often ("into the clamp and back")
+    # the search (seeded: the same seed gives the same candidates and scores)
+    families: tuple[str, ...] = FAMILIES  # of FAMILIES (toggle_id/excite/inputs.py FAMILY_PARAMS)
+    n_random: int = 6               # random candidates per family (uniform in the family's unit cube)
+    n_refine: int = 10              # local refinement steps around the best ((1+1) strategy) ...
+    refine_radius: float = 0.15     # ... with this initial step in the unit cube
     seed: int = 0
-    refit_top: int = 3
-    refit_nfev: int = 30
-    refit_rounds: int = 2
-    rival_nfev: int = 40
-    fd_rel_step: float = 1e-4
-    jac_rel_step: float = 1e-5
-    rivals: tuple[RivalSpec, ...] = field(default_factory=tuple)
-    discovery: str | None = None
-    parameters: bool = True
+    # scores
+    refit_top: int = 3              # candidates (best first-order score) verified by full refits, + each rival's best
+    refit_nfev: int = 30            # residual evaluations of a verifying refit of rival B ...
+    refit_rounds: int = 2           # ... restarted while it still improves
+    rival_nfev: int = 40            # the fit of rival A (effect on) to the record
+    fd_rel_step: float = 1e-4       # forward-difference step of the refits
+    jac_rel_step: float = 1e-5      # (log-)step of the first-order separation's sensitivities
+    # the rivals
+    rivals: tuple[RivalSpec, ...] = field(default_factory=tuple)  # effect on (at its magnitude) vs the model without it
+    discovery: str | None = None    # a discovery.json: its accepted and compensating effects become rivals too
+    parameters: bool = True         # the 15 parameters' weak directions: the sv_index-th resolved singular value
     sv_index: int = 8
-    separation_target: float = 3.0
-    sv_gain_target: float = 10.0
-    noise_std_m: float | None = None
+    # goals (a candidate's score is the smallest share of its goals it meets)
+    separation_target: float = 3.0  # σ: the RMS difference left after refitting, over the noise
+    sv_gain_target: float = 10.0    # ×: the sv_index-th resolved singular value over the record's (or a higher rank)
+    noise_std_m: float | None = None  # σ (m); None: data.noise_m for a simulated record, else the nominal fit's RMS
 
     @classmethod
     def from_dict(cls, d: Mapping | None) -> ExciteSettings:
