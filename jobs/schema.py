@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from hydra.core.config_store import ConfigStore
 
+from toggle_id.emps.settings import EmpsSettings
 from toggle_id.excite.settings import ExciteSettings
 from toggle_id.fast import FastSettings
 from toggle_id.ga import GAConfig
@@ -26,6 +27,7 @@ SCHEMAS: dict[str, type] = {
     "fast": FastSettings,
     "solver": SolverChoice,
     "excite": ExciteSettings,
+    "emps": EmpsSettings,
 }
 
 

@@ -188,12 +188,15 @@ def test_settings_defaults_and_relative_paths(tmp_path):
     assert (st.samples, st.candidates, st.noise_std_m) == (6000, ("coulomb_friction",), 1e-8)
 
 
-def test_the_config_file_matches_the_defaults():
+def test_the_composed_config_carries_the_defaults():
+    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    conf = OmegaConf.to_container(OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "experiment"
-                                                 / "emps.yaml"))
-    assert conf["emps"] == {**EMPS_DEFAULTS, "sim": EMPS_DEFAULTS["sim"]}
+    from jobs import _cli
+
+    with initialize_config_dir(config_dir=_cli.CONF_DIR, version_base="1.3"):
+        conf = OmegaConf.to_container(compose(config_name="config", overrides=["+experiment=emps"]))
+    assert conf["emps"] == EMPS_DEFAULTS
     assert conf["validation"] == {"path": None}
 
 

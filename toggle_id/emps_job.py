@@ -25,7 +25,7 @@ import math
 import os
 import textwrap
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
@@ -43,6 +43,7 @@ from .emps.data import (
 )
 from .emps.report import (_log_children, _parent_metrics, _units, candidate_lines, console_text,  # noqa: F401
                           friction_figure, response_figure, validation_lines, verdict_lines)
+from .emps.settings import EmpsSettings
 from .errors import ConfigError, DataError
 
 if TYPE_CHECKING:
@@ -52,13 +53,9 @@ if TYPE_CHECKING:
 SIGNED_PARAMS = frozenset({"offset", "Fs", "Fc_asym", "Fv_asym"})
 #: The published (IDIM-LS, symmetric model) parameters compared in the report and the console table.
 COMPARED = ("M", "Fv", "Fc", "offset")
-#: Keys of the ``emps`` config node and their defaults (also used when run_emps is called from Python).
-EMPS_DEFAULTS: dict[str, Any] = {
-    "data_dir": None, "path": None, "validate": True, "samples": None, "candidates": None, "alpha": 0.01,
-    "max_effects": None, "max_corr": 0.99, "noise_max_order": 8, "cv_block": 100, "cv_folds": 5,
-    "structure_bins": 12, "structure_alpha": 0.01, "backward": True, "explain_fraction": 0.5, "solver": "polish", "max_nfev": 50, "reference_fit": True,
-    "sim": {"eps": 1e-4, "h_lambda": 0.5, "n_sub_max": 5000, "pulse_gain": 1.0},
-}
+#: Keys of the ``emps`` config node and their defaults (:class:`~toggle_id.emps.settings.EmpsSettings`, their one
+#: home), as a plain dict (also used when run_emps is called from Python).
+EMPS_DEFAULTS: dict[str, Any] = asdict(EmpsSettings())
 
 
 def _get(cfg: Mapping, path: str, default: Any = None) -> Any:
@@ -74,7 +71,8 @@ def _get(cfg: Mapping, path: str, default: Any = None) -> Any:
 # ------------------------------------------------------------------------------------------ configuration
 @dataclass(frozen=True)
 class EmpsJobSettings:
-    """Validated settings of the EMPS job (see conf/experiment/emps.yaml for the meaning of each)."""
+    """Validated settings of the EMPS job (see :class:`~toggle_id.emps.settings.EmpsSettings` for the meaning of
+    each)."""
 
     path: Path | None
     data_dir: Path | None
