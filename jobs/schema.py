@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from hydra.core.config_store import ConfigStore
 
+from toggle_id.discovery.settings import DiscoverJobSettings
 from toggle_id.emps.settings import EmpsSettings
 from toggle_id.excite.settings import ExciteSettings
 from toggle_id.fast import FastSettings
@@ -28,6 +29,7 @@ SCHEMAS: dict[str, type] = {
     "solver": SolverChoice,
     "excite": ExciteSettings,
     "emps": EmpsSettings,
+    "discover": DiscoverJobSettings,
 }
 
 

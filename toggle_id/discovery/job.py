@@ -16,13 +16,13 @@ from ..simulate import extend
 from .loop import discover
 from .refit import Refit
 from .report import summary_text, write_figures
-from .settings import DiscoverSettings
+from .settings import DiscoverJobSettings, DiscoverSettings
 
 
 def discover_settings(cfg: Mapping) -> DiscoverSettings:
     """Settings from the ``discover`` node of a job config (ConfigError on a bad value)."""
     node = dict(cfg.get("discover") or {})
-    nominal = node.get("nominal", "ga")
+    nominal = node.get("nominal", DiscoverJobSettings.nominal)
     if nominal not in ("ga", "base"):
         raise ConfigError(f"discover.nominal must be 'ga' (two-stage RGA + polish) or 'base' (polish from the "
                           f"assigned/base values), got {nominal!r}")
@@ -43,7 +43,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
 
     workflow.validate_config(cfg)
     settings = discover_settings(cfg)
-    nominal_mode = (cfg.get("discover") or {}).get("nominal", "ga")
+    nominal_mode = (cfg.get("discover") or {}).get("nominal", DiscoverJobSettings.nominal)
     method = cfg.get("method", "two_stage")
     fixed = dict(cfg.get("fixed") or {})
     for nm in fixed:

@@ -1,8 +1,9 @@
-"""The numbers of the discovery loop a user may change (``discover`` node of conf/experiment/discover.yaml)."""
+"""The numbers of the discovery loop a user may change (``discover`` node of conf/experiment/discover.yaml): the one
+home of their defaults (:class:`DiscoverJobSettings` is the node's schema, ``jobs/schema.py``)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -15,7 +16,8 @@ from ..errors import ConfigError
 class DiscoverSettings:
     """Numbers of the discovery loop a user may change (conf/experiment/discover.yaml, node ``discover``).
 
-    - top_k: candidates refitted per iteration (best scouts); alpha: level of the F-test an effect must pass
+    - top_k: candidates refitted per iteration at least (the best scouts; more while a scout explains more than
+      the best accepted refit); alpha: level of the F-test an effect must pass
       (BIC must improve too); max_effects: most effects added; candidates: effect names to consider (None: all).
     - screen_alpha: a candidate is scouted only if its score or profile statistic at the polished fit exceeds
       the χ²(1) quantile of this level (1: always).
@@ -23,8 +25,9 @@ class DiscoverSettings:
     - baseline_nfev, refit_nfev, null_nfev, scout_nfev: polish budgets (residual evaluations) of the
       baseline, a refit, the nominal re-polish guarding an acceptance, and a scout; rounds / refit_rounds:
       restarts of the baseline and guard / refit polishes while they still improve.
-    - second_point: also linearise at the nominal start (see the package docstring); gauge: report the
-      representatives nearest the reference along the exact symmetries; grid_points: magnitudes per probe.
+    - second_point: also linearise at the nominal start (large effects bend the polished fit; see the package
+      docstring); gauge: report the representatives nearest the reference along the exact symmetries;
+      grid_points: magnitudes per probe (the 1-D search before a scout).
     - hold_gauge: during the loop's polishes, hold one parameter per exact symmetry of x_B (K_l, K_i, m_C; see
       :data:`GAUGE_HELD`) at its value — the same fits without the flat directions that stall the trust region
       in long valleys; an effect that breaks a symmetry (``Effect.breaks``) frees its parameter again.
@@ -32,10 +35,13 @@ class DiscoverSettings:
       adaptive integrator's step-selection noise); jac_rel_step: (log-)step of the sensitivities J;
       rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
       as absorbed by the free parameters.
-    - noise_std: known measurement noise (m), only reported as rms/noise; parallel: threaded simulation batches.
-    - noise_max_order: largest order of the AR noise model (0: white noise assumed); cv_folds, cv_block: folds
-      and block length (samples) of the time-block cross-validation; structure_bins: bins per signal of the
-      structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
+    - noise_std: known measurement noise (m), only reported as rms/noise (the discover job: None takes
+      ``data.noise_m`` of a simulated record); parallel: threaded simulation batches.
+    - noise_max_order: largest order of the AR noise model, its order chosen by BIC; every test is prewhitened
+      by it (0: white noise assumed); cv_folds, cv_block: folds and block length (samples) of the time-block
+      cross-validation an effect must lower the out-of-sample error of (short blocks: the whitened errors are
+      nearly independent, and long blocks would take a whole transient out); structure_bins: bins per signal of
+      the structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
       its score (global screening; false: only those whose score passes ``screen_alpha``); backward: drop,
       at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
       an accepted effect still counts as an explanation if it removed at least this fraction of the structure
@@ -138,3 +144,14 @@ class DiscoverSettings:
         if isinstance(kw.get("candidates"), (list, tuple)):
             kw["candidates"] = tuple(kw["candidates"])
         return cls(**kw).validate()
+
+
+@dataclass
+class DiscoverJobSettings(DiscoverSettings):
+    """The ``discover`` node of the discover job: the loop's settings (:class:`DiscoverSettings`) and where the
+    nominal fit the loop starts from comes from (read by :mod:`toggle_id.discovery.job`)."""
+
+    nominal: str = "ga"  # ga: two-stage RGA + polish first | base: polish from the assigned values (+ base)
+    #: overrides of the assigned values: a start of the baseline (beside the GA's) and the reference of the
+    #: reported parameters along the exact symmetries
+    base: dict[str, float] = field(default_factory=dict)
