@@ -188,7 +188,7 @@ def _to_text(value: Any, limit: int) -> str:
     elif isinstance(value, (tuple, set, frozenset)):
         value = list(value)
     elif hasattr(value, "__iter__") and not isinstance(value, (str, bytes, list, dict)):
-        try:  # e.g. omegaconf ListConfig
+        try:  # e.g. a config list node that is not a list
             value = list(value)
         except TypeError:
             pass
