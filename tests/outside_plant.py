@@ -9,11 +9,14 @@ with physics outside the discovery library (``toggle_id/effects.py``):
 * **friction bump** (``bump=(F_b, x_c, w)``): an extra force on slider B localised on its stroke,
   −F_b·exp(−((x_B − x_c)/w)²)·tanh(ẋ_B/ε) (N, m, m; ε = 1e-3 m/s as for the slider's Coulomb friction) — a
   worn or dirty spot of the guide, felt only while B passes x_c;
+* **quadratic drag** (``drag = c_q``, N·s²/m²): −c_q·ẋ_B·|ẋ_B| on slider B — a fluid or air resistance that
+  grows with the square of the speed (the library has only friction linear in, or independent of, the speed);
 * **saturating torque constant** (``i_sat``, A): K_t,eff = K_t / √(1 + (i_q/i_sat)²), so the torque
   K_t,eff·i_q tends to K_t·i_sat at high current (magnetic saturation of the motor); the back-EMF (λ_d) is
-  unchanged.
+  unchanged. The library has had this effect since (``torque_constant_saturation``, c_kt = 1/i_sat²): here it
+  is the independent reference of that kernel term.
 
-Both are off by default (``bump=None``, ``i_sat=None``); then this is the nominal plant of docs/model.md.
+All are off by default; then this is the nominal plant of docs/model.md.
 """
 from __future__ import annotations
 
@@ -87,10 +90,12 @@ def x_B_of_q(q):
 
 @dataclass(frozen=True)
 class Outside:
-    """Effects outside the library (both off by default): ``bump = (F_b N, x_c m, w m)``, ``i_sat`` A."""
+    """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
+    A."""
 
     bump: tuple[float, float, float] | None = None
     i_sat: float | None = None
+    drag: float | None = None
 
     def to_dict(self) -> dict:
         out: dict = {}
@@ -98,6 +103,8 @@ class Outside:
             out["friction_bump"] = dict(zip(("F_b", "x_c", "w"), map(float, self.bump)))
         if self.i_sat is not None:
             out["saturating_torque_constant"] = {"i_sat": float(self.i_sat)}
+        if self.drag is not None:
+            out["quadratic_drag"] = {"c_q": float(self.drag)}
         return out
 
 
@@ -133,6 +140,8 @@ class Plant:
         if self.out.bump is not None:
             F_b, x_c, width = self.out.bump
             F_f -= F_b * math.exp(-((x_B - x_c) / width) ** 2) * math.tanh(vB / EPS)
+        if self.out.drag is not None:
+            F_f -= self.out.drag * vB * abs(vB)
         F_i = p["K_l"] * (x_B - X_B_L) + p["D"] * vB if contact else 0.0
         Q = F_C * dx_C + (F_f - F_i) * dx_B
         wdot = (Q - 0.5 * _dmass(q, p) * w * w) / _mass(q, p)

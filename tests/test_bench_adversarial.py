@@ -18,11 +18,12 @@ from toggle_id.simulate import PRECISE, extend, simulate
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
     cats = [s.category for s in B.SPECS]
     assert len(B.SPECS) >= 18
-    assert cats.count("library") == 10 and cats.count("pair") == 2 and cats.count("outside") >= 2
+    assert cats.count("library") == 12 and cats.count("pair") == 2 and cats.count("outside") == 4
     assert {s.effects[0] for s in B.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
     noise = {(s.noise_m, s.noise_ar, s.quantum_m) for s in B.SPECS if s.category == "noise"}
     assert noise == {(1e-6, 0.0, 0.0), (1e-6, 0.5, 0.0), (1e-6, 0.9, 0.0), (0.0, 0.0, 1e-6)}
-    assert {s.outside for s in B.SPECS if s.category == "outside"} == {"bump", "saturation"}
+    assert {s.outside for s in B.SPECS if s.category == "outside"} == {"bump", "drag"}
+    assert len(set(B.NAMES.values())) == len(B.SPECS) and B.NAMES["torque_saturation_simulation"] == "rec08"
     assert {s.command for s in B.SPECS} == {"simulation", "experiment", "cycling"}
     # every calibrated magnitude is there, with a measured ratio near its target
     for s in B.SPECS:
@@ -63,11 +64,14 @@ def test_generator_writes_the_records_and_the_manifest(tmp_path):
 
 
 def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp_path):
-    B.main(["--out", str(tmp_path), "--only", "outside_saturation_simulation,dead_time", "--duration", "0.5"])
+    B.main(["--out", str(tmp_path), "--only", "torque_saturation_simulation,dead_time", "--duration", "0.5"])
     man = {r["key"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
-    sat, dt = man["outside_saturation_simulation"], man["dead_time"]
+    sat, dt = man["torque_saturation_simulation"], man["dead_time"]
     assert sat["outside"]["saturating_torque_constant"]["i_sat"] == B.CALIBRATED[sat["key"]]["i_sat"][0]
     assert "outside_plant" in sat["simulator"] and sat["calibration"]["target_ratio"] == 3.0
+    assert sat["effects"] == ["torque_constant_saturation"] and sat["category"] == "library"
+    assert sat["effect_params"]["torque_constant_saturation"]["c_kt"] == pytest.approx(
+        B.CALIBRATED[sat["key"]]["i_sat"][0] ** -2, rel=1e-12)
     assert dt["effect_params"]["dead_time"]["tau_d"] == B.CALIBRATED["dead_time"]["tau_d"][0]
     assert dt["jobs_simulate"].startswith("python -m jobs.simulate") and "effects.tau_d=" in dt["jobs_simulate"]
     for r in man.values():
@@ -139,6 +143,23 @@ def _entry(category, effects=(), name="rec99"):
 def test_verdicts(category, truth, added, unexplained, expected):
     report = {"effects_added": [{"name": n} for n in added], "unexplained": unexplained,
               "rmse_before_m": 2e-6, "rmse_after_m": 1e-6}
+    assert B.verdict(_entry(category, truth), report) == expected
+
+
+@pytest.mark.parametrize("category,truth,added,group,expected", [
+    ("library", ["torque_constant_saturation"], [], ["contact_nonlinear_stiffness", "torque_constant_saturation"],
+     "ambiguous-correct"),
+    ("library", ["contact_nonlinear_stiffness"], [], ["torque_constant_saturation", "contact_nonlinear_stiffness"],
+     "ambiguous-correct"),
+    ("library", ["dead_time"], [], ["backlash", "cogging_torque"], "ambiguous-wrong+missed"),
+    ("pair", ["dead_time", "sensor_offset"], ["dead_time"], ["sensor_offset", "constant_load_force"],
+     "ambiguous-correct"),
+    ("library", ["dead_time"], ["dead_time"], ["backlash", "cogging_torque"], "ambiguous-wrong"),
+    ("outside", [], [], ["stribeck_friction", "viscous_friction_slider"], "ambiguous-wrong"),
+])
+def test_ambiguous_verdicts(category, truth, added, group, expected):
+    report = {"effects_added": [{"name": n} for n in added], "unexplained": False,
+              "ambiguous": [{"name": group[0], "indistinguishable_from": [{"name": g} for g in group[1:]]}]}
     assert B.verdict(_entry(category, truth), report) == expected
 
 

@@ -181,6 +181,32 @@ def test_loop_names_backlash():
     assert res.rmse_after_m < 1.05 * NOISE
 
 
+def test_the_gauge_moves_effects_along_the_symmetries_without_changing_x_B():
+    """gauge_fix scales force-type effects with the mechanism and the drive limit (1/V) and the torque saturation
+    (c_kt, 1/A²: as c²) with the current scale; with all three on, the representative nearest the reference has
+    the same x_B (else gauge_fix would refuse it), and c_kt·K_i² is unchanged."""
+    from toggle_id.discovery.gauge import gauge_fix
+
+    theta = extend(ASSIGNED * np.exp(0.2 * np.random.default_rng(4).standard_normal(len(PARAM_NAMES))))[0]
+    theta[ALL_INDEX["c_kt"]], theta[ALL_INDEX["tau_c"]], theta[ALL_INDEX["s_sat"]] = 4e-6, 0.5, 0.01
+    rec = Record.from_sweep("simulation", 5.0, name="gauge")
+    rec.x_B = np.zeros(rec.n)  # outputs only; never fitted
+    model = D.Model(rec, PRECISE)
+    off = theta.copy()
+    off[ALL_INDEX["c_kt"]] = 0.0
+    y = model.outputs(np.array([theta, off]))
+    assert np.max(np.abs(y[0] - y[1])) > 1e-6  # the saturation acts on this record
+    ref = extend(ASSIGNED)[0]
+    moved, info = gauge_fix(model, theta, PARAM_NAMES, ref)
+    assert info["applied"], info
+    assert abs(np.log(info["current_scale"])) > 0.01
+    t = ALL_INDEX["tau_c"]
+    assert moved[t] == pytest.approx(theta[t] * info["mechanical_scale"], rel=1e-12)
+    ki, c = ALL_INDEX["K_i"], ALL_INDEX["c_kt"]
+    assert moved[c] * moved[ki] ** 2 == pytest.approx(theta[c] * theta[ki] ** 2, rel=1e-12)
+    assert moved[c] != pytest.approx(theta[c], rel=1e-3)
+
+
 # ---------------------------------------------------------------------------------------------- the job
 @pytest.mark.integration
 def test_discover_job_end_to_end(tmp_path, job_env):
@@ -271,6 +297,7 @@ EVERY = {
     "contact_nonlinear_stiffness": {"k3": 1e13},
     "voltage_saturation": {"s_sat": 0.19},
     "sensor_offset": {"x_off": 1e-4},
+    "torque_constant_saturation": {"c_kt": 4e-6},
 }
 
 
@@ -300,6 +327,8 @@ def test_every_effect_on_the_five_second_record(name):
         # a force is determined only relative to the mechanism (an exact symmetry of x_B scales every force):
         # compare the ratio to the contact stiffness, the quantity the record fixes
         est = res.effects_added[0]["magnitude"]["per_K_l"] * truth[ALL_INDEX["K_l"]]
+    if "times_K_i2" in res.effects_added[0]["magnitude"]:  # relative to the current scale: c_kt·K_i² is fixed
+        est = res.effects_added[0]["magnitude"]["times_K_i2"] / truth[ALL_INDEX["K_i"]] ** 2
     assert est == pytest.approx(effects[mag], rel=0.2)
     assert res.rmse_after_m < 1.02 * NOISE
     assert not res.unexplained

@@ -59,7 +59,9 @@ def test_each_outside_effect_moves_x_B_clearly_and_vanishes_when_off(paper):
     assert np.max(np.abs(sat - x0)) > 1e-5  # less clamping force at the ~350-A stall current
     free = rec.t < rec.t[np.argmax(x0 >= 0.05)]
     assert np.max(np.abs(sat - x0)[free]) < 0.1 * np.max(np.abs(sat - x0))  # the free motion draws less current
-    off, _, _ = simulate_outside(ASSIGNED, rec, Outside(bump=(0.0, 0.040, 0.003), i_sat=1e12))
+    drag, _, info_d = simulate_outside(ASSIGNED, rec, Outside(drag=5000.0))
+    assert info_d["status"] == 0 and np.max(np.abs(drag - x0)) > 5e-6  # the fast strokes are slowed
+    off, _, _ = simulate_outside(ASSIGNED, rec, Outside(bump=(0.0, 0.040, 0.003), i_sat=1e12, drag=0.0))
     assert np.max(np.abs(off - x0)) < 1e-12
 
 
@@ -70,3 +72,25 @@ def test_leaving_the_assembly_range_is_a_failed_simulation():
     x, i, info = simulate_outside(theta, rec)
     assert info["status"] == 1 and "x_B" in info["message"]
     assert np.isnan(x[-1]) and np.isnan(i[-1]) and np.isfinite(x[0])
+
+
+@pytest.mark.parametrize("command", ["simulation", "cycling"])
+def test_the_librarys_torque_saturation_is_the_independent_plants_saturating_torque_constant(command):
+    """The library's ``torque_constant_saturation`` (kernel term K_t·i_q/√(1 + c_kt·i_q²), with its analytic
+    Jacobian in the implicit clamped-mode integrator) against this plant's K_t/√(1 + (i_q/i_sat)²) at
+    c_kt = 1/i_sat²: the same x_B and i_q, on the sweep (one clamp) and the cycling command (several)."""
+    from toggle_id.effects import ALL_INDEX
+
+    rec = Record.from_sweep("simulation", 5.0) if command == "simulation" else Record.from_cycling(duration=5.0)
+    theta = ASSIGNED * np.exp(0.1 * np.random.default_rng(5).standard_normal(ASSIGNED.size))
+    i_sat = 800.0
+    x, i, info = simulate_outside(theta, rec, Outside(i_sat=i_sat))
+    assert info["status"] == 0
+    th = extend(theta)
+    th[0, ALL_INDEX["c_kt"]] = 1.0 / i_sat ** 2
+    sim = simulate(th, rec, PRECISE)
+    x0 = simulate(extend(theta), rec, PRECISE).x_B[0]
+    assert sim.status[0] == 0
+    assert np.max(np.abs(x - x0)) > 5e-6  # the saturation moves x_B by micrometres …
+    assert np.max(np.abs(x - sim.x_B[0])) < 2e-8  # … and both simulators agree far below the encoder's resolution
+    assert np.max(np.abs(i - sim.i_q[0])) < 1e-6 * np.ptp(i)

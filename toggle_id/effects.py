@@ -105,13 +105,16 @@ EFFECTS: tuple[Effect, ...] = (
            tuple({"s_sat": s} for s in (0.12, 0.15, 0.17, 0.2, 0.25, 0.35, 0.5)), grid=saturation_grid),
     Effect("sensor_offset", "constant offset of the measured x_B",
            (EffectParam("x_off", K.X_OFF, "m", -5e-3, 5e-3),), ({"x_off": 1e-6},)),
+    Effect("torque_constant_saturation", "magnetic saturation of the motor: torque K_t·i_q/√(1 + c_kt·i_q²), so "
+           "the torque constant falls at high current (i_sat = 1/√c_kt); the back-EMF is unchanged",
+           (EffectParam("c_kt", K.C_KT, "1/A²", 0.0, 1e-4),), ({"c_kt": 1e-9},)),
 )
 
 EFFECTS_BY_NAME: dict[str, Effect] = {e.name: e for e in EFFECTS}
 
 #: Names of the extended parameter vector (kernel order): the 15 physical ones, then the effect parameters.
 EXTRA_NAMES: tuple[str, ...] = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a_cog", "n_cog", "phi_cog",
-                                "F_load", "k3", "s_sat", "x_off")
+                                "F_load", "k3", "s_sat", "x_off", "c_kt")
 ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES
 ALL_INDEX: dict[str, int] = {n: i for i, n in enumerate(ALL_NAMES)}
 assert len(ALL_NAMES) == K.N_THETA

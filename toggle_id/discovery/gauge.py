@@ -48,6 +48,17 @@ def _force_like(name: str) -> bool:
     return False
 
 
+def current_power(name: str) -> int:
+    """The power of the current scale an effect parameter follows: a limit on the drive voltage K_i·v (unit 1/V)
+    scales as c, a torque saturation c_kt·i_q² (unit 1/A²) as c² (so c_kt·K_i² is what x_B determines); 0 for
+    the rest."""
+    for e in EFFECTS:
+        for p in e.params:
+            if p.name == name:
+                return {"1/V": 1, "1/A²": 2}.get(p.unit, 0)
+    return 0
+
+
 def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,
               tol_m: float = 2e-8, broken: Collection[str] = ()) -> tuple[np.ndarray, dict]:
     """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
@@ -94,10 +105,8 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
     if use_e:
         for n, k in ELECTRICAL.items():
             out[ALL_INDEX[n]] *= c_e ** k
-        for e in EFFECTS:  # a limit on the drive voltage K_i·v (unit 1/V) follows the current scale
-            for p in e.params:
-                if p.unit == "1/V":
-                    out[ALL_INDEX[p.name]] *= c_e
+        for n in ALL_NAMES[P.N_PARAMS:]:  # drive limits and torque saturation follow the current scale
+            out[ALL_INDEX[n]] *= c_e ** current_power(n)
     if use_split and reference[ALL_INDEX["m_C"]] > 0 and reference[ALL_INDEX["J_m"]] > 0:
         Z2 = G.Z ** 2
         total = out[ALL_INDEX["m_C"]] + out[ALL_INDEX["J_m"]] * Z2

@@ -17,7 +17,7 @@ from ..identify import IdentificationResult
 from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, extend
-from .gauge import GAUGE_HELD, _force_like, gauge_fix, gauge_symmetries
+from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symmetries
 from .model import Fit, Model, _off_values, _with, fit_free, parameter_uncertainty, revived
 from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
@@ -26,6 +26,7 @@ from .settings import DiscoverSettings
 from .engine import backward_eliminate, split_explaining
 from .localise import locate, signals_of, structure_energy
 from .noise import WHITE, fit_noise
+from .stats import vuong
 from .validation import Judge
 
 log = logging.getLogger("toggle_id")
@@ -144,7 +145,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         current = _polish_with_effect(model, chosen, anchor, free, settings, say)
         added.append({"name": chosen.name, "iteration": it, "F": chosen.F, "p_value": chosen.p_value,
                       "delta_bic": chosen.delta_bic, "rmse_after_m": current.rmse(n),
-                      "params_at_acceptance": chosen.params, "evidence": chosen.evidence})
+                      "params_at_acceptance": chosen.params, "evidence": chosen.evidence,
+                      "indistinguishable_from": step["rivals"]})
         say(f"added {chosen.name} {chosen.params}; rms {current.rmse(n) * 1e6:.4g} µm")
 
     eliminated: list[dict] = []
@@ -194,14 +196,20 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ()), noise_after) \
         if added else {}
     _describe_added(added, current, uncertainty, gauge_after)
+    # an effect the record cannot tell apart from another supported one is not named as added: the pair is
+    # reported as ambiguous (the final model keeps the better-fitting one, for prediction)
+    ambiguous = [a for a in added if a.get("indistinguishable_from")]
+    added = [a for a in added if not a.get("indistinguishable_from")]
     diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split)
     accepted_names = {a["name"] for a in added}
+    ambiguous_names = {nm for a in ambiguous for nm in [a["name"]] + [r["name"] for r in a["indistinguishable_from"]]}
     cands = []
     for c in first_scores or []:
         tried = [rf for rf in all_refits if rf.name == c.name]
         cands.append({**c.to_dict(), "accepted": c.name in accepted_names, "refitted": bool(tried),
                       "refit_p_value": min((rf.p_value for rf in tried), default=None),
                       "verdict": ("accepted" if c.name in accepted_names else
+                                  "ambiguous" if c.name in ambiguous_names else
                                   "compensating" if c.name in {x["name"] for x in compensating} else "rejected"),
                       "evidence": tried[-1].evidence if tried else {}})
     why_out = {e["name"]: "eliminated (backward): " + e["reason"] for e in eliminated}
@@ -216,8 +224,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     predicted = _prediction_report(judge.validation, current.theta, settings) if judge.validation else None
     if predicted is not None and predicted.get("structure_left"):
         unexplained = True
-    conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted)
-    extra = {"symmetry_gauge": {"before": gauge_before, "after": gauge_after}, "identifiability_after": uncertainty,
+    conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
+                             ambiguous)
+    extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after}, "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,
              "noise_model": {"before": noise0.to_dict(), "after": noise_after.to_dict()},
              "localisation": diag_after.get("localisation"),
@@ -299,7 +308,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         best = min((rf.fit.rmse(n) ** 2 * n for rf in refits if rf.accepted), default=None)
         # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
         # (no effect is accepted while a candidate that explains more has not been refitted)
-        if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best)):
+        # (and while a scout comes within reach of it: a rival the record may not tell apart from it)
+        if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best + _tie_band(
+                best, n, settings))):
             break
         eff = EFFECTS_BY_NAME[sc.name]
         start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
@@ -325,15 +336,50 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             on_refit(rf)
     winners = [rf for rf in refits if rf.accepted]
     chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
+    rivals = _rivals(model, chosen, winners, settings) if chosen is not None else []
     for rf in winners:
-        if rf is not chosen:
+        if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
             rf.reason = f"supported, but {chosen.name} explains more (lower SSE); judged again next iteration"
+    if rivals:
+        say(f"  {chosen.name} and " + ", ".join(r["name"] for r in rivals) + " fit this record equally well "
+            "(Vuong " + ", ".join(f"z {r['vuong']['z']:.2f}" for r in rivals) + "): ambiguous")
     record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
               "noise_model_of_current_residual": noise.to_dict(), "points": [pt.label for pt in points],
               "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
-              "accepted": chosen.name if chosen else None}
+              "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals}
     return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
-            "base": base}
+            "base": base, "rivals": rivals}
+
+
+def _tie_band(best_sse: float, n: int, settings: DiscoverSettings) -> float:
+    """How far above the best accepted refit's SSE a scout may lie and still be refitted as a possible rival:
+    twice the SSE difference at which Vuong's test separates two fits at ``ambiguity_alpha`` (z ≈ √(ΔSSE/σ²)/2
+    for a deterministic difference; a scout is polished less than a refit)."""
+    if not settings.ambiguity_alpha > 0:
+        return 0.0
+    z = float(stats.norm.isf(settings.ambiguity_alpha / 2.0))
+    return 8.0 * z * z * best_sse / n
+
+
+def _rivals(model: Model, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
+    """The other supported refits of the round that the record cannot tell apart from ``chosen``: Vuong's test
+    of the two non-nested models (both residuals whitened by the noise model of ``chosen``'s) not significant
+    at ``settings.ambiguity_alpha``. Each such refit's reason says so."""
+    if not settings.ambiguity_alpha > 0:
+        return []
+    r_c = model.residuals(chosen.fit.theta[None, :])[0]
+    noise = fit_noise(r_c, settings.noise_max_order)
+    out = []
+    for rf in winners:
+        if rf is chosen:
+            continue
+        v = vuong(noise, r_c, model.residuals(rf.fit.theta[None, :])[0], chosen.k, rf.k)
+        rf.evidence["vuong_against_" + chosen.name] = v
+        if v["p_value"] >= settings.ambiguity_alpha:
+            rf.reason = (f"fits as well as {chosen.name} (Vuong z {v['z']:.2f}, p {v['p_value']:.2g}): the record "
+                         "cannot tell them apart")
+            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(model.n), "vuong": v})
+    return out
 
 
 def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: Sequence[str],
@@ -420,3 +466,10 @@ def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_af
             # x_B fixes a force only relative to the mechanism (every force scales with it, exactly): the ratio
             # to the contact stiffness is what the record determines, whatever representative is reported
             a["magnitude"]["per_K_l"] = a["params"][eff.magnitude.name] / k_l
+        if current_power(eff.magnitude.name) == 2:
+            # a torque saturation is fixed only relative to the current scale (K_i → K_i/c, i_q → i_q/c): c_kt·K_i²
+            # is what the record determines; i_sat = 1/√c_kt is the current at which K_t has fallen by 1/√2
+            k_i = float(current.theta[ALL_INDEX["K_i"]])
+            a["magnitude"]["times_K_i2"] = a["params"][eff.magnitude.name] * k_i * k_i
+            if a["params"][eff.magnitude.name] > 0:
+                a["magnitude"]["i_sat_A"] = float(a["params"][eff.magnitude.name] ** -0.5)

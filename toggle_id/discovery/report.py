@@ -72,7 +72,7 @@ class DiscoveryResult:
 
 
 def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings,
-                compensating: list[dict] = (), predicted: dict | None = None) -> str:
+                compensating: list[dict] = (), predicted: dict | None = None, ambiguous: list[dict] = ()) -> str:
     """A few plain sentences on what was found, what only compensates, and what is left."""
     def noise(d: dict) -> str:
         nm = d.get("noise_model") or {}
@@ -83,8 +83,17 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
     if added:
         text = "added " + ", ".join(f"{a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.4g} "
                                     f"{a['magnitude']['unit']})" for a in added) + f"; {rms}."
+    elif ambiguous:
+        text = f"no effect is named with certainty; {rms}."
     else:
         text = "no effect of the library is supported in and out of sample; the nominal model is kept."
+    for a in ambiguous:
+        names = [a["name"]] + [r["name"] for r in a["indistinguishable_from"]]
+        text += (" Ambiguous: " + " or ".join(names) + " — each explains the record, and the record cannot tell "
+                 "them apart (Vuong's test: " + ", ".join(f"z {r['vuong']['z']:.2f}" for r in
+                                                        a["indistinguishable_from"]) +
+                 f"); the final model uses {a['name']}, the better fit. An experiment that separates them: "
+                 "+experiment=excite.")
     if compensating:
         text += (" Compensating (lower the error without explaining it; not added): " +
                  ", ".join(sorted({c['name'] for c in compensating})) + ".")
@@ -171,6 +180,17 @@ def summary_text(res: DiscoveryResult) -> str:
             lines.append(f"  a force-type magnitude: x_B fixes it only relative to the mechanism's common scale "
                          f"({a['magnitude']['name']}/K_l = {a['magnitude']['per_K_l']:.5g} per N/m; at the "
                          "reference scale above — fix one mechanical parameter, e.g. fixed.K_t, to pin it)")
+        if "times_K_i2" in a["magnitude"]:
+            lines.append(f"  x_B fixes it only relative to the current scale ({a['magnitude']['name']}·K_i² = "
+                         f"{a['magnitude']['times_K_i2']:.5g} 1/V²" +
+                         (f"; i_sat = {a['magnitude']['i_sat_A']:.4g} A at the reference scale above"
+                          if "i_sat_A" in a["magnitude"] else "") + " — fix K_i to pin it)")
+    for a in res.extra.get("ambiguous", []):
+        lines.append(f"ambiguous: {a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
+                     f"{a['magnitude']['unit']}) or " + " or ".join(
+                         f"{r['name']} ({', '.join(f'{k} = {v:.5g}' for k, v in r['params'].items())}; Vuong z "
+                         f"{r['vuong']['z']:.2f}, p {r['vuong']['p_value']:.2g})" for r in a["indistinguishable_from"])
+                     + " — the record cannot tell them apart")
     for c in res.extra.get("compensating", []):
         lines.append(f"compensating {c['name']}: {c['reason']}")
     loc = res.diagnostics_after.get("localisation") or {}

@@ -47,6 +47,9 @@ class DiscoverSettings:
       an accepted effect still counts as an explanation if it removed at least this fraction of the structure
       energy of the model without it (:func:`.localise.structure_energy`: it explains most of what it was added
       for); otherwise it is compensating.
+    - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
+      non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
+      *ambiguous*, never one of them as added (0: off, the better fit is added).
     """
 
     top_k: int = 3
@@ -81,6 +84,7 @@ class DiscoverSettings:
     scout_all: bool = True
     backward: bool = True
     explain_fraction: float = 0.5
+    ambiguity_alpha: float = 0.05
 
     def validate(self) -> DiscoverSettings:
         """Raise ConfigError naming the first bad value; normalise ``candidates``."""
@@ -115,6 +119,9 @@ class DiscoverSettings:
             raise ConfigError(f"discover.cv_folds must be an integer ≥ 2, got {self.cv_folds!r}")
         if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
             raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
+        if not (isinstance(self.ambiguity_alpha, (int, float)) and not isinstance(self.ambiguity_alpha, bool)
+                and 0.0 <= float(self.ambiguity_alpha) < 1.0):
+            raise ConfigError(f"discover.ambiguity_alpha must lie in [0, 1), got {self.ambiguity_alpha!r}")
         for name in ("scout_all", "backward"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")

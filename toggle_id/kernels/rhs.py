@@ -18,6 +18,7 @@ from .geometry import _lookup, _lookup_d
 from .slots import (
     A_COG,
     B_M,
+    C_KT,
     C_B,
     D_,
     F_LOAD,
@@ -44,6 +45,7 @@ from .slots import (
     N_COG,
     N_PC,
     PC_CB,
+    PC_CKT,
     PC_D,
     PC_FLOAD,
     PC_FMU,
@@ -133,6 +135,7 @@ def _derived(th, geo, sweep, use_sweep, t0_rec, dt_rec):
     pc[PC_IDT] = 1.0 / dt_rec
     pc[PC_SWEEP] = 1.0 if use_sweep else 0.0
     pc[PC_XOFF] = th[X_OFF]
+    pc[PC_CKT] = th[C_KT]
     return pc
 
 
@@ -167,10 +170,21 @@ def _input(t, pc, v):
 
 
 @nb.njit(cache=True, inline="always")
+def _torque_current(iq, pc):
+    """The current that makes torque, g(i_q) = i_q/√(1 + c_kt·i_q²) (magnetic saturation of the torque constant;
+    g = i_q when c_kt = 0), and its derivative g'(i_q) = (1 + c_kt·i_q²)^(−3/2)."""
+    if pc[PC_CKT] == 0.0:
+        return iq, 1.0
+    r = 1.0 / math.sqrt(1.0 + pc[PC_CKT] * iq * iq)
+    return iq * r, r * r * r
+
+
+@nb.njit(cache=True, inline="always")
 def _motor_force(iq, v_rot, x_rot, pc):
-    """Force of the motor on the nut (N): Z·τ, electromagnetic − viscous − Coulomb + cogging, at the rotor's
-    speed and position in the nut's coordinate (the nut's own in the rigid model)."""
-    F = pc[PC_ZKT] * iq - pc[PC_Z2BM] * v_rot
+    """Force of the motor on the nut (N): Z·τ, electromagnetic (K_t·g(i_q), :func:`_torque_current`) − viscous −
+    Coulomb + cogging, at the rotor's speed and position in the nut's coordinate (the nut's own in the rigid
+    model)."""
+    F = pc[PC_ZKT] * _torque_current(iq, pc)[0] - pc[PC_Z2BM] * v_rot
     if pc[PC_ZTAUC] != 0.0:
         F -= pc[PC_ZTAUC] * math.tanh(v_rot * pc[PC_IEPS])
     if pc[PC_ZACOG] != 0.0:
@@ -219,14 +233,14 @@ def _command(t, pc, v):
 def _rhs_u(q, w, iq, u, contact, pc, geo, tab, head):
     """dy/dt of the plant with all effect terms for the drive command u (V); ``contact`` is the mode decided
     by event location. Returns ok (False outside the assembly range), q̇, ẇ, i̇ and ∂ẇ/∂i_q (exact: ẇ is affine
-    in i_q)."""
+    in the torque current g(i_q))."""
     ok, _, _, dxC, _, M, dM, _, vC, _, _, _, _, _, Q, _ = _forces(q, w, iq, contact, pc, geo, tab, head)
     if not ok:
         return False, 0.0, 0.0, 0.0, 0.0
     inv_m = 1.0 / M
     wdot = (Q - 0.5 * dM * w * w) * inv_m
     idot = u * pc[PC_ILQ] - pc[PC_RSL] * iq - pc[PC_PLZL] * vC
-    return True, w, wdot, idot, pc[PC_ZKT] * dxC * inv_m
+    return True, w, wdot, idot, pc[PC_ZKT] * _torque_current(iq, pc)[1] * dxC * inv_m
 
 
 @nb.njit(cache=True)
@@ -280,7 +294,7 @@ def _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head):
              + ((dFf_dvB - dFi_dvB) * ddxB * w - dFi_dz * dxB) * dxB + (F_f - F_i) * ddxB)
     ja = (dQ_dq - 0.5 * dM2 * w * w - wdot * dM) * inv_m
     jb = (dQ_dw - dM * w) * inv_m
-    jc = pc[PC_ZKT] * dxC * inv_m
+    jc = pc[PC_ZKT] * _torque_current(iq, pc)[1] * dxC * inv_m
     jd = -pc[PC_PLZL] * ddxC * w
     je = -pc[PC_PLZL] * dxC
     return True, w, wdot, idot, ja, jb, jc, jd, je, -pc[PC_RSL], ft
