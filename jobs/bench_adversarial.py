@@ -155,6 +155,8 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "outside_bump_simulation": {"F_b": (215.1, 3.010)},  # refit RMS 2.84 um
     "torque_saturation_simulation": {"i_sat": (1787, 3.071)},  # refit RMS 2.90 um
     "torque_saturation_experiment": {"i_sat": (3834, 3.017)},  # refit RMS 2.85 um
+    "outside_drag_cycling": {"c_q": (609.1, 3.022)},  # refit RMS 2.85 um
+    "outside_drag_experiment": {"c_q": (1958.6, 3.086)},  # refit RMS 2.92 um
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.

@@ -327,8 +327,14 @@ def test_every_effect_on_the_five_second_record(name):
         # a force is determined only relative to the mechanism (an exact symmetry of x_B scales every force):
         # compare the ratio to the contact stiffness, the quantity the record fixes
         est = res.effects_added[0]["magnitude"]["per_K_l"] * truth[ALL_INDEX["K_l"]]
-    if "times_K_i2" in res.effects_added[0]["magnitude"]:  # relative to the current scale: c_kt·K_i² is fixed
-        est = res.effects_added[0]["magnitude"]["times_K_i2"] / truth[ALL_INDEX["K_i"]] ** 2
+    if "stall_command_V" in res.effects_added[0]["magnitude"]:
+        # the clamped phases fix the saturation as a command, R_s/(K_i·√c_kt) (the stall current is K_i·v/R_s)
+        est = (truth[ALL_INDEX["R_s"]] / (res.effects_added[0]["magnitude"]["stall_command_V"] *
+                                          truth[ALL_INDEX["K_i"]])) ** 2
+        print(f"[every-effect] c_kt·K_i² {res.effects_added[0]['magnitude']['times_K_i2']:.4g} (truth "
+              f"{effects[mag] * truth[ALL_INDEX['K_i']] ** 2:.4g}); stall command "
+              f"{res.effects_added[0]['magnitude']['stall_command_V']:.4g} V (truth "
+              f"{truth[ALL_INDEX['R_s']] / (truth[ALL_INDEX['K_i']] * np.sqrt(effects[mag])):.4g} V)")
     assert est == pytest.approx(effects[mag], rel=0.2)
     assert res.rmse_after_m < 1.02 * NOISE
     assert not res.unexplained

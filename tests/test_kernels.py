@@ -28,6 +28,7 @@ def with_effects(theta: np.ndarray) -> np.ndarray:
     th = theta.copy()
     th[K.TAU_C], th[K.A_COG], th[K.N_COG], th[K.PHI_COG] = 0.05, 0.02, 3.0, 0.4
     th[K.F_S], th[K.V_S], th[K.K3], th[K.C_B], th[K.F_LOAD] = 5.0, 0.01, 1e9, 30.0, 20.0
+    th[K.C_KT] = 4e-6  # the torque constant down by 1/√2 at 500 A
     return th
 
 

@@ -467,9 +467,13 @@ def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_af
             # to the contact stiffness is what the record determines, whatever representative is reported
             a["magnitude"]["per_K_l"] = a["params"][eff.magnitude.name] / k_l
         if current_power(eff.magnitude.name) == 2:
-            # a torque saturation is fixed only relative to the current scale (K_i → K_i/c, i_q → i_q/c): c_kt·K_i²
-            # is what the record determines; i_sat = 1/√c_kt is the current at which K_t has fallen by 1/√2
+            # a torque saturation is fixed only relative to the current scale (K_i → K_i/c, i_q → i_q/c leaves
+            # c_kt·K_i² unchanged); i_sat = 1/√c_kt is the current at which K_t has fallen by 1/√2
             k_i = float(current.theta[ALL_INDEX["K_i"]])
             a["magnitude"]["times_K_i2"] = a["params"][eff.magnitude.name] * k_i * k_i
             if a["params"][eff.magnitude.name] > 0:
                 a["magnitude"]["i_sat_A"] = float(a["params"][eff.magnitude.name] ** -0.5)
+                # the stall current is K_i·v_in/R_s: the command at which the stall torque constant is down by
+                # 1/√2, R_s/(K_i·√c_kt), is what the clamped phases show
+                a["magnitude"]["stall_command_V"] = float(
+                    current.theta[ALL_INDEX["R_s"]] / (k_i * np.sqrt(a["params"][eff.magnitude.name])))

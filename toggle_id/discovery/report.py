@@ -180,11 +180,11 @@ def summary_text(res: DiscoveryResult) -> str:
             lines.append(f"  a force-type magnitude: x_B fixes it only relative to the mechanism's common scale "
                          f"({a['magnitude']['name']}/K_l = {a['magnitude']['per_K_l']:.5g} per N/m; at the "
                          "reference scale above — fix one mechanical parameter, e.g. fixed.K_t, to pin it)")
-        if "times_K_i2" in a["magnitude"]:
-            lines.append(f"  x_B fixes it only relative to the current scale ({a['magnitude']['name']}·K_i² = "
-                         f"{a['magnitude']['times_K_i2']:.5g} 1/V²" +
-                         (f"; i_sat = {a['magnitude']['i_sat_A']:.4g} A at the reference scale above"
-                          if "i_sat_A" in a["magnitude"] else "") + " — fix K_i to pin it)")
+        if "stall_command_V" in a["magnitude"]:
+            lines.append(f"  x_B fixes it only relative to the current scale: the stall torque constant is down by "
+                         f"1/√2 at the command R_s/(K_i·√c_kt) = {a['magnitude']['stall_command_V']:.4g} V "
+                         f"(i_sat = {a['magnitude']['i_sat_A']:.4g} A at the reference scale above — fix K_i and "
+                         "R_s to pin it)")
     for a in res.extra.get("ambiguous", []):
         lines.append(f"ambiguous: {a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
                      f"{a['magnitude']['unit']}) or " + " or ".join(
