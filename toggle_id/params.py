@@ -10,6 +10,8 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from .errors import ConfigError
+
 
 @dataclass(frozen=True)
 class ParamSpec:
@@ -55,10 +57,10 @@ FREE_NAMES: tuple[str, ...] = tuple(n for n in PARAM_NAMES if n not in CLAMP_NAM
 
 
 def check_names(names: Iterable[str]) -> None:
-    """Raise ``ValueError`` naming the first unknown parameter name."""
+    """Raise :class:`ConfigError` (a ``ValueError``) naming the first unknown parameter name."""
     for name in names:
         if name not in INDEX:
-            raise ValueError(f"unknown parameter {name!r}; known: {', '.join(PARAM_NAMES)}")
+            raise ConfigError(f"unknown parameter {name!r}; known: {', '.join(PARAM_NAMES)}")
 
 
 def to_vector(values: Mapping[str, float], base: Sequence[float] | None = None) -> np.ndarray:
@@ -87,7 +89,8 @@ def bounds(names: Sequence[str] = PARAM_NAMES,
            overrides: Mapping[str, Sequence[float]] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Feasible domain (lower, upper) of ``names``, with optional per-name ``[low, high]`` overrides.
 
-    Raises ``ValueError`` for an unknown name, a non-finite bound or an inverted/empty interval.
+    Raises :class:`ConfigError` (a ``ValueError``) for an unknown name, a malformed pair, a non-finite bound or an
+    inverted/empty interval.
     """
     idx = indices(names)
     lo, hi = LOWER[idx].copy(), UPPER[idx].copy()
@@ -95,14 +98,17 @@ def bounds(names: Sequence[str] = PARAM_NAMES,
         check_names([name])
         if name not in names:
             continue
-        low, high = (float(x) for x in pair)
+        try:
+            low, high = (float(x) for x in pair)
+        except (TypeError, ValueError):
+            raise ConfigError(f"bounds of {name} must be a pair of numbers [low, high], got {pair!r}") from None
         k = list(names).index(name)
         lo[k], hi[k] = low, high
     for name, low, high in zip(names, lo, hi):
         if not (np.isfinite(low) and np.isfinite(high)):
-            raise ValueError(f"bounds of {name} must be finite, got [{low}, {high}]")
+            raise ConfigError(f"bounds of {name} must be finite, got [{low}, {high}]")
         if not low < high:
-            raise ValueError(f"bounds of {name} are inverted or empty: [{low}, {high}]")
+            raise ConfigError(f"bounds of {name} are inverted or empty: [{low}, {high}]")
     return lo, hi
 
 
