@@ -6,7 +6,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from toggle_id.discovery.engine import backward_eliminate, explained_fraction, split_explaining
+from toggle_id.discovery.engine import (
+    backward_eliminate,
+    explained_fraction,
+    indistinguishable,
+    split_explaining,
+    tie_band,
+)
 from toggle_id.discovery.localise import structure_energy
 
 
@@ -86,3 +92,25 @@ def test_backward_eliminate_keeps_an_effect_another_refines():
         keep=lambda a, now: a["name"] == "base")
     assert [k["name"] for k in kept] == ["base", "refinement"] and not eliminated
     assert "backward" not in kept[0]
+
+
+def test_two_fits_that_differ_by_less_than_the_noise_can_tell_are_tied_and_a_worse_one_is_not():
+    """Ambiguity: the residual of a rival that misses nothing the chosen fit explains (its own small scatter) is
+    tied with it; one that leaves a structured miss of 0.2 σ over 5000 samples is not."""
+    rng = np.random.default_rng(8)
+    n = 5000
+    e = rng.standard_normal(n)
+    t = np.linspace(0.0, 1.0, n)
+    chosen = e + 0.03 * rng.standard_normal(n)
+    twin = e + 0.03 * rng.standard_normal(n)
+    miss = np.sin(2 * np.pi * 4 * t)
+    worse = e + 0.2 * miss / np.sqrt(np.mean(miss ** 2))
+    out = indistinguishable(chosen, 1, [(twin, 1), (worse, 1)], noise_max_order=8, alpha=0.05)
+    assert [o["tied"] for o in out] == [True, False]
+    assert out[1]["z"] > 3 and out[1]["favours"] == "a"
+
+
+def test_the_tie_band_follows_the_level_and_is_off_at_zero():
+    assert tie_band(5000.0, 5000, 0.0) == 0.0
+    at_5pct, at_1e4 = tie_band(5000.0, 5000, 0.05), tie_band(5000.0, 5000, 1e-4)
+    assert at_5pct == pytest.approx(8 * 1.959964 ** 2, rel=1e-5) and at_1e4 > at_5pct  # a stricter level, a wider band

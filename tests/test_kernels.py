@@ -147,3 +147,21 @@ def test_output_position_from_taylor_series_matches_closed_form():
     assert KG._x_near(q + 0.05, q, np.cos(q), np.sin(q), other) == pytest.approx(KG._x_of_q(q + 0.05, other), abs=1e-14)
     k = plant.kinematics(q + 0.05, plant.Geometry(r3=0.08))
     assert KG._x_of_q(q + 0.05, other) == pytest.approx(float(k["x_B"]), abs=1e-14)
+
+
+def test_an_edit_of_any_kernel_source_empties_numbas_cache_of_the_package(tmp_path):
+    """cache=True tracks only the defining file; the package's guard tracks them all (on a copy, not the real
+    cache)."""
+    from toggle_id.kernels import _drop_stale_caches
+
+    (tmp_path / "rhs.py").write_text("A = 1\n")
+    (tmp_path / "rigid.py").write_text("B = 2\n")
+    cache = tmp_path / "__pycache__"
+    _drop_stale_caches(tmp_path)
+    for name in ("rigid._simulate_one-10.py311.nbi", "rigid._simulate_one-10.py311.1.nbc", "rigid.cpython-311.pyc"):
+        (cache / name).write_bytes(b"x")
+    _drop_stale_caches(tmp_path)  # nothing edited: the cache stays
+    assert len(list(cache.glob("*.nb*"))) == 2
+    (tmp_path / "rhs.py").write_text("A = 3\n")  # an edit of another file than the cached function's
+    _drop_stale_caches(tmp_path)
+    assert not list(cache.glob("*.nb*")) and (cache / "rigid.cpython-311.pyc").exists()

@@ -12,7 +12,10 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
   accepted effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
   (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
   current and input express); otherwise it lowers the error without explaining it and is listed as
-  *compensating*, never as added.
+  *compensating*, never as added;
+- **ambiguity** (:func:`indistinguishable`, :func:`tie_band`): two supported effects whose fits the record
+  cannot tell apart (Vuong's test of the non-nested models, :func:`.stats.vuong`) are reported together, neither
+  as added.
 """
 from __future__ import annotations
 
@@ -20,6 +23,10 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 import numpy as np
+from scipy import stats
+
+from .noise import fit_noise
+from .stats import vuong
 
 
 class Verdict(Protocol):
@@ -89,3 +96,26 @@ def split_explaining(added: Sequence[dict], energy_with: float, energy_without: 
                                    f"of the structure energy (position, velocity, current and input bins), and "
                                    f"structure remains") for a in demoted]
     return keep, compensating
+
+
+def tie_band(best_sse: float, n: int, alpha: float) -> float:
+    """How far above the best accepted refit's SSE a scout may lie and still be refitted as a possible rival:
+    twice the SSE difference at which Vuong's test separates two fits at level ``alpha`` (z ≈ √(ΔSSE/σ²)/2 for a
+    deterministic difference; a scout is polished less than a refit). 0 when ``alpha`` is 0 (no ambiguity)."""
+    if not alpha > 0:
+        return 0.0
+    z = float(stats.norm.isf(alpha / 2.0))
+    return 8.0 * z * z * best_sse / n
+
+
+def indistinguishable(r_chosen: np.ndarray, k_chosen: int, others: Sequence[tuple[np.ndarray, int]],
+                      noise_max_order: int, alpha: float) -> list[dict]:
+    """Vuong's test of the chosen fit (residual ``r_chosen``, ``k_chosen`` parameters added) against each other
+    supported fit (residual, parameters added), every residual whitened by the noise model of the chosen one's.
+    Returns, per other fit, the test's dict with ``tied``: True when it is not significant at ``alpha``."""
+    noise = fit_noise(r_chosen, noise_max_order)
+    out = []
+    for r, k in others:
+        v = vuong(noise, r_chosen, r, k_chosen, k)
+        out.append({**v, "tied": bool(v["p_value"] >= alpha)})
+    return out

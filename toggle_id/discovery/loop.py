@@ -23,10 +23,9 @@ from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
-from .engine import backward_eliminate, split_explaining
+from .engine import backward_eliminate, indistinguishable, split_explaining, tie_band
 from .localise import locate, signals_of, structure_energy
 from .noise import WHITE, fit_noise
-from .stats import vuong
 from .validation import Judge
 
 log = logging.getLogger("toggle_id")
@@ -309,8 +308,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
         # (no effect is accepted while a candidate that explains more has not been refitted)
         # (and while a scout comes within reach of it: a rival the record may not tell apart from it)
-        if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best + _tie_band(
-                best, n, settings))):
+        if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best + tie_band(
+                best, n, settings.ambiguity_alpha))):
             break
         eff = EFFECTS_BY_NAME[sc.name]
         start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
@@ -351,31 +350,19 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             "base": base, "rivals": rivals}
 
 
-def _tie_band(best_sse: float, n: int, settings: DiscoverSettings) -> float:
-    """How far above the best accepted refit's SSE a scout may lie and still be refitted as a possible rival:
-    twice the SSE difference at which Vuong's test separates two fits at ``ambiguity_alpha`` (z ≈ √(ΔSSE/σ²)/2
-    for a deterministic difference; a scout is polished less than a refit)."""
-    if not settings.ambiguity_alpha > 0:
-        return 0.0
-    z = float(stats.norm.isf(settings.ambiguity_alpha / 2.0))
-    return 8.0 * z * z * best_sse / n
-
-
 def _rivals(model: Model, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
-    """The other supported refits of the round that the record cannot tell apart from ``chosen``: Vuong's test
-    of the two non-nested models (both residuals whitened by the noise model of ``chosen``'s) not significant
-    at ``settings.ambiguity_alpha``. Each such refit's reason says so."""
+    """The other supported refits of the round the record cannot tell apart from ``chosen``
+    (:func:`.engine.indistinguishable`); each such refit's reason says so."""
     if not settings.ambiguity_alpha > 0:
         return []
-    r_c = model.residuals(chosen.fit.theta[None, :])[0]
-    noise = fit_noise(r_c, settings.noise_max_order)
+    others = [rf for rf in winners if rf is not chosen]
+    found = indistinguishable(model.residuals(chosen.fit.theta[None, :])[0], chosen.k,
+                              [(model.residuals(rf.fit.theta[None, :])[0], rf.k) for rf in others],
+                              settings.noise_max_order, settings.ambiguity_alpha)
     out = []
-    for rf in winners:
-        if rf is chosen:
-            continue
-        v = vuong(noise, r_c, model.residuals(rf.fit.theta[None, :])[0], chosen.k, rf.k)
+    for rf, v in zip(others, found):
         rf.evidence["vuong_against_" + chosen.name] = v
-        if v["p_value"] >= settings.ambiguity_alpha:
+        if v["tied"]:
             rf.reason = (f"fits as well as {chosen.name} (Vuong z {v['z']:.2f}, p {v['p_value']:.2g}): the record "
                          "cannot tell them apart")
             out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(model.n), "vuong": v})

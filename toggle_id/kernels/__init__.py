@@ -19,3 +19,34 @@ Names with a leading underscore are compiled helpers for the other kernels (and 
 :mod:`.slots`, :func:`.geometry.build_table` and :mod:`.driver`'s ``simulate_batch_serial`` /
 ``simulate_batch_parallel``. This package imports nothing else of :mod:`toggle_id`.
 """
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+
+def _drop_stale_caches(here: Path | None = None) -> None:
+    """Numba's ``cache=True`` checks only the timestamp of the file that defines a function, but these kernels
+    inline functions of the other files of the package (``rhs._motor_force`` into ``rigid._simulate_one``…): after
+    an edit of ``rhs.py`` a cached integrator would still run the old term. So the package keeps a digest of all
+    its sources beside numba's in-tree cache and empties that cache when the digest changes. A read-only install
+    (numba then caches elsewhere, per user) is left alone. ``here``: the package directory (tests)."""
+    here = Path(__file__).resolve().parent if here is None else Path(here)
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sorted(here.glob("*.py")))).hexdigest()
+    cache = here / "__pycache__"
+    stamp = cache / "kernels-sources.sha256"
+    try:
+        if stamp.read_text() == digest:
+            return
+    except OSError:
+        pass
+    try:
+        cache.mkdir(exist_ok=True)
+        for f in list(cache.glob("*.nbi")) + list(cache.glob("*.nbc")):
+            f.unlink(missing_ok=True)
+        stamp.write_text(digest)
+    except OSError:
+        pass
+
+
+_drop_stale_caches()
