@@ -114,3 +114,27 @@ def test_the_tie_band_follows_the_level_and_is_off_at_zero():
     assert tie_band(5000.0, 5000, 0.0) == 0.0
     at_5pct, at_1e4 = tie_band(5000.0, 5000, 0.05), tie_band(5000.0, 5000, 1e-4)
     assert at_5pct == pytest.approx(8 * 1.959964 ** 2, rel=1e-5) and at_1e4 > at_5pct  # a stricter level, a wider band
+
+
+def test_the_emps_loop_applies_the_same_ambiguity_rule_to_the_refits_of_a_round():
+    """The EMPS plant's round: of the refits that passed every check, those the record cannot tell apart from the
+    chosen one are its ties; one that failed a check, or fits clearly worse, is not."""
+    from types import SimpleNamespace as NS
+
+    from toggle_id.emps.loop import _ties
+
+    rng = np.random.default_rng(9)
+    n = 5000
+    e = rng.standard_normal(n)
+    t = np.linspace(0.0, 1.0, n)
+
+    def refit(name, r, passed=True):
+        return ({"name": name, "passed": passed, "params": {name: 1.0}}, NS(residual=r), NS(name=name, params=(name,)))
+
+    chosen = refit("coulomb_friction", e + 0.03 * rng.standard_normal(n))
+    twin = refit("stribeck_friction", e + 0.03 * rng.standard_normal(n))
+    failed = refit("offset", e + 0.03 * rng.standard_normal(n), passed=False)
+    worse = refit("asymmetric_friction", e + 0.3 * np.sin(2 * np.pi * 5 * t))
+    ties = _ties(chosen, [chosen, twin, failed, worse], noise_max_order=8, alpha=0.05)
+    assert [x["name"] for x in ties] == ["stribeck_friction"] and abs(ties[0]["vuong"]["z"]) < 1.96
+    assert _ties(chosen, [chosen, twin], noise_max_order=8, alpha=0.0) == []

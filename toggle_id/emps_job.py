@@ -96,6 +96,7 @@ class EmpsJobSettings:
     structure_alpha: float = 0.01
     backward: bool = True
     explain_fraction: float = 0.5
+    ambiguity_alpha: float = 0.05
 
 
 def _number(name: str, value: Any, *, integer: bool = False) -> float | int:
@@ -194,6 +195,9 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     explain_fraction = _number("emps.explain_fraction", node["explain_fraction"])
     if not 0 < explain_fraction < 1:
         raise ConfigError(f"emps.explain_fraction must lie in (0, 1), got {explain_fraction}")
+    ambiguity_alpha = _number("emps.ambiguity_alpha", node["ambiguity_alpha"])
+    if not 0 <= ambiguity_alpha < 1:
+        raise ConfigError(f"emps.ambiguity_alpha must lie in [0, 1), got {ambiguity_alpha}")
     if not isinstance(node["backward"], bool):
         raise ConfigError(f"emps.backward must be true or false, got {node['backward']!r}")
     if node["solver"] not in SOLVERS:
@@ -223,7 +227,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
                            reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
                            identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise,
                            structure_bins=structure_bins, structure_alpha=structure_alpha,
-                           backward=node["backward"], explain_fraction=explain_fraction)
+                           backward=node["backward"], explain_fraction=explain_fraction,
+                           ambiguity_alpha=ambiguity_alpha)
 
 
 def load_record(path: str | Path) -> EmpsRecord:
@@ -417,7 +422,8 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
                                reference_fit=st.reference_fit, noise_max_order=st.noise_max_order,
                                cv_block=st.cv_block, cv_folds=st.cv_folds, structure_bins=st.structure_bins,
                                structure_alpha=st.structure_alpha, backward=st.backward,
-                               explain_fraction=st.explain_fraction, sim_options=st.sim)
+                               explain_fraction=st.explain_fraction, ambiguity_alpha=st.ambiguity_alpha,
+                               sim_options=st.sim)
         final = theta_from_dict(report["identified"])
         nominal = theta_from_dict(report["nominal"]["identified"])
         report["data"] = sources

@@ -16,7 +16,9 @@ refit that explains the most, as the toggle plant ranks its refits).
 Then the toggle loop's own verdict rules (:mod:`toggle_id.discovery.engine`): backward elimination, and — when
 the noise-aware structure test (:func:`toggle_id.discovery.localise.locate`) finds structure left in the final
 position residual — an accepted effect that removed less than ``explain_fraction`` of the structure energy is
-listed as compensating, not added. The report gives the three lists — ``effects_added``, ``compensating`` and
+listed as compensating, not added; and an accepted effect that the record cannot tell apart from another that
+passed the same round (:func:`toggle_id.discovery.engine.indistinguishable`) is reported with it as *ambiguous*,
+neither named as added. The report gives the three lists — ``effects_added``, ``compensating`` and
 ``rejected``, each item with its ``Evidence.to_dict()`` — and where the structure left concentrates.
 """
 from __future__ import annotations
@@ -27,7 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..discovery.engine import backward_eliminate, split_explaining
+from ..discovery.engine import backward_eliminate, indistinguishable, split_explaining
 from ..discovery.localise import locate, structure_energy
 from ..discovery.noise import fit_noise, whitened_sse
 from ..discovery.validation import Evidence
@@ -80,6 +82,20 @@ def _rank_passing(refits: Sequence[tuple[dict, OEFitResult, Effect]],
     passing = [rf for rf in refits if rf[0]["passed"]]
     chosen = min(passing, key=lambda rf: rf[0]["sse_w_round"]) if passing else None
     return chosen, {"lead": lead[2].name, "noise_model": noise.to_dict()}
+
+
+def _ties(chosen: tuple[dict, OEFitResult, Effect], refits: Sequence[tuple[dict, OEFitResult, Effect]],
+          noise_max_order: int, alpha: float) -> list[dict]:
+    """The other refits of the round that passed every check and that the record cannot tell apart from the
+    chosen one (:func:`toggle_id.discovery.engine.indistinguishable`, the toggle loop's rule): [{name, params,
+    vuong}]."""
+    if not alpha > 0:
+        return []
+    others = [rf for rf in refits if rf[0]["passed"] and rf is not chosen]
+    found = indistinguishable(chosen[1].residual, len(chosen[2].params),
+                              [(rf[1].residual, len(rf[2].params)) for rf in others], noise_max_order, alpha)
+    return [{"name": rf[2].name, "params": dict(rf[0]["params"]), "vuong": v} for rf, v in zip(others, found)
+            if v["tied"]]
 
 
 def localisation_signals(record: EmpsRecord, theta: np.ndarray,
@@ -138,7 +154,8 @@ def three_lists(names: Sequence[str], tried: Sequence[dict], evidence: Mapping[i
         item = {"name": name, "round": last["round"], "params": dict(last["params"]), "reason": ev.reason,
                 "evidence": ev.to_dict()}
         if last["accepted"]:
-            added.append({**item, "F": ev.F, "p_value": ev.p_value, "delta_bic": ev.delta_bic})
+            added.append({**item, "F": ev.F, "p_value": ev.p_value, "delta_bic": ev.delta_bic,
+                          "indistinguishable_from": list(last.get("indistinguishable_from") or [])})
         elif ev.passed:
             item["reason"] = (f"passed every check in round {last['round']} but was not added: the limit "
                               f"emps.max_effects = {max_effects} was reached")
@@ -158,7 +175,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
                   reference_fit: bool = True, noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
                   structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
-                  explain_fraction: float = 0.5, sim_options: Mapping | None = None) -> dict:
+                  explain_fraction: float = 0.5, ambiguity_alpha: float = 0.05,
+                  sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
 
     Each round refits all parameters of the current model plus one candidate (from its registry default) for every
@@ -207,6 +225,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         raise ConfigError(f"structure_alpha must lie in (0, 1), got {structure_alpha}")
     if not (0 < explain_fraction < 1):
         raise ConfigError(f"explain_fraction must lie in (0, 1), got {explain_fraction}")
+    if not (0 <= ambiguity_alpha < 1):
+        raise ConfigError(f"ambiguity_alpha must lie in [0, 1), got {ambiguity_alpha}")
     if not (0 < max_corr <= 1):
         raise ConfigError(f"max_corr must lie in (0, 1], got {max_corr}")
     for label, value, least in (("noise_max_order", noise_max_order, 0), ("cv_block", cv_block, 1),
@@ -267,8 +287,14 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         entry, fit, eff = chosen
         entry["accepted"] = True
         entry["verdict"] = "accepted"
+        entry["indistinguishable_from"] = _ties(chosen, refits, noise_max_order, ambiguity_alpha)
+        tied = {t["name"] for t in entry["indistinguishable_from"]}
         for other, _, _ in refits:
-            if other["passed"] and other is not entry:
+            if other["name"] in tied:
+                other["verdict"] = "ambiguous"
+                other["reason"] = (f"passed every check and fits as well as {eff.name}: the record cannot tell "
+                                   "them apart (Vuong's test)")
+            elif other["passed"] and other is not entry:
                 other["verdict"] = "passed, not the best"
                 other["reason"] = (f"passed every check, but {eff.name} has the lower prewhitened SSE under the "
                                    f"round's noise model ({entry['sse_w_round']:.4g} against "
@@ -282,6 +308,9 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     current, added, compensating, rejected, loc, rules = _verdict_rules(
         record, current, added, compensating, rejected, fit_kw, judge_kw, sim_kw, backward=backward,
         explain_fraction=explain_fraction, bins=structure_bins, alpha=structure_alpha)
+    # an effect the record cannot tell apart from another that passed the same round is not named as added
+    ambiguous = [a for a in added if a.get("indistinguishable_from")]
+    added = [a for a in added if not a.get("indistinguishable_from")]
     free = list(current.free)
     noise_final = fit_noise(current.residual, noise_max_order)
     noise_nominal = fit_noise(nominal.residual, noise_max_order)
@@ -294,6 +323,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "position_rel_error_pct_before": float(before),
         "position_rel_error_pct_after": float(current.rel_error_pct),
         "effects_added": added,
+        "ambiguous": ambiguous,
         "compensating": compensating,
         "rejected": rejected,
         "candidates": tried,

@@ -135,6 +135,10 @@ def verdict_lines(report: Mapping) -> list[str]:
     lines.append("effects accepted: " + (", ".join(f"{a['name']} (round {a['round']}{explained(a)})" for a in added)
                                          or "none"))
     lines.extend(f"  eliminated (backward): {e['name']}: {e['reason']}" for e in report.get("backward_elimination") or [])
+    for a in report.get("ambiguous") or []:
+        lines.append(f"ambiguous: {a['name']} or " + " or ".join(
+            f"{t['name']} (Vuong z {t['vuong']['z']:.2f})" for t in a["indistinguishable_from"]) +
+            " — the record cannot tell them apart; neither is named as added")
     for label, key in (("compensating (lower the error without explaining it; never added)", "compensating"),
                        ("rejected", "rejected")):
         items = report.get(key) or []

@@ -44,6 +44,8 @@ class EmpsSettings:
     backward: bool = True         # backward elimination of the accepted effects (toggle_id.discovery.engine)
     explain_fraction: float = 0.5  # with structure left, an accepted effect that removed less than this share of
     #                                the structure energy is listed as compensating, not added
+    ambiguity_alpha: float = 0.05  # two effects that pass the same round and that the record cannot tell apart
+    #                                (Vuong's test at this level) are reported as ambiguous, neither as added (0: off)
     solver: str = "polish"        # polish (toggle_id.polish, log space for M) | scipy (least_squares trf)
     max_nfev: int = 50            # residual evaluations per output-error fit
     reference_fit: bool = True    # also fit the benchmark's own structure (M, Fv, Fc, offset) by output error
