@@ -178,7 +178,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     compensating += [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
                       "evidence": rf.evidence} for rf in all_refits
                      if rf.lowers_error and not rf.accepted and rf.name not in {c["name"] for c in compensating}
-                     and rf.name not in {a["name"] for a in added}]
+                     and rf.name not in {a["name"] for a in added}
+                     and rf.name not in {r["name"] for a in added for r in a.get("indistinguishable_from", ())}]
 
     # the representatives of the fits nearest the reference along the exact symmetries (same output)
     ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
@@ -225,7 +226,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous)
-    extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after}, "identifiability_after": uncertainty,
+    extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after},
+             "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,
              "noise_model": {"before": noise0.to_dict(), "after": noise_after.to_dict()},
              "localisation": diag_after.get("localisation"),
