@@ -50,7 +50,7 @@ def _force_like(name: str) -> bool:
 
 def current_power(name: str) -> int:
     """The power of the current scale an effect parameter follows: a limit on the drive voltage K_i·v (unit 1/V)
-    scales as c, a torque saturation c_kt·i_q² (unit 1/A²) as c² (so c_kt·K_i² is what x_B determines); 0 for
+    scales as c, a torque saturation c_kt·i_q² (unit 1/A²) as c² (so c_kt·K_i² is unchanged along it); 0 for
     the rest."""
     for e in EFFECTS:
         for p in e.params:
