@@ -17,7 +17,7 @@ from ..identify import IdentificationResult
 from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, extend
-from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symmetries
+from .gauge import GAUGE_HELD, _force_like, current_power, freed_with, gauge_fix, gauge_symmetries
 from .model import Fit, Model, _off_values, _with, fit_free, parameter_uncertainty, revived
 from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
@@ -26,6 +26,7 @@ from .settings import DiscoverSettings
 from .engine import backward_eliminate, indistinguishable, split_explaining, tie_band
 from .localise import locate, signals_of, structure_energy
 from .noise import WHITE, fit_noise
+from .stats import f_test
 from .validation import Judge
 
 log = logging.getLogger("toggle_id")
@@ -308,11 +309,18 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     for i, sc in enumerate(order):
         best = min((rf.fit.rmse(n) ** 2 * n for rf in refits if rf.accepted), default=None)
         # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
-        # (no effect is accepted while a candidate that explains more has not been refitted)
-        # (and while a scout comes within reach of it: a rival the record may not tell apart from it)
-        if not np.isfinite(sc.sse) or (i >= settings.top_k and (best is None or sc.sse >= best + tie_band(
-                best, n, settings.ambiguity_alpha))):
+        # (no effect is accepted while a candidate that explains more has not been refitted), and while a scout
+        # comes within reach of it (a rival the record may not tell apart from it); with none accepted yet, while
+        # a scout's short polish is significant as least squares (no effect is dismissed on its scout alone: a
+        # short polish may show little of what a converged refit explains)
+        if not np.isfinite(sc.sse):
             break
+        if i >= settings.top_k:
+            if best is not None and sc.sse >= best + tie_band(best, n, settings.ambiguity_alpha):
+                break
+            k_sc = len(freed_with(base.free, EFFECTS_BY_NAME[sc.name], held)) - len(base.free)
+            if best is None and not f_test(base.sse, sc.sse, k_sc, n, len(base.free) + k_sc)[1] < settings.alpha:
+                break
         eff = EFFECTS_BY_NAME[sc.name]
         start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
         rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=start)

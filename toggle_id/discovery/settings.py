@@ -17,7 +17,8 @@ class DiscoverSettings:
     """Numbers of the discovery loop a user may change (conf/experiment/discover.yaml, node ``discover``).
 
     - top_k: candidates refitted per iteration at least (the best scouts; more while a scout explains more than
-      the best accepted refit); alpha: level of the F-test an effect must pass
+      the best accepted refit, or, with none accepted yet, while a scout is significant as least squares at
+      ``alpha``); alpha: level of the F-test an effect must pass
       (BIC must improve too); max_effects: most effects added; candidates: effect names to consider (None: all).
     - screen_alpha: a candidate is scouted only if its score or profile statistic at the polished fit exceeds
       the χ²(1) quantile of this level (1: always).
