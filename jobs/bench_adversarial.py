@@ -576,6 +576,8 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         "record": entry["name"], "category": entry["category"], "command": entry["command"].get("sweep")
         or entry["command"]["kind"], "truth": entry["effects"] or list(entry["outside"]) or [],
         "noise": noise, "accepted": accepted_effects(report),
+        "ambiguous": [" or ".join([a.get("name")] + [r.get("name") for r in a.get("indistinguishable_from") or []])
+                      for a in report.get("ambiguous") or [] if isinstance(a, dict)],
         "compensating": _names(report.get("compensating")), "rejected": _names(report.get("rejected")),
         "unexplained": bool(report.get("unexplained")),
         "noise_model": noise_model_brief(report.get("noise_model")),
@@ -658,6 +660,7 @@ def summarise(rows: list[dict]) -> dict:
     quiet = [r for r in rows if r["category"] in ("noise", "outside") and r["verdict"] != "error"]
     outside = [r for r in quiet if r["category"] == "outside"]
     return {"exact_in_library": sum(r["verdict"] == "exact" for r in lib), "in_library": len(lib),
+            "ambiguous_correct": sum(r["verdict"] == "ambiguous-correct" for r in lib),
             "exact_at_noise": sum(r["verdict"] == "exact" and (r["after_sigma"] or np.inf) <= 1.5 for r in lib),
             "nothing_accepted_quiet": sum(not r["accepted"] for r in quiet), "quiet": len(quiet),
             "unexplained_outside": sum(r["verdict"] == "unexplained-correct" for r in outside), "outside": len(outside),
@@ -681,6 +684,7 @@ def results_markdown(rows: list[dict], summary: dict) -> str:
                     f"{' (structure left)' if r.get('validation_structure_left') else ''} | ")
         body.append(f"| {r['record']} | {r['category']} | {r['command']} | {', '.join(r['truth']) or 'none'} | "
                     f"{r['noise']} | {', '.join(r['accepted']) or 'none'}{' (unexplained)' if r['unexplained'] else ''}"
+                    + "".join(f"; ambiguous: {g}" for g in r.get("ambiguous") or []) +
                     f" | {', '.join(r['compensating']) or '–'} | {r.get('noise_model') or '–'} | "
                     f"{_fmt(r['rmse_before_um'])} → "
                     f"{_fmt(r['rmse_after_um'])} | {_fmt(r['before_sigma'])} → {_fmt(r['after_sigma'])} | {pred}"
@@ -688,7 +692,9 @@ def results_markdown(rows: list[dict], summary: dict) -> str:
     s = summary
     text = [head, *body, "",
             f"Exact effect set on {s['exact_in_library']} of {s['in_library']} in-library records "
-            f"({s['exact_at_noise']} of them with the RMS after ≤ 1.5 σ); nothing accepted on "
+            f"({s['exact_at_noise']} of them with the RMS after ≤ 1.5 σ)"
+            + (f", the true effect among an ambiguous pair, nothing wrong named, on {s['ambiguous_correct']}"
+               if s.get("ambiguous_correct") else "") + "; nothing accepted on "
             f"{s['nothing_accepted_quiet']} of {s['quiet']} noise-only and outside records; outside records called "
             f"unexplained with nothing accepted: {s['unexplained_outside']} of {s['outside']}"
             + (f"; {s['errors']} run(s) failed" if s["errors"] else "") + "."]
