@@ -39,24 +39,20 @@ def freed_with(base_free: Sequence[str], effect: Effect, held: Collection[str]) 
     return tuple(base_free) + back + effect.names
 
 
+#: The unit of every effect parameter (the current and mechanism scales follow from it).
+_UNITS = {p.name: p.unit for e in EFFECTS for p in e.params}
+
+
 def _force_like(name: str) -> bool:
     """An effect parameter in newtons (force, torque, damping, stiffness) scales with the mechanism."""
-    for e in EFFECTS:
-        for p in e.params:
-            if p.name == name:
-                return p.unit.startswith("N")
-    return False
+    return _UNITS.get(name, "").startswith("N")
 
 
 def current_power(name: str) -> int:
     """The power of the current scale an effect parameter follows: a limit on the drive voltage K_i·v (unit 1/V)
     scales as c, a torque saturation c_kt·i_q² (unit 1/A²) as c² (so c_kt·K_i² is unchanged along it); 0 for
     the rest."""
-    for e in EFFECTS:
-        for p in e.params:
-            if p.name == name:
-                return {"1/V": 1, "1/A²": 2}.get(p.unit, 0)
-    return 0
+    return {"1/V": 1, "1/A²": 2}.get(_UNITS.get(name, ""), 0)
 
 
 def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,

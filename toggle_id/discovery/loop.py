@@ -345,7 +345,7 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             on_refit(rf)
     winners = [rf for rf in refits if rf.accepted]
     chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
-    rivals = _rivals(model, chosen, winners, settings) if chosen is not None else []
+    rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []
     for rf in winners:
         if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
             rf.reason = f"supported, but {chosen.name} explains more (lower SSE); judged again next iteration"
@@ -360,14 +360,14 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             "base": base, "rivals": rivals}
 
 
-def _rivals(model: Model, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
+def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
     """The other supported refits of the round the record cannot tell apart from ``chosen``
-    (:func:`.engine.indistinguishable`); each such refit's reason says so."""
+    (:func:`.engine.indistinguishable`, on the residuals the judge already simulated); each such refit's reason
+    says so."""
     if not settings.ambiguity_alpha > 0:
         return []
     others = [rf for rf in winners if rf is not chosen]
-    found = indistinguishable(model.residuals(chosen.fit.theta[None, :])[0], chosen.k,
-                              [(model.residuals(rf.fit.theta[None, :])[0], rf.k) for rf in others],
+    found = indistinguishable(judge.residual(chosen.fit), chosen.k, [(judge.residual(rf.fit), rf.k) for rf in others],
                               settings.noise_max_order, settings.ambiguity_alpha)
     out = []
     for rf, v in zip(others, found):
@@ -375,7 +375,7 @@ def _rivals(model: Model, chosen: Refit, winners: Sequence[Refit], settings: Dis
         if v["tied"]:
             rf.reason = (f"fits as well as {chosen.name} (Vuong z {v['z']:.2f}, p {v['p_value']:.2g}): the record "
                          "cannot tell them apart")
-            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(model.n), "vuong": v})
+            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(judge.model.n), "vuong": v})
     return out
 
 

@@ -83,6 +83,11 @@ class Judge:
             self._cache[key] = (r, J)
         return self._cache[key]
 
+    def residual(self, fit: Fit) -> np.ndarray:
+        """The residual of ``fit`` on the record: the cached one of a fit already judged, else one simulation."""
+        hit = self._cache.get(self._key(fit))
+        return hit[0] if hit is not None else self.model.residuals(fit.theta[None, :])[0]
+
     def validation_sse(self, fit: Fit) -> float | None:
         if self.validation is None:
             return None
