@@ -408,3 +408,27 @@ def test_two_effects_at_once():
     print(f"\n[two effects] added {names}, rms {res.rmse_before_m * 1e6:.3g} -> {res.rmse_after_m * 1e6:.3g} um")
     assert names == ["sensor_offset", "viscous_friction_slider"]
     assert res.rmse_after_m < 1.05 * NOISE and not res.unexplained
+
+
+def test_model_sends_an_effect_set_whose_rows_fell_back_straight_to_the_fallback():
+    """Once most rows of a batch with some effects on exhausted the primary's budget, the Model integrates that
+    effect set with the fallback directly (same values), and other effect sets still with the primary."""
+    from dataclasses import replace
+
+    from toggle_id.discovery.model import Model, effects_on
+    from toggle_id.simulate import FAST
+
+    rec = Record.from_sweep("simulation", duration=0.5)
+    theta = extend(ASSIGNED)[0]
+    x = simulate(theta[None], rec, PRECISE).x_B[0]
+    rec = Record(rec.t, rec.v_in, x, sweep=rec.sweep, x_B0=rec.x_B0, name="fallback")
+    tight = replace(PRECISE, max_steps=300, fallback=FAST)
+    model = Model(rec, tight, parallel=False)
+    on = theta.copy()
+    on[ALL_INDEX["tau_c"]] = 1.0
+    first = model.outputs(np.repeat(on[None], 2, axis=0))
+    assert model.stiff == {effects_on(on)}
+    again = model.outputs(on[None])
+    np.testing.assert_array_equal(again[0], first[0])
+    np.testing.assert_array_equal(again[0], simulate(on[None], rec, FAST).x_B[0])
+    assert effects_on(theta) != effects_on(on)

@@ -112,6 +112,18 @@ def test_step_budget_turns_into_solver_failure():
     res = simulate(ASSIGNED[None], Record.from_sweep("simulation"), replace(FAST, max_steps=50))
     assert res.status.tolist() == [2]
     assert res.n_steps[0] == 50
+    assert res.fell_back.tolist() == [False]  # no fallback configured
+
+
+def test_rows_past_the_step_budget_are_redone_by_the_fallback_and_flagged():
+    rec = Record.from_sweep("simulation", duration=0.5)
+    tight = replace(PRECISE, max_steps=300, fallback=FAST)
+    res = simulate(np.repeat(ASSIGNED[None], 2, axis=0), rec, tight)
+    alone = simulate(ASSIGNED[None], rec, FAST)
+    assert res.fell_back.tolist() == [True, True]
+    assert res.status.tolist() == [STATUS_OK, STATUS_OK]
+    np.testing.assert_array_equal(res.x_B[0], alone.x_B[0])
+    assert not simulate(ASSIGNED[None], rec, PRECISE).fell_back[0]
 
 
 @pytest.mark.parametrize("tier", ["fast", "precise"])

@@ -103,13 +103,15 @@ class SolverChoice:
 class SimResult:
     """x_B (P, N) in m and i_q (P, N) in A at the record's samples; ``status`` (P,) codes (0 = ok); rows that
     failed hold NaN. ``n_steps`` accepted+rejected integrator steps; ``contact`` (P, 4): first contact instant
-    (s, inf if none) and the state (q, q̇, i_q) there."""
+    (s, inf if none) and the state (q, q̇, i_q) there; ``fell_back`` (P,): rows integrated again by the
+    settings' fallback after the primary method exhausted its step budget."""
 
     x_B: np.ndarray
     i_q: np.ndarray
     status: np.ndarray
     n_steps: np.ndarray
     contact: np.ndarray
+    fell_back: np.ndarray | None = None
 
     @property
     def ok(self) -> np.ndarray:
@@ -197,6 +199,7 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     status = np.zeros(P, dtype=np.int8)
     n_steps = np.zeros(P, dtype=np.int64)
     events = np.full((P, 4), np.nan)
+    fell_back = np.zeros(P, dtype=bool)
     bad = _invalid_rows(thetas, geometry)
     status[bad] = STATUS_INVALID
     x[bad] = np.nan
@@ -210,6 +213,7 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
              int(contact0), settings.as_array(), x, i, status, n_steps, events)
         redo = np.flatnonzero(status == STATUS_SOLVER_FAILURE)
         if redo.size and settings.fallback is not None:
+            fell_back[redo] = True
             kern(thetas, redo, geo, tab, head, record.t, N, record.v_in, sweep, record.sweep is not None, float(t0),
                  y0, int(contact0), settings.fallback.as_array(), x, i, status, n_steps, events)
-    return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events)
+    return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events, fell_back=fell_back)

@@ -23,11 +23,27 @@ from .settings import DiscoverSettings
 WHITE_ASSUMED = NoiseModel(note="white noise assumed")
 
 
+#: Effects whose magnitude is on (≠ its off value) in an extended vector: what makes a record stiff or not.
+_MAGNITUDES = np.array([ALL_INDEX[e.magnitude.name] for e in EFFECTS], dtype=np.int64)
+_MAGNITUDE_OFF = np.array([e.magnitude.off for e in EFFECTS], dtype=float)
+
+
+def effects_on(theta: np.ndarray) -> bytes:
+    """A key naming the effects switched on in ``theta`` (one extended vector)."""
+    return np.packbits(theta[_MAGNITUDES] != _MAGNITUDE_OFF).tobytes()
+
+
 class Model:
     """Simulations of one record in the PRECISE tier: residuals, batched, with failures as NaN rows.
 
     ``noise``: the noise model the fits minimise under (prediction-error fits: the residual prewhitened by
-    it; white noise is ordinary output-error least squares). Set it, the loop does, before fitting."""
+    it; white noise is ordinary output-error least squares). Set it, the loop does, before fitting.
+
+    A tier with a fallback (PRECISE: DOPRI5, Rodas4 for rows that exhaust DOPRI5's step budget) spends the
+    whole budget before the fallback starts. Some effects make every simulation of a record stiff (a motor-side
+    Coulomb friction chatters at each reversal): once most rows of a batch with a given set of effects on
+    fell back, later batches with that set go to the fallback directly (:attr:`stiff`) — the same
+    integrator the rows ended in, at about half the cost."""
 
     def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True) -> None:
         if record.x_B is None:
@@ -37,16 +53,25 @@ class Model:
         self.parallel = parallel
         self.n_sims = 0
         self.noise = WHITE_ASSUMED
+        #: effect sets (:func:`effects_on`) whose simulations go straight to the fallback
+        self.stiff: set[bytes] = set()
 
     @property
     def n(self) -> int:
         return self.record.n
 
+    def _settings_for(self, theta: np.ndarray) -> SolverSettings:
+        fb = self.settings.fallback
+        return fb if fb is not None and effects_on(theta) in self.stiff else self.settings
+
     def outputs(self, thetas: np.ndarray) -> np.ndarray:
         """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA); NaN rows for failures."""
         thetas = np.atleast_2d(thetas)
         self.n_sims += thetas.shape[0]
-        res = simulate(thetas, self.record, self.settings, parallel=self.parallel and thetas.shape[0] > 1)
+        settings = self._settings_for(thetas[0])
+        res = simulate(thetas, self.record, settings, parallel=self.parallel and thetas.shape[0] > 1)
+        if settings is self.settings and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(thetas):
+            self.stiff.add(effects_on(thetas[0]))
         x = res.x_B
         x[res.status != STATUS_OK] = np.nan
         return x
@@ -61,7 +86,7 @@ class Model:
 
     def response(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """x_B [m], i_q [A] and the status of one vector."""
-        res = simulate(np.atleast_2d(theta), self.record, self.settings)
+        res = simulate(np.atleast_2d(theta), self.record, self._settings_for(np.atleast_2d(theta)[0]))
         return res.x_B[0], res.i_q[0], int(res.status[0])
 
 
@@ -243,16 +268,23 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
         T[:, idx] = X
         return T
 
+    last: list[tuple[np.ndarray, np.ndarray]] = []  # the latest residual: scipy asks for the Jacobian there
+
     def resid(x: np.ndarray) -> np.ndarray:
-        return model.fit_residuals(thetas_of(x[None, :]))[0]
+        r = model.fit_residuals(thetas_of(x[None, :]))[0]
+        last[:] = [(x.copy(), r)]
+        return r
 
     def jac(x: np.ndarray) -> np.ndarray:
         h = fd_rel_step * np.maximum(np.abs(x), typ)
         h = np.where(x + h > hi, -h, h)
-        X = np.repeat(x[None, :], len(free) + 1, axis=0)
-        X[1:] += np.diag(h)
-        Rr = model.fit_residuals(thetas_of(X))
-        return (Rr[1:] - Rr[0]).T / h
+        X = x[None, :] + np.diag(h)
+        if last and np.array_equal(last[0][0], x):
+            r0, Rr = last[0][1], model.fit_residuals(thetas_of(X))
+        else:
+            R = model.fit_residuals(thetas_of(np.vstack([x[None, :], X])))
+            r0, Rr = R[0], R[1:]
+        return (Rr - r0).T / h
 
     t0 = time.perf_counter()
     res = polish(resid, x0, lo, hi, log_mask=mask, jac_fn=jac, max_nfev=max_nfev)
