@@ -144,7 +144,12 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
 def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: DiscoverSettings, judge: Judge
                ) -> Fit | None:
     """Re-polish the model without the effect from the refit's parameters; if it beats the baseline the
-    refit is judged again against it. Returns the better null fit (or None when it did not improve)."""
+    refit is judged again against it. Returns the better null fit (or None when it did not improve).
+
+    When the better null explains the refit's gain, the effect is refitted once more from the better null (its
+    nominal parameters, the refit's effect values) and judged on that: the first refit started from the old
+    baseline, and a real effect whose refit stopped above the better null would otherwise be dismissed for
+    where it started (a stand-in refitted later, from the better null, would then take its place)."""
     start = _with(refit.fit.theta, _off_values(effect))
     starts = [start] + [th for th in (revived(start, base.free), revived(base.theta, base.free)) if th is not None]
     null = min((fit_free(model, st, base.free, settings.null_nfev, settings.fd_rel_step, rounds=settings.rounds)
@@ -152,6 +157,16 @@ def guard_null(model: Model, base: Fit, refit: Refit, effect: Effect, settings: 
     refit.null_sse = null.sse
     if null.sse < base.sse:
         refit.judge(judge.judge_pair(null, refit.fit), null.sse)
+        if not refit.accepted:
+            added = {nm: refit.fit.theta[ALL_INDEX[nm]] for nm in refit.fit.free if nm not in base.free}
+            again = fit_free(model, _with(null.theta, added), refit.fit.free, settings.baseline_nfev,
+                             settings.fd_rel_step, rounds=settings.rounds)
+            if again.sse < refit.fit.sse:
+                refit.fit, refit.sse1 = again, again.sse
+                refit.params = {nm: float(again.theta[ALL_INDEX[nm]]) for nm in effect.names}
+                refit.std_errors = _std_errors(again, effect.names, model.n)
+                refit.judge(judge.judge_pair(null, again), null.sse)
+                refit.search = {**refit.search, "refitted_from_better_null": True}
         if not refit.accepted:
             refit.reason = "a better nominal optimum explains the gain: " + refit.reason
         return null
