@@ -432,3 +432,48 @@ def test_model_sends_an_effect_set_whose_rows_fell_back_straight_to_the_fallback
     np.testing.assert_array_equal(again[0], first[0])
     np.testing.assert_array_equal(again[0], simulate(on[None], rec, FAST).x_B[0])
     assert effects_on(theta) != effects_on(on)
+
+
+def test_guard_null_refits_the_effect_from_a_better_nominal_optimum_before_dismissing_it(monkeypatch):
+    """The guard's re-polish without the effect finds a better nominal optimum that explains the first refit's
+    gain; the effect is then refitted once from that optimum (its nominal values, the refit's effect values) and
+    judged on the new fit, which wins here."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import refit as RF
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    base_free = ("mu", "B_m")
+    eff = EFFECTS_BY_NAME["coulomb_friction_motor"]
+    free = base_free + eff.names
+    base = Fit(theta.copy(), base_free, sse=10.0)
+    first = Fit(theta.copy(), free, sse=8.0)
+    first.theta[ALL_INDEX["tau_c"]] = 0.2
+    calls = []
+
+    def fake_fit_free(model, start, names, *a, **k):
+        calls.append((tuple(names), start.copy()))
+        if tuple(names) == base_free:
+            return Fit(start.copy(), base_free, sse=7.0)  # a better nominal optimum than the refit
+        out = Fit(start.copy(), tuple(names), sse=5.0)
+        out.theta[ALL_INDEX["tau_c"]] = 0.3
+        return out
+
+    def pair(small, large):
+        ok = large.sse < small.sse - 1.0
+        return SimpleNamespace(F=1.0, p_value=0.0 if ok else 1.0, delta_bic=-1.0 if ok else 1.0, passed=ok,
+                               reason="ok" if ok else "F-test not significant", to_dict=lambda: {})
+
+    monkeypatch.setattr(RF, "fit_free", fake_fit_free)
+    monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
+    rf = RF.Refit(eff.name, 1, first, {"tau_c": 0.2}, 10.0, 8.0, 1, 3, 0.0, 1.0, 0.0, True, "", {})
+    model = SimpleNamespace(n=100)
+    null = RF.guard_null(model, base, rf, eff, DiscoverSettings(), SimpleNamespace(judge_pair=pair))
+    assert null.sse == 7.0
+    again = [c for c in calls if c[0] == free]
+    assert len(again) == 1
+    assert again[0][1][ALL_INDEX["tau_c"]] == 0.2  # the refit's effect value on the better optimum's nominal values
+    assert rf.accepted and rf.fit.sse == 5.0 and rf.params == {"tau_c": 0.3} and rf.sse0 == 7.0
+    assert rf.search["refitted_from_better_null"]
