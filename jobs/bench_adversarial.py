@@ -273,7 +273,7 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
     from toggle_id.effects import EFFECTS_BY_NAME
     from toggle_id.params import PARAM_NAMES
     from toggle_id.record import measure
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     magnitudes = {k: float(v[0]) for k, v in calibrated.items()}
     theta, draw = draw_truth(spec)

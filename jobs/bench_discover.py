@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--json", type=str, default=None, help="also write the runs as JSON")
     ap.add_argument("overrides", nargs="*", help=f"Hydra overrides (default: {' '.join(DEFAULT_OVERRIDES)})")
     args = ap.parse_args(argv)
-    from toggle_id.discovery import run_discover
+    from toggle_id.app.discover import run_discover
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_discover_") as tmp:

@@ -7,6 +7,7 @@ The last line of output is `report: <absolute path of the job's report>`.
 """
 from __future__ import annotations
 
+import importlib
 import sys
 from pathlib import Path
 
@@ -17,37 +18,27 @@ from omegaconf import DictConfig, OmegaConf
 
 from jobs._cli import guarded, precheck
 
+#: Job name (the config's ``job`` key) -> the application function that runs it (module, name in toggle_id/app/),
+#: imported only when that job runs: a bad command line is reported before the library loads.
+JOBS = {
+    "identify": ("toggle_id.app.identify", "run_identify"),
+    "table1": ("toggle_id.app.table1", "run_table1"),
+    "discover": ("toggle_id.app.discover", "run_discover"),
+    "emps": ("toggle_id.app.emps", "run_emps"),
+    "identifiability": ("toggle_id.app.study", "run_study"),
+    "excite": ("toggle_id.app.excite", "run_excite"),
+}
+
 
 def run(cfg: dict, run_dir: str, project_root: str) -> str:
     """Dispatch a composed, resolved configuration to its job; return the report path."""
-    from toggle_id import workflow
-
     job = cfg.get("job", "identify")
-    if job == "identify":
-        return str(workflow.run_identify(cfg, run_dir, project_root))
-    if job == "table1":
-        from toggle_id.table1 import run_table1
+    if job not in JOBS:
+        from toggle_id.errors import ConfigError
 
-        return str(run_table1(cfg, run_dir, project_root))
-    if job == "discover":
-        from toggle_id.discovery import run_discover
-
-        return str(run_discover(cfg, run_dir, project_root))
-    if job == "identifiability":
-        from toggle_id.study import run_study
-
-        return str(run_study(cfg, run_dir, project_root))
-    if job == "emps":
-        from toggle_id.emps_job import run_emps
-
-        return str(run_emps(cfg, run_dir, project_root))
-    if job == "excite":
-        from toggle_id.excite import run_excite
-
-        return str(run_excite(cfg, run_dir, project_root))
-    from toggle_id.errors import ConfigError
-
-    raise ConfigError(f"unknown job {job!r}; known: identify, table1, discover, emps, identifiability, excite")
+        raise ConfigError(f"unknown job {job!r}; known: {', '.join(JOBS)}")
+    module, function = JOBS[job]
+    return str(getattr(importlib.import_module(module), function)(cfg, run_dir, project_root))
 
 
 def tracking_context(hc, project_root: str) -> tuple[list[str], dict]:

@@ -3,6 +3,9 @@
 - the import graph of ``toggle_id`` (module-level imports, the package ``__init__`` a module passes through
   included) has no cycle;
 - no module of ``toggle_id`` imports Hydra or OmegaConf (configs reach the library as plain values);
+- no module of ``toggle_id`` outside the application layer ``toggle_id/app/`` imports it, at module level or inside
+  a function (the jobs sit on the library, never the reverse), and every job ``jobs/run.py`` dispatches to is a
+  function of that layer;
 - no module is longer than its limit (the compiled integrators may be longer than the rest).
 
 ``python tests/test_architecture.py`` prints the graph (module-level imports, then the function-level ones) as
@@ -27,6 +30,8 @@ KNOWN_OVER_LIMIT = {
 }
 #: Top-level packages the library must never import.
 FORBIDDEN = ("hydra", "omegaconf")
+#: The application layer (the jobs): only its own modules (and jobs/, tests/) import it.
+APP = f"{PACKAGE}.app"
 
 
 def module_files() -> dict[str, Path]:
@@ -142,6 +147,34 @@ def forbidden_imports() -> list[str]:
     return bad
 
 
+def _in_app(module: str) -> bool:
+    return module == APP or module.startswith(APP + ".")
+
+
+def app_imports() -> list[str]:
+    """``module -> app module`` for every import of the application layer (at any level) by a module outside it."""
+    bad = []
+    for lazy in (False, True):
+        for m, deps in import_graph(lazy).items():
+            if not _in_app(m):
+                bad += [f"{_short(m)} -> {_short(d)}" for d in sorted(deps) if _in_app(d)]
+    return bad
+
+
+def _literal(path: Path, name: str):
+    """The literal value assigned to the module-level ``name`` in ``path`` (parsed, not imported)."""
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        targets = (node.targets if isinstance(node, ast.Assign) else
+                   [node.target] if isinstance(node, ast.AnnAssign) else [])
+        if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+            return ast.literal_eval(node.value)
+    raise LookupError(f"{path}: no module-level {name}")
+
+
+def _functions(path: Path) -> set[str]:
+    return {n.name for n in ast.parse(path.read_text(encoding="utf-8")).body if isinstance(n, ast.FunctionDef)}
+
+
 def line_counts() -> dict[str, int]:
     return {str(p.relative_to(ROOT)): len(p.read_text(encoding="utf-8").splitlines())
             for p in module_files().values()}
@@ -160,6 +193,8 @@ def test_graph_sees_the_imports():
     assert "toggle_id.kernels" in g["toggle_id.simulate"]  # through the package's __init__
     assert "toggle_id.ga_operators" in g["toggle_id.ga"]
     assert "toggle_id.ga" not in g["toggle_id.ga_operators"]  # its import sits under `if TYPE_CHECKING:`
+    assert "toggle_id.app.common" in g["toggle_id.app.identify"]
+    assert "toggle_id.evaluators" in import_graph(lazy=True)["toggle_id.app.common"]  # inside a function
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
 
 
@@ -170,6 +205,19 @@ def test_no_import_cycle():
 
 def test_library_never_imports_hydra():
     assert forbidden_imports() == []
+
+
+def test_library_never_imports_the_app_layer():
+    assert app_imports() == [], "the library imports the application layer (toggle_id/app/)"
+
+
+def test_every_job_runs_an_app_function():
+    dispatch = _literal(ROOT / "jobs" / "run.py", "JOBS")
+    assert tuple(dispatch) == _literal(ROOT / PACKAGE / "app" / "common.py", "JOBS")
+    modules = module_files()
+    for job, (module, function) in dispatch.items():
+        assert _in_app(module) and module in modules, f"job {job}: {module} is not a module of {APP}"
+        assert function in _functions(modules[module]), f"job {job}: {module} has no function {function}"
 
 
 def test_module_lengths():

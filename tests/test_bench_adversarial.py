@@ -89,7 +89,7 @@ def test_validation_records_are_the_same_machine_under_the_other_command(tmp_pat
         assert second.name.endswith("_validation") and second.n == main.n
         assert not np.allclose(main.v_in, second.v_in)  # another input
     # the truth is the record's: the second record of the dead-time machine is the simulator's output of it
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     dt = man["dead_time"]
     clean, _ = build_record({"source": "simulated", "command": "cycling", "duration": 0.5, "params": dt["params"],

@@ -51,6 +51,8 @@ def run(effects: dict, candidates=SUBSET, duration: float = 1.0, **kw) -> tuple[
 
 # ---------------------------------------------------------------------------------------------- pieces
 def test_settings_validate_and_reject_bad_values():
+    from toggle_id.app.discover import discover_settings
+
     s = D.DiscoverSettings.from_dict({"top_k": 2, "candidates": ["dead_time"], "nominal": "ga", "base": {}})
     assert s.top_k == 2 and s.candidates == ("dead_time",)
     assert D.DiscoverSettings.from_dict({"candidates": "all"}).candidates is None
@@ -60,7 +62,7 @@ def test_settings_validate_and_reject_bad_values():
         with pytest.raises(ConfigError, match=needle):
             D.DiscoverSettings.from_dict(bad)
     with pytest.raises(ConfigError, match="nominal"):
-        D.discover_settings({"discover": {"nominal": "magic"}})
+        discover_settings({"discover": {"nominal": "magic"}})
 
 
 def test_f_test_and_bic():
@@ -352,7 +354,7 @@ def test_no_false_positive_on_the_five_second_record():
 # ---------------------------------------------------------------------------------------------- measured-data classes
 def _noise_record(rho: float = 0.0, quantum: float = 0.0, sigma: float = NOISE, seed: int = 11):
     """A 5-s record without effects (parameters perturbed 5 %) with AR(1) noise ``rho`` or an encoder quantum."""
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     rng = np.random.default_rng(seed)
     params = {n: float(v) for n, v in zip(PARAM_NAMES, ASSIGNED * np.exp(0.05 * rng.standard_normal(15)))}

@@ -17,7 +17,7 @@ from conftest import one_line_error, run_in_process, run_job
 
 from toggle_id.emps import PUBLISHED, PUBLISHED_THETA, theta_from_dict
 from toggle_id.emps.synthetic import back_and_forth, pulse_train, simulated_record, write_record
-from toggle_id.emps_job import EMPS_DEFAULTS, emps_settings, load_record
+from toggle_id.app.emps import EMPS_DEFAULTS, emps_settings, load_record
 from toggle_id.errors import ConfigError, DataError
 
 REPORT_KEYS = {"position_rel_error_pct_before", "position_rel_error_pct_after", "effects_added", "candidates",

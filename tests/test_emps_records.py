@@ -28,7 +28,7 @@ from toggle_id.emps.data import (
     search_places,
     sha256_of,
 )
-from toggle_id.emps_job import emps_settings, locate_records, run_emps
+from toggle_id.app.emps import emps_settings, locate_records, run_emps
 from toggle_id.errors import ConfigError, DataError
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -219,7 +219,7 @@ def test_ray_multi_node_cluster_survives_node_loss():
 
 
 def test_the_ray_readiness_timeout_is_a_checked_setting():
-    from toggle_id.workflow import evaluator_factory
+    from toggle_id.app.common import evaluator_factory
 
     for bad in (0, -5, "soon", True):
         with pytest.raises(ConfigError, match="ready_timeout_s"):

@@ -9,7 +9,7 @@ from toggle_id import params as P
 from toggle_id.errors import ConfigError
 from toggle_id.fast import FastSettings, identify_fast
 from toggle_id.simulate import extend
-from toggle_id.workflow import build_record
+from toggle_id.app.records import build_record
 
 
 @pytest.fixture(scope="module")

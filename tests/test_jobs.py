@@ -75,7 +75,7 @@ def test_identify_job_two_stage_end_to_end(two_stage_job):
 
 
 def test_identify_job_on_a_csv_record(tmp_path, job_env):
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     # the record jobs.simulate writes (test_simulate_job_writes_a_record); the job in process (the one-stage job's
     # command line: test_multirun_sweep_gives_one_mlflow_run_per_config)

@@ -50,7 +50,7 @@ def _clean_record(tmp: Path) -> Path:
     """A noiseless 1-s record with the default (assigned) parameters, as `jobs.simulate out=clean.csv duration=1.0
     noise_m=0` writes it (that job's command line: tests/test_jobs.py)."""
     from toggle_id.data import write_csv
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     record, _ = build_record({"source": "simulated", "duration": 1.0, "noise_m": 0.0})
     return write_csv(record, tmp / "clean.csv")
@@ -140,7 +140,8 @@ def test_run_is_named_after_its_overrides_and_described_in_one_line(two_stage):
 
 def test_fitness_figure_shows_the_ga_stages_only(tmp_path, monkeypatch):
     """The joint polish has no generations: no line "joint_polish (final n/a)" in the parent's figure."""
-    from toggle_id import figures, workflow
+    from toggle_id import figures
+    from toggle_id.app.job_report import write_figures
     from toggle_id.identify import IdentificationResult, StageResult
     from toggle_id.record import Record
     from toggle_id.tracking import Tracker
@@ -156,8 +157,8 @@ def test_fitness_figure_shows_the_ga_stages_only(tmp_path, monkeypatch):
 
     result = IdentificationResult("two_stage", np.zeros(1), [stage("stage1", [1.0, 2.0]), stage("stage2", [3.0, 4.0]),
                                                             stage("joint_polish", [])], 1.0, 1.0, 1, 0.0, 0)
-    workflow.write_figures(tmp_path, [Record.from_sweep("simulation", 0.1)], result, Tracker(None, "e", enabled=False),
-                           "two_stage", [{"x_B": None, "F_i": None}])
+    write_figures(tmp_path, [Record.from_sweep("simulation", 0.1)], result, Tracker(None, "e", enabled=False),
+                  "two_stage", [{"x_B": None, "F_i": None}])
     labels = [t.get_text() for t in saved[0].axes[0].get_legend().get_texts()]
     assert labels == ["stage1 (final 2)", "stage2 (final 4)"]
 

@@ -203,7 +203,7 @@ def _sim_data(**kw) -> dict:
 
 
 def test_white_noise_is_bit_identical_to_the_records_before_the_noise_options():
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     rec, truth = build_record(_sim_data(duration=1.0))
     ref = Record.from_sweep("simulation", 1.0)
@@ -228,7 +228,7 @@ def test_ar1_noise_has_its_lag_one_correlation_and_keeps_the_marginal_sigma(rho)
 
 
 def test_quantisation_rounds_the_noisy_record_to_multiples_of_the_quantum():
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     q = 1e-6
     rec, truth = build_record(_sim_data(duration=1.0, noise_m=0.0, quantum_m=q))
@@ -244,7 +244,7 @@ def test_quantisation_rounds_the_noisy_record_to_multiples_of_the_quantum():
 
 def test_cycling_command_opens_and_closes_within_its_voltage_limit():
     from toggle_id.record import CYCLING
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     rec, _ = build_record(_sim_data(command="cycling", noise_m=0.0))
     assert rec.sweep is None and rec.name == "simulated_cycling" and rec.meta["command"]["kind"] == "cycling"
@@ -264,7 +264,7 @@ def test_cycling_record_round_trips_through_csv_to_the_same_simulation(tmp_path)
     """The cycling command is defined by its samples: the simulated record and the same record read back from
     its CSV drive the simulator identically."""
     from toggle_id.data import read_csv, write_csv
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     rec, truth = build_record(_sim_data(command="cycling", duration=2.0, noise_m=0.0, effects={"tau_d": 1e-3}))
     back = read_csv(write_csv(rec, tmp_path / "cyc.csv"))
@@ -283,7 +283,7 @@ def test_cycling_record_round_trips_through_csv_to_the_same_simulation(tmp_path)
     ({"noise_seed": 1.5}, "data.noise_seed"), ({"duration": 0.0}, "duration"),
 ])
 def test_bad_synthetic_record_options_are_one_line_config_errors(override, needle):
-    from toggle_id.workflow import build_record
+    from toggle_id.app.records import build_record
 
     with pytest.raises(ConfigError, match=needle) as info:
         build_record(_sim_data(**override))

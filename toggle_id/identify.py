@@ -120,7 +120,7 @@ def identify(record: Record | Sequence[Record], *, method: str = "two_stage", ga
     effects off) — it sets the values of parameters that are not free. ``fixed``: parameters held at given
     values (e.g. from a datasheet). ``extra_free``: effect parameters to fit along (discovery). The same
     ``seed`` gives the same result whatever the evaluator and its number of workers. ``checkpoint_meta`` is
-    stored in every checkpoint (the workflow puts the job's identity there, :mod:`toggle_id.jobdir`).
+    stored in every checkpoint (the identify job puts its identity there, :mod:`toggle_id.jobdir`).
 
     ``method="fast"``: the two stages by multistart least squares instead of the GA
     (:func:`toggle_id.fast.identify_fast`, settings ``fast``: a :class:`toggle_id.fast.FastSettings`); ``ga``,

@@ -25,11 +25,11 @@ term and an :class:`~toggle_id.effects.Effect` entry.
    where the residual concentrates.
 7. *Report* (:mod:`.report`): parameters at the representative nearest the reference along the exact symmetries
    (force-type magnitudes are determined only relative to the mechanism's scale), the three lists with their
-   evidence, figures; :func:`run_discover` (:mod:`.job`) is ``python -m jobs.run +experiment=discover``.
+   evidence, figures. The job ``python -m jobs.run +experiment=discover`` (nominal fit, this loop, MLflow,
+   ``discovery.json``) is :func:`toggle_id.app.discover.run_discover`.
 """
 from __future__ import annotations
 
-from .job import discover_settings, run_discover
 from .loop import discover
 from .model import Fit, Model, Projector, fit_free, sensitivities
 from .report import DiscoveryResult
@@ -37,5 +37,5 @@ from .scoring import _magnitude_grid, score_candidates
 from .settings import DiscoverSettings
 from .stats import f_test
 
-__all__ = ["DiscoverSettings", "DiscoveryResult", "Fit", "Model", "Projector", "discover", "discover_settings",
-           "f_test", "fit_free", "run_discover", "score_candidates", "sensitivities", "_magnitude_grid"]
+__all__ = ["DiscoverSettings", "DiscoveryResult", "Fit", "Model", "Projector", "discover", "f_test", "fit_free",
+           "score_candidates", "sensitivities", "_magnitude_grid"]

@@ -157,7 +157,7 @@ class DiscoverSettings:
 @dataclass
 class DiscoverJobSettings(DiscoverSettings):
     """The ``discover`` node of the discover job: the loop's settings (:class:`DiscoverSettings`) and where the
-    nominal fit the loop starts from comes from (read by :mod:`toggle_id.discovery.job`)."""
+    nominal fit the loop starts from comes from (read by :mod:`toggle_id.app.discover`)."""
 
     nominal: str = "ga"  # ga: two-stage RGA + polish first | base: polish from the assigned values (+ base)
     #: overrides of the assigned values: a start of the baseline (beside the GA's) and the reference of the

@@ -14,7 +14,8 @@ from .data import (
 if TYPE_CHECKING:
     from ..tracking import Tracker
 
-def _units() -> dict[str, str]:
+def param_units() -> dict[str, str]:
+    """Unit of every EMPS parameter, by name."""
     from .model import PARAMS
 
     return {p.name: p.unit for p in PARAMS}
@@ -181,7 +182,7 @@ def console_text(report: Mapping) -> str:
     from .. import console
 
     cmp = report["comparison"]
-    units = _units()
+    units = param_units()
 
     def pct(v: float | None) -> str:
         return "—" if v is None else f"{v:+.2f}%"
@@ -220,7 +221,7 @@ def console_text(report: Mapping) -> str:
 
 
 # ------------------------------------------------------------------------------------------ MLflow
-def _log_children(tracker: Tracker, report: Mapping) -> None:
+def log_children(tracker: Tracker, report: Mapping) -> None:
     """One nested run per output-error fit: the nominal model, every candidate refit, the reference fit."""
     nom = report["nominal"]
     with tracker.run("nominal", tags={"fit": "nominal"}, nested=True):
@@ -253,7 +254,9 @@ def _log_children(tracker: Tracker, report: Mapping) -> None:
                                     if v is not None}})
 
 
-def _parent_metrics(report: Mapping) -> dict:
+def parent_metrics(report: Mapping) -> dict:
+    """The EMPS job's metrics for its parent MLflow run: errors before and after, parameters, noise model,
+    localisation and validation figures."""
     m = {"position_rel_error_pct_before": report["position_rel_error_pct_before"],
          "position_rel_error_pct_after": report["position_rel_error_pct_after"],
          "published_model_rel_error_pct": report["published_model_rel_error_pct"],

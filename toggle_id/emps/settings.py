@@ -1,5 +1,5 @@
 """The numbers of the EMPS job a user may change (``emps`` node of conf/experiment/emps.yaml): the one home of
-their defaults. :func:`toggle_id.emps_job.emps_settings` checks them and resolves the paths."""
+their defaults. :func:`toggle_id.app.emps.emps_settings` checks them and resolves the paths."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -8,19 +8,19 @@ This package searches an input within the machine's limits that separates them:
   parametrisation of the unit cube, and the check that an input drives slider B into the clamp and back;
 - :mod:`.score`: the separation of two rivals that survives refitting, and the resolved singular values;
 - :mod:`.rivals`: the rivals of a record (configured effects, a discovery result);
-- :mod:`.search`: the seeded random search with local refinement, and the refits that verify the best;
-- :mod:`.job`: ``python -m jobs.run +experiment=excite`` (``excitation.csv``, ``excite.json``, ``excite.png``).
+- :mod:`.search`: the seeded random search with local refinement, and the refits that verify the best.
+
+The job ``python -m jobs.run +experiment=excite`` (``excitation.csv``, ``excite.json``, ``excite.png``) is
+:func:`toggle_id.app.excite.run_excite`.
 """
 from __future__ import annotations
 
 from .inputs import FAMILY_PARAMS, Candidate, candidate_record, clamp_check, input_signal
-from .job import excite_settings, run_excite
 from .rivals import build_rivals, effect_rival, specs_from_discovery
 from .score import Rival, linear_separation, refit_separation, spectrum
 from .search import Evaluation, Scorer, search, verify_best
 from .settings import ExciteSettings, RivalSpec
 
 __all__ = ["Candidate", "Evaluation", "ExciteSettings", "FAMILY_PARAMS", "Rival", "RivalSpec", "Scorer",
-           "build_rivals", "candidate_record", "clamp_check", "effect_rival", "excite_settings", "input_signal",
-           "linear_separation", "refit_separation", "run_excite", "search", "specs_from_discovery", "spectrum",
-           "verify_best"]
+           "build_rivals", "candidate_record", "clamp_check", "effect_rival", "input_signal", "linear_separation",
+           "refit_separation", "search", "specs_from_discovery", "spectrum", "verify_best"]

@@ -1,5 +1,6 @@
 """The excite job (``python -m jobs.run +experiment=excite``): fit the record, collect the rivals, search the
-input that tells them apart, write ``excitation.csv``, ``excite.json``, ``excite.png`` and log to MLflow."""
+input that tells them apart (:mod:`toggle_id.excite`), write ``excitation.csv``, ``excite.json``, ``excite.png``
+and log to MLflow."""
 from __future__ import annotations
 
 import time
@@ -9,16 +10,21 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import mlflow_run
 from .. import params as P
 from ..data import write_csv
 from ..effects import ALL_INDEX
 from ..errors import ConfigError, DataError
+from ..identify import identify
+from ..excite.report import summary_text, write_figure
+from ..excite.rivals import build_rivals, specs_from_discovery
+from ..excite.score import spectrum, sv_at
+from ..excite.search import Evaluation, Scorer, resolved_sv, search, verify_best
+from ..excite.settings import ExciteSettings
 from ..record import Record
-from .report import summary_text, write_figure
-from .rivals import build_rivals, specs_from_discovery
-from .score import spectrum, sv_at
-from .search import Evaluation, Scorer, resolved_sv, search, verify_best
-from .settings import ExciteSettings
+from .common import (fast_settings, flat_config, jsonable_config, make_tracker, publish_report, solver_tier,
+                     validate_config)
+from .records import build_record
 
 
 def excite_settings(cfg: Mapping) -> ExciteSettings:
@@ -42,13 +48,12 @@ def noise_sigma(settings: ExciteSettings, cfg: Mapping, truth, rmse_m: float) ->
 
 
 def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
-    from .. import mlflow_run, workflow
-    from ..identify import identify
-
-    workflow.validate_config(cfg)
+    """Fit the record (fast method), build its rivals, search and verify the input that separates them; write
+    ``excitation.csv`` (the proposed input), ``excite.png`` and ``excite.json``; return the latter's path."""
+    validate_config(cfg)
     settings = excite_settings(cfg)
-    fast = workflow.fast_settings(cfg)
-    tier = workflow.solver_tier(cfg)
+    fast = fast_settings(cfg)
+    tier = solver_tier(cfg)
     fixed = dict(cfg.get("fixed") or {})
     for nm in fixed:
         if nm not in ALL_INDEX:
@@ -63,16 +68,16 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
                           "excite.parameters=true")
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
-    record, truth = workflow.build_record(cfg.get("data") or {})
+    record, truth = build_record(cfg.get("data") or {})
     if record.x_B is None:
         raise DataError(f"record {record.name!r} has no measured x_B")
     show = bool(cfg.get("progress", True))
     say = (lambda m: print(m, flush=True)) if show else (lambda m: None)
-    tracker = workflow.make_tracker(cfg, project_root)
+    tracker = make_tracker(cfg, project_root)
     t0 = time.perf_counter()
     log_datasets = (cfg.get("tracking") or {}).get("log_datasets", True)
     with tracker.run("excite", tags={"job": "excite", "method": "fast"}) as run:
-        tracker.log_params(workflow._flat_config(cfg))
+        tracker.log_params(flat_config(cfg))
         datasets = mlflow_run.log_records(tracker, [record], run_dir, enabled=log_datasets)
         say("nominal fit (fast method) ...")
         nominal = identify(record, method="fast", seed=int(cfg.get("seed", 0)), fixed=fixed, bounds=bounds,
@@ -96,7 +101,7 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         report = _report(settings, record, rivals, evals, verified, best, baseline, sigma, sigma_source)
         report.update({"job": "excite", "nominal": {"rmse_um": 1e6 * nominal.rmse_m, "seconds": nominal.seconds,
                                                     "params": {n: float(theta[i]) for i, n in enumerate(P.PARAM_NAMES)}},
-                       "datasets": datasets, "mlflow_run_id": run.run_id, "config": workflow._jsonable_cfg(cfg),
+                       "datasets": datasets, "mlflow_run_id": run.run_id, "config": jsonable_config(cfg),
                        "settings": _settings_dict(settings)})
         if truth is not None:
             report["truth"] = {n: float(truth[ALL_INDEX[n]]) for n in ALL_INDEX if truth[ALL_INDEX[n]] != 0.0}
@@ -128,11 +133,12 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
                 metrics["sv_gain"] = par["sv_gain"]
         tracker.log_metrics({k: v for k, v in metrics.items() if v is not None and np.isfinite(v)})
         tracker.set_tags({"mlflow.note.content": _describe(record, report)})
-        path = workflow.publish_report(tracker, run_dir, summary_text(report), report, "excite.json", "excite.txt")
+        path = publish_report(tracker, run_dir, summary_text(report), report, "excite.json", "excite.txt")
     return path
 
 
 def _settings_dict(s: ExciteSettings) -> dict:
+    """The settings as JSON values (rivals as plain dicts) for ``excite.json``."""
     d = asdict(s)
     d["rivals"] = [{"effect": r.effect, "params": r.params} for r in s.rivals]
     d["families"] = list(s.families)
@@ -141,6 +147,8 @@ def _settings_dict(s: ExciteSettings) -> dict:
 
 def _report(s: ExciteSettings, record: Record, rivals, evals: list[Evaluation], verified: list[Evaluation],
             best: Evaluation | None, baseline: dict | None, sigma: float, sigma_source: str) -> dict:
+    """The body of ``excite.json``: limits, targets, every candidate, the proposed input, each rival's predicted
+    separation and, when the parameters count, the singular values and ranks before and after."""
     out = {"record": record.name, "n_samples": record.n, "sigma_um": 1e6 * sigma, "sigma_source": sigma_source,
            "limits": {"v_max": s.v_max, "duration": s.duration, "rate_hz": s.rate_hz, "x_B_min": s.x_B_min,
                       "min_exits": s.min_exits},
@@ -188,6 +196,7 @@ def _report(s: ExciteSettings, record: Record, rivals, evals: list[Evaluation], 
 
 
 def _describe(record: Record, report: Mapping) -> str:
+    """One sentence for the MLflow run's note: the proposed input and what it separates."""
     best = report.get("proposed")
     if not best:
         return f"excite on {record.name}: no candidate input passed the checks"

@@ -14,19 +14,22 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-from . import params as P
-from .checkpoint import atomic_write_json, atomic_write_text
-from .console import markdown_table
-from .errors import ConfigError
-from .plant import GEOMETRY
-from .problem import FitProblem, joint
-from .record import SWEEPS
-from .sensitivity import identifiability_report
-from .simulate import PRECISE
-from .workflow import _flat_config, _jsonable_cfg, build_record, make_tracker
+from .. import params as P
+from ..checkpoint import atomic_write_json, atomic_write_text
+from ..console import markdown_table
+from ..errors import ConfigError
+from ..plant import GEOMETRY
+from ..problem import FitProblem, joint
+from ..record import SWEEPS
+from ..sensitivity import identifiability_report
+from ..simulate import PRECISE
+from .common import flat_config, jsonable_config, make_tracker
+from .records import build_record
 
 
 def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
+    """Run the identifiability analysis of every scenario of ``study.scenarios`` at the truth; write the table
+    (``identifiability.md``) and ``result.json``; return the latter's path."""
     node = cfg.get("study") or {}
     scenarios = node.get("scenarios") or []
     if not scenarios:
@@ -43,7 +46,7 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
     tracker = make_tracker(cfg, project_root)
     t0 = time.perf_counter()
     with tracker.run("identifiability", tags={"job": "identifiability"}):
-        tracker.log_params(_flat_config(cfg))
+        tracker.log_params(flat_config(cfg))
         for sc in scenarios:
             name = sc.get("name") or "scenario"
             fixed = set(sc.get("fixed") or [])
@@ -79,7 +82,7 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
         path = atomic_write_json(run_dir / "result.json", {"job": "identifiability", "noise_m": noise,
                                                          "clamp_index": k_c, "scenarios": out,
                                                          "seconds": time.perf_counter() - t0,
-                                                         "config": _jsonable_cfg(cfg)})
+                                                         "config": jsonable_config(cfg)})
         tracker.log_artifact(run_dir / "identifiability.md")
         tracker.log_artifact(path)
         tracker.set_tags({"mlflow.note.content": f"identifiability study on {record.name}: " + "; ".join(

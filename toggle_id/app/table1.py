@@ -9,19 +9,23 @@ from typing import Mapping
 
 import numpy as np
 
-from . import console, figures
-from . import params as P
-from .checkpoint import atomic_write_json, atomic_write_text
-from .errors import ConfigError
-from .identify import identify
-from .curve import RmseCurve
-from .mlflow_run import curve_logger
-from .stages import METHODS
-from .workflow import (_identify_kwargs, _jsonable_cfg, _flat_config, build_record, evaluator_factory, make_tracker,
-                       ray_session, stage_child_run, validate_config)
+from .. import console, figures
+from .. import params as P
+from ..checkpoint import atomic_write_json, atomic_write_text
+from ..curve import RmseCurve
+from ..errors import ConfigError
+from ..identify import identify
+from ..mlflow_run import curve_logger
+from ..stages import METHODS
+from .common import (evaluator_factory, flat_config, identify_kwargs, jsonable_config, make_tracker, ray_session,
+                     validate_config)
+from .job_report import stage_child_run
+from .records import build_record
 
 
 def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
+    """Identify the simulated record by every method of ``table1.methods`` with every seed of ``table1.seeds`` (one
+    MLflow child run each) and write the table of median parameters and % errors; return ``result.json``'s path."""
     validate_config(cfg)
     node = cfg.get("table1") or {}
     methods = list(node.get("methods") or METHODS)
@@ -40,10 +44,10 @@ def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
     runs = []
     t0 = time.perf_counter()
     with ray_session(ev), tracker.run("table1", tags={"job": "table1"}):
-        tracker.log_params(_flat_config(cfg))
+        tracker.log_params(flat_config(cfg))
         for method in methods:
             for seed in seeds:
-                kw = _identify_kwargs({**cfg, "seed": seed}, run_dir / f"{method}_seed{seed}", False)
+                kw = identify_kwargs({**cfg, "seed": seed}, run_dir / f"{method}_seed{seed}", False)
                 (run_dir / f"{method}_seed{seed}").mkdir(exist_ok=True)
                 with tracker.run(f"{method}_seed{seed}", tags={"method": method, "seed": seed}, nested=True) as child:
                     curve = RmseCurve(record, on_point=curve_logger(tracker, child.run_id))  # comparable curves
@@ -66,7 +70,7 @@ def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         figures.save(fig, run_dir / "table1_errors.png")
         report = {"job": "table1", "methods": methods, "seeds": seeds, "wall_seconds": time.perf_counter() - t0,
                   "runs": [{"method": r["method"], "seed": r["seed"], **r["result"].to_dict()} for r in runs],
-                  "truth": {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)}, "config": _jsonable_cfg(cfg)}
+                  "truth": {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)}, "config": jsonable_config(cfg)}
         path = atomic_write_json(run_dir / "result.json", report)
         for f in ("table1.md", "table1.csv", "table1_runs.csv", "table1_errors.png", "result.json"):
             tracker.log_artifact(run_dir / f)
@@ -79,6 +83,7 @@ def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
 
 
 def _tables(runs: list[dict], truth: np.ndarray):
+    """(header, rows) of the parameter table (medians over seeds, % errors) and (header, rows) of the runs."""
     methods = list(dict.fromkeys(r["method"] for r in runs))
     header = ["parameter", "unit", "feasible domain", "assigned (A)"]
     for m in methods:

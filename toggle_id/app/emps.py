@@ -20,18 +20,17 @@ needs neither the GA nor Ray. Its heavy imports (numba, matplotlib, MLflow) wait
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import textwrap
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
-from .emps.data import (
+from ..emps.data import (
     ESTIMATION_FILE,
     SHA256,
     VALIDATION_FILE,
@@ -41,13 +40,11 @@ from .emps.data import (
     not_found_message,
     sha256_of,
 )
-from .emps.report import (_log_children, _parent_metrics, _units, candidate_lines, console_text,  # noqa: F401
-                          friction_figure, response_figure, validation_lines, verdict_lines)
-from .emps.settings import EmpsSettings
-from .errors import ConfigError, DataError
-
-if TYPE_CHECKING:
-    pass
+from ..emps.report import (console_text, friction_figure, log_children, param_units, parent_metrics,
+                           response_figure)
+from ..emps.settings import EmpsSettings
+from ..errors import ConfigError, DataError
+from .common import get, jsonable_config, make_tracker, publish_report
 
 #: Parameters that may be zero or negative: analysed in affine (not log) coordinates.
 SIGNED_PARAMS = frozenset({"offset", "Fs", "Fc_asym", "Fv_asym"})
@@ -56,16 +53,6 @@ COMPARED = ("M", "Fv", "Fc", "offset")
 #: Keys of the ``emps`` config node and their defaults (:class:`~toggle_id.emps.settings.EmpsSettings`, their one
 #: home), as a plain dict (also used when run_emps is called from Python).
 EMPS_DEFAULTS: dict[str, Any] = asdict(EmpsSettings())
-
-
-def _get(cfg: Mapping, path: str, default: Any = None) -> Any:
-    """``cfg`` at the dotted ``path``, ``default`` where a key is missing."""
-    node: Any = cfg
-    for key in path.split("."):
-        if not isinstance(node, Mapping) or key not in node:
-            return default
-        node = node[key]
-    return node
 
 
 # ------------------------------------------------------------------------------------------ configuration
@@ -117,6 +104,7 @@ def _number(name: str, value: Any, *, integer: bool = False) -> float | int:
 
 
 def _resolve(path: Any, project_root: str | Path, what: str) -> Path:
+    """The configured file ``path`` (the setting ``what``), relative paths taken from ``project_root``."""
     if not isinstance(path, (str, Path)) or not str(path).strip() or str(path) == "???":
         raise ConfigError(f"{what} must be a file path, got {path!r}")
     p = Path(str(path)).expanduser()
@@ -153,8 +141,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
         samples = _number("emps.samples", samples, integer=True)
         if samples < 10:
             raise ConfigError(f"emps.samples must be null (all) or at least 10, got {samples}")
-    from .emps.fit import SOLVERS
-    from .emps.model import EFFECTS
+    from ..emps.fit import SOLVERS
+    from ..emps.model import EFFECTS
 
     cands = node["candidates"]
     if cands is None:
@@ -211,9 +199,9 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     if sim_opts["eps"] <= 0 or sim_opts["h_lambda"] <= 0 or sim_opts["n_sub_max"] < 2:
         raise ConfigError(f"emps.sim needs eps > 0, h_lambda > 0 and n_sub_max >= 2, got {sim_opts}")
 
-    vpath = _get(cfg, "validation.path")
+    vpath = get(cfg, "validation.path")
     vpath = None if vpath in (None, "") else _resolve(vpath, project_root, "validation.path")
-    noise = _get(cfg, "identifiability.noise_std_m")
+    noise = get(cfg, "identifiability.noise_std_m")
     if noise is not None:
         noise = _number("identifiability.noise_std_m", noise)
         if noise <= 0:
@@ -225,7 +213,7 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
                            max_effects=max_effects, max_corr=max_corr, noise_max_order=noise_max_order,
                            cv_block=cv_block, cv_folds=cv_folds, solver=node["solver"], max_nfev=max_nfev,
                            reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
-                           identifiability=bool(_get(cfg, "identifiability.enabled", True)), noise_std_m=noise,
+                           identifiability=bool(get(cfg, "identifiability.enabled", True)), noise_std_m=noise,
                            structure_bins=structure_bins, structure_alpha=structure_alpha,
                            backward=node["backward"], explain_fraction=explain_fraction,
                            ambiguity_alpha=ambiguity_alpha)
@@ -233,7 +221,7 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
 
 def load_record(path: str | Path) -> EmpsRecord:
     """An EMPS record from a benchmark ``.mat`` or a ``.csv`` (t, vir, qm, qg[, pulses_N]); DataError otherwise."""
-    from .emps.data import load_emps_csv, load_emps_mat
+    from ..emps.data import load_emps_csv, load_emps_mat
 
     path = Path(path)
     if not path.is_file():
@@ -302,8 +290,8 @@ def _pct_diff(value: float | None, reference: float) -> float | None:
 def idim_reference(record: EmpsRecord) -> dict:
     """The benchmark's IDIM-LS recipe on this record (symmetric model) with % differences from the published
     values; ``{"error": ...}`` when the record is too short for it."""
-    from .emps.idim import idim_ls
-    from .emps.model import PUBLISHED
+    from ..emps.idim import idim_ls
+    from ..emps.model import PUBLISHED
 
     try:
         out = idim_ls(record)
@@ -317,9 +305,9 @@ def comparison(report: Mapping, idim: Mapping) -> dict:
     """Per compared parameter (M, Fv, Fc, offset): the published value, this record's IDIM-LS value, the final
     model's value and the output-error fit of the benchmark's own structure, each with its % difference from the
     published value (None where the model lacks the parameter, e.g. an offset absorbed by asymmetric friction)."""
-    from .emps.model import PUBLISHED
+    from ..emps.model import PUBLISHED
 
-    units = _units()
+    units = param_units()
     free = set(report["free"])
     ref = (report.get("reference") or {}).get("identified") or {}
     idim_p = idim.get("params") or {}
@@ -343,9 +331,9 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
     strongly autocorrelated, so the intervals (white-noise assumption) are optimistic; ranks and null directions
     are what to read. Returns the JSON form of the report plus its console ``table``; ``{"error": ...}`` if the
     analysis is impossible (e.g. a failed simulation)."""
-    from .emps.fit import make_jacobian, make_residual
-    from .emps.model import INDEX, LOWER, UPPER
-    from .identifiability import analyze, format_table, log_jacobian
+    from ..emps.fit import make_jacobian, make_residual
+    from ..emps.model import INDEX, LOWER, UPPER
+    from ..identifiability import analyze, format_table, log_jacobian
 
     idx = np.array([INDEX[n] for n in free])
     x = np.asarray(theta, float)[idx]
@@ -379,9 +367,7 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
     return out
 
 
-# ------------------------------------------------------------------------------------------ figures
-
-
+# ------------------------------------------------------------------------------------------ the job
 def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
              env: Mapping[str, str] | None = None) -> Path:
     """Identify the EMPS from its record (see the module docstring); return the path of ``result.json``.
@@ -402,10 +388,9 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
     vsrc = sources["validation"]
     validation = None if "skipped" in vsrc else load_record(vsrc["path"])
 
-    from . import figures
-    from .emps.loop import run_emps_loop
-    from .emps.model import INDEX, PUBLISHED_THETA, simulate_emps, theta_from_dict
-    from .workflow import make_tracker, publish_report
+    from .. import figures
+    from ..emps.loop import run_emps_loop
+    from ..emps.model import INDEX, PUBLISHED_THETA, simulate_emps, theta_from_dict
 
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -431,7 +416,7 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
         report["comparison"] = comparison(report, idim)
         report["identifiability"] = (identifiability_of(record, final, report["free"], st.sim, st.noise_std_m)
                                      if st.identifiability else {"enabled": False})
-        _log_children(tracker, report)
+        log_children(tracker, report)
 
         # figures: nominal, final and published models in closed loop on the record (one batched call)
         sims = simulate_emps(np.stack([nominal, final, PUBLISHED_THETA]), record, **st.sim).q
@@ -447,8 +432,8 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
                                       run_dir / "friction.png"))
         loc = report.get("localisation") or {}
         if "families" in loc:  # what the final model leaves in its position residual, and where
-            from .discovery.localise import figure as localisation_figure
-            from .emps.loop import localisation_signals
+            from ..discovery.localise import figure as localisation_figure
+            from ..emps.loop import localisation_signals
 
             r_final, signals = localisation_signals(record, final, st.sim)
             step = max(1, record.n // 6000)  # the dots only: the levels are the test's, from every sample
@@ -472,9 +457,9 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
             tracker.log_artifact(p, "figures")
 
         report.update({"job": "emps", "plant": "emps", "path": sources["estimation"]["path"], "figures": fig_paths,
-                       "mlflow_run_id": run.run_id, "config": json.loads(json.dumps(dict(cfg), default=str)),
+                       "mlflow_run_id": run.run_id, "config": jsonable_config(cfg),
                        "wall_seconds": time.perf_counter() - t0})
-        tracker.log_metrics(_parent_metrics(report))
+        tracker.log_metrics(parent_metrics(report))
         val = (report.get("validation") or {}).get("position_rel_error_pct")
         tracker.set_tags({"mlflow.note.content": (
             f"EMPS discovery on {record.name} ({record.n} samples): effects added "

@@ -1,4 +1,6 @@
-"""The discover job: nominal fit, the loop, figures, MLflow, ``discovery.json``."""
+"""The discover job (``python -m jobs.run +experiment=discover``): the nominal fit (two-stage RGA + polish, or a
+polish from the base values), the discovery loop (:func:`toggle_id.discovery.discover`), figures, MLflow (one child
+run per refit) and ``discovery.json``."""
 from __future__ import annotations
 
 import time
@@ -8,15 +10,22 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import console, mlflow_run
 from .. import params as P
+from ..curve import RmseCurve
+from ..data import read_csv
+from ..discovery import discover
+from ..discovery.refit import Refit
+from ..discovery.report import summary_text, write_figures
+from ..discovery.settings import DiscoverJobSettings, DiscoverSettings
 from ..effects import ALL_INDEX, ALL_NAMES
 from ..errors import ConfigError, DataError
-from ..identify import IdentificationResult
+from ..identify import IdentificationResult, identify
 from ..simulate import extend
-from .loop import discover
-from .refit import Refit
-from .report import summary_text, write_figures
-from .settings import DiscoverJobSettings, DiscoverSettings
+from .common import (evaluator_factory, fast_settings, flat_config, ga_config, jsonable_config, make_tracker,
+                     polish_settings, publish_report, ray_session, solver_tier, validate_config)
+from .job_report import stage_child_run
+from .records import build_record
 
 
 def discover_settings(cfg: Mapping) -> DiscoverSettings:
@@ -38,10 +47,7 @@ def discover_settings(cfg: Mapping) -> DiscoverSettings:
 
 def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".") -> Path:
     """The discover job: nominal two-stage fit, the discovery loop, figures, MLflow, ``discovery.json``."""
-    from .. import console, workflow
-    from ..identify import identify
-
-    workflow.validate_config(cfg)
+    validate_config(cfg)
     settings = discover_settings(cfg)
     nominal_mode = (cfg.get("discover") or {}).get("nominal", DiscoverJobSettings.nominal)
     method = cfg.get("method", "two_stage")
@@ -52,35 +58,30 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     if cfg.get("extra_free"):
         raise ConfigError("extra_free is not used by the discover job: the loop frees effect parameters itself")
     base_start = _base_vector(cfg)
-    ga = workflow.ga_config(cfg)
-    polish_cfg = workflow.polish_settings(cfg)
-    tier = workflow.solver_tier(cfg)
+    ga = ga_config(cfg)
+    polish_cfg = polish_settings(cfg)
+    tier = solver_tier(cfg)
     ev = cfg.get("evaluator") or {}
-    make_eval = workflow.evaluator_factory(ev)
+    make_eval = evaluator_factory(ev)
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
-    record, truth = workflow.build_record(cfg.get("data") or {})
+    record, truth = build_record(cfg.get("data") or {})
     if record.x_B is None:
         raise DataError(f"record {record.name!r} has no measured x_B")
     validation = None
     vpath = (cfg.get("validation") or {}).get("path")
     if vpath:  # a second record of the same machine: predicted, never fitted
-        from ..data import read_csv
-
         vp = Path(vpath).expanduser()
         validation = read_csv(vp if vp.is_absolute() else Path(project_root) / vp, x_B0=record.x_B0)
     if settings.noise_std is None and truth is not None:
         noise = float((cfg.get("data") or {}).get("noise_m", 0.0) or 0.0)
         settings.noise_std = noise if noise > 0 else None
-    tracker = workflow.make_tracker(cfg, project_root)
+    tracker = make_tracker(cfg, project_root)
     show = bool(cfg.get("progress", True))
     t0 = time.perf_counter()
-    from .. import mlflow_run
-    from ..curve import RmseCurve
-
     log_datasets = (cfg.get("tracking") or {}).get("log_datasets", True)
-    with workflow.ray_session(ev), tracker.run("discover", tags={"job": "discover", "method": method}) as run:
-        tracker.log_params(workflow._flat_config(cfg))
+    with ray_session(ev), tracker.run("discover", tags={"job": "discover", "method": method}) as run:
+        tracker.log_params(flat_config(cfg))
         datasets = mlflow_run.log_records(tracker, [record], run_dir, enabled=log_datasets)
         if validation is not None:
             datasets += mlflow_run.log_records(tracker, [validation], run_dir, "validation", enabled=log_datasets)
@@ -91,9 +92,9 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                 nominal_result = identify(record, method=method, ga=ga, seed=int(cfg.get("seed", 0)),
                                           make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
                                           settings=tier, polish=polish_cfg, identifiability=False,
-                                          fast=workflow.fast_settings(cfg),
+                                          fast=fast_settings(cfg),
                                           progress=lambda total, desc: console.progress(total, desc, enabled=show),
-                                          on_stage=lambda st: workflow.stage_child_run(tracker, st, truth),
+                                          on_stage=lambda st: stage_child_run(tracker, st, truth),
                                           curve=curve)
                 tracker.log_metrics({"fitness": nominal_result.fitness, "rmse_m": nominal_result.rmse_m,
                                      "seconds": nominal_result.seconds})
@@ -120,7 +121,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         report = res.to_dict()
         report.update({"job": "discover", "wall_seconds": wall, "mlflow_run_id": run.run_id,
                        "rmse_um": 1e6 * res.rmse_after_m, "curve": curve.to_list(), "datasets": datasets,
-                       "config": workflow._jsonable_cfg(cfg), "nominal_mode": nominal_mode,
+                       "config": jsonable_config(cfg), "nominal_mode": nominal_mode,
                        "settings": asdict(settings)})
         if truth is not None:
             report["truth"] = {nm: float(truth[i]) for i, nm in enumerate(ALL_NAMES)}
@@ -141,7 +142,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
             extra={"effects_added": [a["name"] for a in res.effects_added]})
         tracker.set_tags({"mlflow.note.content": mlflow_run.describe_discovery(
             method, record, res.rmse_before_m, res.rmse_after_m, [a["name"] for a in res.effects_added], wall)})
-        path = workflow.publish_report(tracker, run_dir, summary_text(res), report, "discovery.json", "discovery.txt")
+        path = publish_report(tracker, run_dir, summary_text(res), report, "discovery.json", "discovery.txt")
     return path
 
 

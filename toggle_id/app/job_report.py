@@ -1,19 +1,19 @@
 """What an identification job reports: the model's response, one MLflow child run per stage, the figures and
-the console text (used by :mod:`.workflow`, :mod:`.table1` and the discover job)."""
+the console text (used by :mod:`.identify`, :mod:`.table1` and :mod:`.discover`)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-from . import console, figures
-from . import params as P
-from .effects import ALL_INDEX
-from .plant import impulse_force
-from .record import Record
-from .results import IdentificationResult, StageResult
-from .simulate import PRECISE, simulate
-from .tracking import Tracker
+from .. import console, figures
+from .. import params as P
+from ..effects import ALL_INDEX
+from ..plant import impulse_force
+from ..record import Record
+from ..results import IdentificationResult, StageResult
+from ..simulate import PRECISE, simulate
+from ..tracking import Tracker
 
 
 def model_response(record: Record, theta: np.ndarray) -> dict[str, np.ndarray]:
