@@ -10,6 +10,7 @@ from toggle_id.discovery.engine import (
     backward_eliminate,
     explained_fraction,
     indistinguishable,
+    reconsider_ties,
     split_explaining,
     tie_band,
 )
@@ -108,6 +109,36 @@ def test_two_fits_that_differ_by_less_than_the_noise_can_tell_are_tied_and_a_wor
     out = indistinguishable(chosen, 1, [(twin, 1), (worse, 1)], noise_max_order=8, alpha=0.05)
     assert [o["tied"] for o in out] == [True, False]
     assert out[1]["z"] > 3 and out[1]["favours"] == "a"
+
+
+def test_a_tie_found_while_an_effect_was_missing_is_judged_again_on_the_final_model():
+    """Effect A tied with rival B in round 1 and C was added in round 2. On the final model, B in A's place leaves
+    a structured miss: the tie is resolved (kept under ``ties_resolved``, with the final test and the swapped
+    fit's summary). A tie whose swapped fit matches the final one stays; a tie of the last round is not
+    re-judged (it already had the whole model), nor is a rival that is itself in the model."""
+    rng = np.random.default_rng(3)
+    n = 5000
+    e = rng.standard_normal(n)
+    miss = np.sin(2 * np.pi * 3 * np.linspace(0.0, 1.0, n))
+    residuals = {"final": e, "B instead of A": e + 0.3 * miss, "D instead of A": e + 0.01 * rng.standard_normal(n)}
+    added = [{"name": "A", "iteration": 1, "indistinguishable_from": [{"name": "B"}, {"name": "D"}, {"name": "C"}]},
+             {"name": "C", "iteration": 2, "indistinguishable_from": [{"name": "E"}]}]
+    swaps = []
+
+    def swap(current, a, rival):
+        swaps.append((a["name"], rival["name"]))
+        return f"{rival['name']} instead of {a['name']}"
+
+    reconsider_ties("final", added, swap, residuals.__getitem__, lambda fit: 7, lambda fit: {"fit": fit},
+                    noise_max_order=8, alpha=0.05, say=lambda msg: None)
+    assert swaps == [("A", "B"), ("A", "D")]
+    a, c = added
+    assert [r["name"] for r in a["indistinguishable_from"]] == ["D"]
+    assert a["indistinguishable_from"][0]["vuong_final"]["tied"]
+    resolved = {r["name"]: r for r in a["ties_resolved"]}
+    assert set(resolved) == {"B", "C"} and resolved["B"]["vuong_final"]["z"] > 3
+    assert resolved["B"]["swapped"] == {"fit": "B instead of A"}
+    assert [r["name"] for r in c["indistinguishable_from"]] == ["E"] and "ties_resolved" not in c
 
 
 def test_the_tie_band_follows_the_level_and_is_off_at_zero():

@@ -15,7 +15,9 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
   *compensating*, never as added;
 - **ambiguity** (:func:`indistinguishable`, :func:`tie_band`): two supported effects whose fits the record
   cannot tell apart (Vuong's test of the non-nested models, :func:`.stats.vuong`) are reported together, neither
-  as added.
+  as added. A tie found while other effects were still missing is judged again on the final model
+  (:func:`reconsider_ties`): the missing structure, left in both residuals, can hide a difference that the
+  complete model shows.
 """
 from __future__ import annotations
 
@@ -119,3 +121,49 @@ def indistinguishable(r_chosen: np.ndarray, k_chosen: int, others: Sequence[tupl
         v = vuong(noise, r_chosen, r, k_chosen, k)
         out.append({**v, "tied": bool(v["p_value"] >= alpha)})
     return out
+
+
+def reconsider_ties(current: Any, added: Sequence[dict], swap: Callable[[Any, dict, dict], Any],
+                    residual: Callable[[Any], np.ndarray], n_free: Callable[[Any], int],
+                    summary: Callable[[Any], dict], noise_max_order: int, alpha: float,
+                    say: Callable[[str], None]) -> None:
+    """Judge again, on the final model ``current``, the ties of every effect added before the last one.
+
+    An effect and its rival were found indistinguishable (``indistinguishable_from``) on residuals that still held
+    the effects added later; there, the unexplained structure dominates both residuals and its noise model, and
+    hides the difference between the two. ``swap(current, a, rival)``: the final model with ``a`` replaced by the
+    rival (started at the rival's refit values, refitted); ``residual(fit)``, ``n_free(fit)``, ``summary(fit)``:
+    its residual, number of free parameters and a JSON-able summary (kept under ``swapped``). Vuong's test of the final model against the swapped one (on the final model's
+    noise model) decides: a rival the final model beats at ``alpha`` moves to the item's ``ties_resolved``;
+    one that is still tied, or now preferred, stays (with the new test under ``vuong_final``). A rival that is
+    itself among ``added`` is resolved (both are in the model). Edits ``added`` in place."""
+    if not added:
+        return
+    last = max(a["iteration"] for a in added)
+    names = {a["name"] for a in added}
+    r_cur = None
+    for a in added:
+        rivals = list(a.get("indistinguishable_from") or [])
+        if not rivals or a["iteration"] == last:
+            continue
+        keep, resolved = [], []
+        for rv in rivals:
+            if rv["name"] in names:
+                resolved.append({**rv, "reason": f"{rv['name']} is in the final model too"})
+                continue
+            r_cur = residual(current) if r_cur is None else r_cur
+            swapped = swap(current, a, rv)
+            v = indistinguishable(r_cur, n_free(current), [(residual(swapped), n_free(swapped))], noise_max_order,
+                                  alpha)[0]
+            entry = {**rv, "vuong_final": v, "swapped": summary(swapped)}
+            if not v["tied"] and v["z"] > 0:
+                entry["reason"] = (f"the final model with {a['name']} beats it with {rv['name']} in its place "
+                                   f"(Vuong z {v['z']:.2f}, p {v['p_value']:.2g})")
+                resolved.append(entry)
+            else:
+                keep.append(entry)
+            say(f"tie {a['name']} / {rv['name']} judged again on the final model: Vuong z {v['z']:.2f}, "
+                f"p {v['p_value']:.2g} — {'resolved' if entry in resolved else 'still tied'}")
+        a["indistinguishable_from"] = keep
+        if resolved:
+            a["ties_resolved"] = resolved

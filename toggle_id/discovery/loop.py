@@ -23,7 +23,7 @@ from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
-from .engine import backward_eliminate, indistinguishable, split_explaining, tie_band
+from .engine import backward_eliminate, indistinguishable, reconsider_ties, split_explaining, tie_band
 from .localise import locate, signals_of, structure_energy
 from .noise import WHITE, fit_noise
 from .stats import f_test
@@ -152,6 +152,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     eliminated: list[dict] = []
     if settings.backward and added:
         current, added, eliminated = _backward(model, judge, current, added, held, settings, say)
+    if settings.ambiguity_alpha > 0:
+        reconsider_ties(current, added, lambda cur, a, rv: _without(model, cur, a["name"], added, held, settings, rv),
+                        judge.residual, lambda fit: len(fit.free), lambda fit: {"rmse_m": fit.rmse(n)},
+                        settings.noise_max_order, settings.ambiguity_alpha, say)
 
     # the noise-aware structure test decides whether the effects explain the residual or only compensate
     diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
@@ -306,6 +310,11 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     base = current
     refits: list[Refit] = []
     better_null: Fit | None = None
+    # the candidate the score test ranks first is refitted whatever its scout: a short polish of a threshold or
+    # delay effect may show little of what its converged refit explains, and the two rankings disagreeing is
+    # itself a reason to look
+    top_score = max((c for c in scores if c.name in scouts and np.isfinite(scouts[c.name].sse)),
+                    key=lambda c: max(c.profile_score, c.score), default=None)
     for i, sc in enumerate(order):
         best = min((rf.fit.rmse(n) ** 2 * n for rf in refits if rf.accepted), default=None)
         # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
@@ -315,12 +324,12 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         # short polish may show little of what a converged refit explains)
         if not np.isfinite(sc.sse):
             break
-        if i >= settings.top_k:
+        if i >= settings.top_k and (top_score is None or sc.name != top_score.name):
             if best is not None and sc.sse >= best + tie_band(best, n, settings.ambiguity_alpha):
-                break
+                continue
             k_sc = len(freed_with(base.free, EFFECTS_BY_NAME[sc.name], held)) - len(base.free)
             if best is None and not f_test(base.sse, sc.sse, k_sc, n, len(base.free) + k_sc)[1] < settings.alpha:
-                break
+                continue
         eff = EFFECTS_BY_NAME[sc.name]
         start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
         rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=start)
@@ -405,14 +414,17 @@ def _backward(model: Model, judge: Judge, current: Fit, added: list[dict], held:
 
 
 def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held: Sequence[str],
-             settings: DiscoverSettings) -> Fit:
+             settings: DiscoverSettings, rival: dict | None = None) -> Fit:
     """The current model refitted with effect ``name`` switched off (and the gauge parameter it alone freed held
-    again)."""
+    again); with ``rival`` ({name, params}), that effect switched on in its place, started at its ``params``."""
     eff = EFFECTS_BY_NAME[name]
     others = {s for b in added if b["name"] != name for s in EFFECTS_BY_NAME[b["name"]].breaks}
     rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
     free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
     start = _with(current.theta, _off_values(eff))
+    if rival is not None:
+        free = freed_with(free, EFFECTS_BY_NAME[rival["name"]], held)
+        start = _with(start, rival["params"])
     return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
 
 

@@ -90,8 +90,8 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
     for a in ambiguous:
         names = [a["name"]] + [r["name"] for r in a["indistinguishable_from"]]
         text += (" Ambiguous: " + " or ".join(names) + " — each explains the record, and the record cannot tell "
-                 "them apart (Vuong's test: " + ", ".join(f"z {r['vuong']['z']:.2f}" for r in
-                                                        a["indistinguishable_from"]) +
+                 "them apart (Vuong's test: " + ", ".join(f"z {r.get('vuong_final', r['vuong'])['z']:.2f}"
+                                                        for r in a["indistinguishable_from"]) +
                  f"); the final model uses {a['name']}, the better fit. An experiment that separates them: "
                  "+experiment=excite.")
     if compensating:
@@ -185,11 +185,14 @@ def summary_text(res: DiscoveryResult) -> str:
                          f"1/√2 at the command R_s/(K_i·√c_kt) = {a['magnitude']['stall_command_V']:.4g} V "
                          f"(i_sat = {a['magnitude']['i_sat_A']:.4g} A at the reference scale above — fix K_i and "
                          "R_s to pin it)")
+        for r in a.get("ties_resolved", []):
+            lines.append(f"  tied with {r['name']} when it was added; {r['reason']}")
     for a in res.extra.get("ambiguous", []):
         lines.append(f"ambiguous: {a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
                      f"{a['magnitude']['unit']}) or " + " or ".join(
                          f"{r['name']} ({', '.join(f'{k} = {v:.5g}' for k, v in r['params'].items())}; Vuong z "
-                         f"{r['vuong']['z']:.2f}, p {r['vuong']['p_value']:.2g})" for r in a["indistinguishable_from"])
+                         f"{r.get('vuong_final', r['vuong'])['z']:.2f}, "
+                         f"p {r.get('vuong_final', r['vuong'])['p_value']:.2g})" for r in a["indistinguishable_from"])
                      + " — the record cannot tell them apart")
     for c in res.extra.get("compensating", []):
         lines.append(f"compensating {c['name']}: {c['reason']}")
