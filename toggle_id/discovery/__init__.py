@@ -16,13 +16,15 @@ term and an :class:`~toggle_id.effects.Effect` entry.
    and no effect is accepted while a candidate whose scout explains more has not been refitted. A refit is judged
    under the noise model of its own residual (both models refitted the prediction-error way when it is coloured):
    prewhitened F-test and BIC, time-block cross-validation, and the prediction of a validation record when one is
-   given. A nominal re-polish from the refit guards against a better nominal optimum. The best supported
-   candidate joins the model; repeat.
-5. *Backward elimination*: an accepted effect the others make unnecessary is dropped.
-6. *What is left* (:mod:`.localise`): a structure test of the prewhitened residual against functions of position,
-   velocity, current and input. Effects are *accepted* only when no structure is left; otherwise they are listed as
-   *compensating* (they lower the error but do not explain it), the result is *unexplained*, and the report says
-   where the residual concentrates.
+   given. A nominal re-polish from the refit guards against a better nominal optimum. The candidate the score
+   test ranks first is always refitted, whatever its scout. The best supported candidate joins the model; a rival
+   that the record cannot tell from it (Vuong's test) is kept beside it as a tie; repeat.
+5. *Backward elimination* (:mod:`.engine`): an accepted effect the others make unnecessary is dropped; a tie found
+   while an effect was still missing is judged again on the final model.
+6. *What is left* (:mod:`.residual`, :mod:`.localise`): a structure test of the prewhitened residual against
+   functions of position, velocity, current and input. When structure is left the result is *unexplained*, the
+   report says where the residual concentrates, and an effect that removed less than ``explain_fraction`` of the
+   structure energy is listed as *compensating* (it lowers the error but does not explain it), not as added.
 7. *Report* (:mod:`.report`): parameters at the representative nearest the reference along the exact symmetries
    (force-type magnitudes are determined only relative to the mechanism's scale), the three lists with their
    evidence, figures. The job ``python -m jobs.run +experiment=discover`` (nominal fit, this loop, MLflow,

@@ -1,5 +1,5 @@
 """The plant-independent verdict rules of the discovery loop, shared by the toggle plant (:mod:`.loop`) and the
-EMPS plant (:mod:`toggle_id.emps.fit`).
+EMPS plant (:mod:`toggle_id.emps.loop`).
 
 Each plant brings its own fits (a model with an effect switched off, refitted) and its own judge (an
 :class:`~.validation.Evidence` for a larger model against a smaller one: noise model of the larger model's
@@ -126,25 +126,27 @@ def indistinguishable(r_chosen: np.ndarray, k_chosen: int, others: Sequence[tupl
 def reconsider_ties(current: Any, added: Sequence[dict], swap: Callable[[Any, dict, dict], Any],
                     residual: Callable[[Any], np.ndarray], n_free: Callable[[Any], int],
                     summary: Callable[[Any], dict], noise_max_order: int, alpha: float,
-                    say: Callable[[str], None]) -> None:
+                    say: Callable[[str], None], stage: str = "iteration") -> None:
     """Judge again, on the final model ``current``, the ties of every effect added before the last one.
 
     An effect and its rival were found indistinguishable (``indistinguishable_from``) on residuals that still held
     the effects added later; there, the unexplained structure dominates both residuals and its noise model, and
     hides the difference between the two. ``swap(current, a, rival)``: the final model with ``a`` replaced by the
-    rival (started at the rival's refit values, refitted); ``residual(fit)``, ``n_free(fit)``, ``summary(fit)``:
+    rival (started at the rival's refit values, refitted), or None where the swap is impossible (another effect
+    of the model refines ``a``; the tie then stays as it was); ``stage``: the key of an item's forward step
+    (``iteration``, ``round``); ``residual(fit)``, ``n_free(fit)``, ``summary(fit)``:
     its residual, number of free parameters and a JSON-able summary (kept under ``swapped``). Vuong's test of the final model against the swapped one (on the final model's
     noise model) decides: a rival the final model beats at ``alpha`` moves to the item's ``ties_resolved``;
     one that is still tied, or now preferred, stays (with the new test under ``vuong_final``). A rival that is
     itself among ``added`` is resolved (both are in the model). Edits ``added`` in place."""
     if not added:
         return
-    last = max(a["iteration"] for a in added)
+    last = max(a[stage] for a in added)
     names = {a["name"] for a in added}
     r_cur = None
     for a in added:
         rivals = list(a.get("indistinguishable_from") or [])
-        if not rivals or a["iteration"] == last:
+        if not rivals or a[stage] == last:
             continue
         keep, resolved = [], []
         for rv in rivals:
@@ -153,6 +155,9 @@ def reconsider_ties(current: Any, added: Sequence[dict], swap: Callable[[Any, di
                 continue
             r_cur = residual(current) if r_cur is None else r_cur
             swapped = swap(current, a, rv)
+            if swapped is None:
+                keep.append(rv)
+                continue
             v = indistinguishable(r_cur, n_free(current), [(residual(swapped), n_free(swapped))], noise_max_order,
                                   alpha)[0]
             entry = {**rv, "vuong_final": v, "swapped": summary(swapped)}

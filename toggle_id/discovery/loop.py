@@ -9,14 +9,13 @@ import numpy as np
 from scipy import stats
 
 from .. import params as P
-from .. import residuals as R
 from ..effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME, Effect
 from ..errors import ConfigError, DataError
 from ..polish import one_blas_thread
 from ..identify import IdentificationResult
 from ..plant import GEOMETRY
 from ..record import Record
-from ..simulate import PRECISE, STATUS_OK, extend
+from ..simulate import PRECISE, extend
 from .gauge import GAUGE_HELD, _force_like, current_power, freed_with, gauge_fix, gauge_symmetries
 from .model import Fit, Model, _off_values, _with, fit_free, parameter_uncertainty, revived
 from .refit import Refit, guard_null, refit_candidate, scout_candidate
@@ -24,41 +23,12 @@ from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
 from .engine import backward_eliminate, indistinguishable, reconsider_ties, split_explaining, tie_band
-from .localise import locate, signals_of, structure_energy
+from .residual import prediction_report, residual_report, residual_structure_energy
 from .noise import WHITE, fit_noise
 from .stats import f_test
 from .validation import Judge
 
 log = logging.getLogger("toggle_id")
-
-
-def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None
-                    ) -> tuple[dict, np.ndarray, dict]:
-    """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals.
-
-    Besides the classical tests of :func:`toggle_id.residuals.diagnose` (which assume white noise), the dict
-    holds the AR noise model of the residual (``noise_model``), the Ljung–Box test of the prewhitened residual
-    (``whiteness_prewhitened``) and the noise-aware structure test with its localisation (``localisation``,
-    :func:`.localise.locate`); ``verdict.structure_left`` is the latter's."""
-    x, i_q, status = model.response(theta)
-    rec = model.record
-    r = rec.x_B - x
-    if status != STATUS_OK or not np.all(np.isfinite(r)):
-        return {"error": f"the model cannot be simulated on this record (status {status})"}, r, {}
-    states = R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]]))
-    d = R.diagnose(rec.t, r, rec.v_in, states, alpha=settings.alpha_diag, acf_lags=settings.acf_lags,
-                   ccf_lags=settings.ccf_lags, ccf_step=settings.ccf_step, split_index=split_index,
-                   noise_std=settings.noise_std)
-    noise = fit_noise(r, settings.noise_max_order)
-    d["noise_model"] = noise.to_dict()
-    d["whiteness_prewhitened"] = R.ljung_box(noise.whiten(r)[noise.order:], settings.acf_lags, settings.alpha_diag,
-                                             n_fitted=noise.order)
-    loc = locate(None, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
-                 alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
-    d["localisation"] = loc
-    d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
-    d["verdict"]["structure_left"] = bool(loc["structure_left"])
-    return d, r, states
 
 
 def _nominal_theta(nominal: IdentificationResult | np.ndarray | Mapping[str, float] | None) -> np.ndarray:
@@ -164,9 +134,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     with_compensating = None
     if structure and added:
         # structure is left: an effect explains only if it removed most of the structure energy it was added for
-        e_with = _structure_energy(model, current.theta, settings)
+        e_with = residual_structure_energy(model, current.theta, settings)
         added, compensating = split_explaining(
-            added, e_with, lambda a: _structure_energy(model, (a.get("_reduced") or _without(
+            added, e_with, lambda a: residual_structure_energy(model, (a.get("_reduced") or _without(
                 model, current, a["name"], added, held, settings)).theta, settings), settings.explain_fraction)
         if compensating:
             demoted = [c["name"] for c in compensating]
@@ -226,7 +196,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     unexplained = bool(diag_after.get("verdict", {}).get("structure_left", False))
     # an effect that is real predicts a record it was not fitted on to that record's noise: structure left in the
     # validation record's residual means the model still lacks something, whatever the fitted record says
-    predicted = _prediction_report(judge.validation, current.theta, settings) if judge.validation else None
+    predicted = prediction_report(judge.validation, current.theta, settings) if judge.validation else None
     if predicted is not None and predicted.get("structure_left"):
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
@@ -426,35 +396,6 @@ def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held:
         free = freed_with(free, EFFECTS_BY_NAME[rival["name"]], held)
         start = _with(start, rival["params"])
     return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-
-
-def _prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings) -> dict:
-    """The final model's prediction of the validation record (never fitted on it): RMS error, noise model and the
-    structure test of its residual (:func:`.localise.locate`)."""
-    x, i_q, status = vmodel.response(theta)
-    rec = vmodel.record
-    r = rec.x_B - x
-    if status != STATUS_OK or not np.all(np.isfinite(r)):
-        return {"error": f"the final model cannot be simulated on the validation record (status {status})",
-                "structure_left": True, "text": "the final model cannot be simulated on the validation record"}
-    states = R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]]))
-    loc = locate(None, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
-                 alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
-    noise = fit_noise(r, settings.noise_max_order)
-    return {"record": rec.name, "rmse_m": float(np.sqrt(np.mean(r ** 2))), "noise_model": noise.to_dict(),
-            "structure_left": bool(loc["structure_left"]), "text": loc["text"], "localisation": loc}
-
-
-def _structure_energy(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> float:
-    """:func:`.localise.structure_energy` of the residual of ``theta`` (inf when it cannot be simulated)."""
-    x, i_q, status = model.response(theta)
-    rec = model.record
-    r = rec.x_B - x
-    if status != STATUS_OK or not np.all(np.isfinite(r)):
-        return float("inf")
-    states = R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]]))
-    return structure_energy(r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
-                            lags=settings.ccf_lags, lag_step=settings.ccf_step)
 
 
 def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_after: dict) -> None:

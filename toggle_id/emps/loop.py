@@ -17,8 +17,8 @@ Then the toggle loop's own verdict rules (:mod:`toggle_id.discovery.engine`): ba
 the noise-aware structure test (:func:`toggle_id.discovery.localise.locate`) finds structure left in the final
 position residual — an accepted effect that removed less than ``explain_fraction`` of the structure energy is
 listed as compensating, not added; and an accepted effect that the record cannot tell apart from another that
-passed the same round (:func:`toggle_id.discovery.engine.indistinguishable`) is reported with it as *ambiguous*,
-neither named as added. The report gives the three lists — ``effects_added``, ``compensating`` and
+passed the same round (:func:`toggle_id.discovery.engine.indistinguishable`, judged again on the final model when
+it was found in an earlier round) is reported with it as *ambiguous*, neither named as added. The report gives the three lists — ``effects_added``, ``compensating`` and
 ``rejected``, each item with its ``Evidence.to_dict()`` — and where the structure left concentrates.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..discovery.engine import backward_eliminate, indistinguishable, split_explaining
+from ..discovery.engine import backward_eliminate, indistinguishable, reconsider_ties, split_explaining
 from ..discovery.localise import locate, structure_energy
 from ..discovery.noise import fit_noise, whitened_sse
 from ..discovery.validation import Evidence
@@ -307,7 +307,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     sim_kw = dict(sim_options or {})
     current, added, compensating, rejected, loc, rules = _verdict_rules(
         record, current, added, compensating, rejected, fit_kw, judge_kw, sim_kw, backward=backward,
-        explain_fraction=explain_fraction, bins=structure_bins, alpha=structure_alpha)
+        ambiguity_alpha=ambiguity_alpha, explain_fraction=explain_fraction, bins=structure_bins, alpha=structure_alpha)
     # an effect the record cannot tell apart from another that passed the same round is not named as added
     ambiguous = [a for a in added if a.get("indistinguishable_from")]
     added = [a for a in added if not a.get("indistinguishable_from")]
@@ -379,6 +379,19 @@ def _without(record: EmpsRecord, current: OEFitResult, name: str, fit_kw: Mappin
     return fit_output_error(record, [p for p in current.free if p not in eff.params], theta, **fit_kw)
 
 
+def _swapped(record: EmpsRecord, current: OEFitResult, name: str, rival: Mapping, fit_kw: Mapping) -> OEFitResult:
+    """The current model with effect ``name`` replaced by ``rival`` ({name, params}: started at its refit values),
+    refitted."""
+    gone, new = EFFECTS[name], EFFECTS[rival["name"]]
+    theta = current.theta.copy()
+    for p in gone.params:
+        theta[INDEX[p]] = OFF[INDEX[p]]
+    for p, v in rival["params"].items():
+        theta[INDEX[p]] = v
+    free = [p for p in current.free if p not in gone.params] + [p for p in new.params if p not in current.free]
+    return fit_output_error(record, free, theta, **fit_kw)
+
+
 def _effect_last(fit: OEFitResult, params: Sequence[str]) -> OEFitResult:
     """``fit`` with its free parameters reordered so that ``params`` come last (as :func:`judge_effect` expects of
     the larger model: its new parameters last)."""
@@ -390,11 +403,12 @@ def _effect_last(fit: OEFitResult, params: Sequence[str]) -> OEFitResult:
 
 def _verdict_rules(record: EmpsRecord, current: OEFitResult, added: list[dict], compensating: list[dict],
                    rejected: list[dict], fit_kw: Mapping, judge_kw: Mapping, sim_kw: Mapping, *, backward: bool,
-                   explain_fraction: float, bins: int, alpha: float) -> tuple:
+                   ambiguity_alpha: float, explain_fraction: float, bins: int, alpha: float) -> tuple:
     """The discovery engine's verdict rules (:mod:`toggle_id.discovery.engine`) on the EMPS loop's result: backward
-    elimination over the accepted effects (an effect another accepted one refines stays), then, when the structure
-    test finds structure left, the split into explaining and compensating by the structure energy. Returns the final
-    model, the three lists, the localisation of the final residual and {eliminated, demoted}."""
+    elimination over the accepted effects (an effect another accepted one refines stays), the ties of earlier
+    rounds judged again on the final model (:func:`~toggle_id.discovery.engine.reconsider_ties`), then, when the
+    structure test finds structure left, the split into explaining and compensating by the structure energy.
+    Returns the final model, the three lists, the localisation of the final residual and {eliminated, demoted}."""
     def required(a: dict, now: Sequence[dict]) -> bool:
         return any(a["name"] in EFFECTS[b["name"]].requires for b in now if b is not a)
 
@@ -407,6 +421,11 @@ def _verdict_rules(record: EmpsRecord, current: OEFitResult, added: list[dict], 
             lambda msg: None, lambda fit: f"{fit.rel_error_pct:.3g} %", keep=required)
         rejected += [{"name": e["name"], "round": None, "params": {}, "evidence": e["evidence"],
                       "reason": "eliminated (backward): " + e["reason"]} for e in eliminated]
+    if ambiguity_alpha > 0 and added:
+        reconsider_ties(current, added, lambda cur, a, rv: None if required(a, added) else _swapped(
+            record, cur, a["name"], rv, fit_kw), lambda fit: fit.residual, lambda fit: len(fit.free),
+            lambda fit: {"rel_error_pct": float(fit.rel_error_pct)}, int(judge_kw["noise_max_order"]),
+            ambiguity_alpha, lambda msg: None, stage="round")
     loc = localise(record, current.theta, sim_kw, bins=bins, alpha=alpha)
     demoted: list[dict] = []
     if loc.get("structure_left") and added:

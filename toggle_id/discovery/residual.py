@@ -1,0 +1,78 @@
+"""What the residual of one parameter vector shows: its diagnostics, its structure energy, and the prediction of a
+record the model was not fitted on. Each simulates the model once and reads the residual with :mod:`.localise`."""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import residuals as R
+from ..effects import ALL_INDEX
+from ..simulate import STATUS_OK
+from .localise import locate, signals_of, structure_energy
+from .model import Model
+from .noise import fit_noise
+from .settings import DiscoverSettings
+
+
+def _residual(model: Model, theta: np.ndarray) -> tuple[np.ndarray, dict | None, int]:
+    """The residual x_B − model (N,), the plant states (None when the model cannot be simulated) and the status."""
+    x, i_q, status = model.response(theta)
+    rec = model.record
+    r = rec.x_B - x
+    if status != STATUS_OK or not np.all(np.isfinite(r)):
+        return r, None, status
+    return r, R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]])), status
+
+
+def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings) -> dict:
+    rec = model.record
+    return locate(None, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
+                  alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
+
+
+def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None
+                    ) -> tuple[dict, np.ndarray, dict]:
+    """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals.
+
+    Besides the classical tests of :func:`toggle_id.residuals.diagnose` (which assume white noise), the dict
+    holds the AR noise model of the residual (``noise_model``), the Ljung–Box test of the prewhitened residual
+    (``whiteness_prewhitened``) and the noise-aware structure test with its localisation (``localisation``,
+    :func:`.localise.locate`); ``verdict.structure_left`` is the latter's."""
+    r, states, status = _residual(model, theta)
+    if states is None:
+        return {"error": f"the model cannot be simulated on this record (status {status})"}, r, {}
+    rec = model.record
+    d = R.diagnose(rec.t, r, rec.v_in, states, alpha=settings.alpha_diag, acf_lags=settings.acf_lags,
+                   ccf_lags=settings.ccf_lags, ccf_step=settings.ccf_step, split_index=split_index,
+                   noise_std=settings.noise_std)
+    noise = fit_noise(r, settings.noise_max_order)
+    d["noise_model"] = noise.to_dict()
+    d["whiteness_prewhitened"] = R.ljung_box(noise.whiten(r)[noise.order:], settings.acf_lags, settings.alpha_diag,
+                                             n_fitted=noise.order)
+    loc = _locate(model, r, states, settings)
+    d["localisation"] = loc
+    d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
+    d["verdict"]["structure_left"] = bool(loc["structure_left"])
+    return d, r, states
+
+
+def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings) -> dict:
+    """The final model's prediction of the validation record (never fitted on it): RMS error, noise model and the
+    structure test of its residual (:func:`.localise.locate`)."""
+    r, states, status = _residual(vmodel, theta)
+    if states is None:
+        return {"error": f"the final model cannot be simulated on the validation record (status {status})",
+                "structure_left": True, "text": "the final model cannot be simulated on the validation record"}
+    loc = _locate(vmodel, r, states, settings)
+    noise = fit_noise(r, settings.noise_max_order)
+    return {"record": vmodel.record.name, "rmse_m": float(np.sqrt(np.mean(r ** 2))), "noise_model": noise.to_dict(),
+            "structure_left": bool(loc["structure_left"]), "text": loc["text"], "localisation": loc}
+
+
+def residual_structure_energy(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> float:
+    """:func:`.localise.structure_energy` of the residual of ``theta`` (inf when it cannot be simulated)."""
+    r, states, _ = _residual(model, theta)
+    if states is None:
+        return float("inf")
+    rec = model.record
+    return structure_energy(r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
+                            lags=settings.ccf_lags, lag_step=settings.ccf_step)
