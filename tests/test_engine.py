@@ -169,3 +169,24 @@ def test_the_emps_loop_applies_the_same_ambiguity_rule_to_the_refits_of_a_round(
     ties = _ties(chosen, [chosen, twin, failed, worse], noise_max_order=8, alpha=0.05)
     assert [x["name"] for x in ties] == ["stribeck_friction"] and abs(ties[0]["vuong"]["z"]) < 1.96
     assert _ties(chosen, [chosen, twin], noise_max_order=8, alpha=0.0) == []
+
+
+def test_compensating_lists_each_effect_once_with_its_latest_refit():
+    """An effect refitted in several iterations (rec22 with its validation record listed constant_load_force,
+    sensor_offset and cogging_torque twice) is listed once, with the refit judged against the most complete
+    model; effects already listed, added, or tied with an added one are left out."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.loop import compensating_refits
+
+    def refit(name, it, lowers=True, accepted=False):
+        return SimpleNamespace(name=name, iteration=it, lowers_error=lowers, accepted=accepted, params={"p": it},
+                               reason=f"{name} in iteration {it}", evidence={"iteration": it})
+
+    refits = [refit("constant_load_force", 1), refit("sensor_offset", 1), refit("backlash", 1, accepted=True),
+              refit("stribeck_friction", 1, lowers=False), refit("cogging_torque", 1),
+              refit("constant_load_force", 2), refit("sensor_offset", 2), refit("dead_time", 2)]
+    out = compensating_refits(refits, [{"name": "backlash"}],
+                              [{"name": "dead_time", "indistinguishable_from": [{"name": "cogging_torque"}]}])
+    assert [(c["name"], c["iteration"]) for c in out] == [("constant_load_force", 2), ("sensor_offset", 2)]
+    assert out[0]["reason"] == "constant_load_force in iteration 2" and out[0]["evidence"] == {"iteration": 2}

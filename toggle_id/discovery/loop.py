@@ -150,11 +150,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
             diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
     for a in added + compensating:
         a.pop("_reduced", None)
-    compensating += [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
-                      "evidence": rf.evidence} for rf in all_refits
-                     if rf.lowers_error and not rf.accepted and rf.name not in {c["name"] for c in compensating}
-                     and rf.name not in {a["name"] for a in added}
-                     and rf.name not in {r["name"] for a in added for r in a.get("indistinguishable_from", ())}]
+    compensating += compensating_refits(all_refits, compensating, added)
 
     # the representatives of the fits nearest the reference along the exact symmetries (same output)
     ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
@@ -396,6 +392,17 @@ def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held:
         free = freed_with(free, EFFECTS_BY_NAME[rival["name"]], held)
         start = _with(start, rival["params"])
     return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+
+
+def compensating_refits(refits: Sequence[Refit], compensating: Sequence[dict], added: Sequence[dict]) -> list[dict]:
+    """The refits that lowered the error but were not accepted, one item per effect — its latest refit, judged
+    against the most complete model (``refits`` in iteration order) — leaving out the effects already listed as
+    compensating, added, or tied with an added one."""
+    listed = ({c["name"] for c in compensating} | {a["name"] for a in added}
+              | {r["name"] for a in added for r in a.get("indistinguishable_from", ())})
+    latest = {rf.name: rf for rf in refits if rf.lowers_error and not rf.accepted and rf.name not in listed}
+    return [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
+             "evidence": rf.evidence} for rf in latest.values()]
 
 
 def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_after: dict) -> None:
