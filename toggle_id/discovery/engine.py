@@ -134,11 +134,12 @@ def reconsider_ties(current: Any, added: Sequence[dict], swap: Callable[[Any, di
     hides the difference between the two. ``swap(current, a, rival)``: the final model with ``a`` replaced by the
     rival (started at the rival's refit values, refitted), or None where the swap is impossible (another effect
     of the model refines ``a``; the tie then stays as it was); ``stage``: the key of an item's forward step
-    (``iteration``, ``round``); ``residual(fit)``, ``n_free(fit)``, ``summary(fit)``:
-    its residual, number of free parameters and a JSON-able summary (kept under ``swapped``). Vuong's test of the final model against the swapped one (on the final model's
-    noise model) decides: a rival the final model beats at ``alpha`` moves to the item's ``ties_resolved``;
-    one that is still tied, or now preferred, stays (with the new test under ``vuong_final``). A rival that is
-    itself among ``added`` is resolved (both are in the model). Edits ``added`` in place."""
+    (``iteration``, ``round``); ``residual(fit)``, ``n_free(fit)``, ``summary(fit)``: its residual, number of free
+    parameters and a JSON-able summary (kept under ``swapped``). Vuong's test of the final model against the
+    swapped one (on the final model's noise model) decides: a rival the final model beats at ``alpha`` moves to the
+    item's ``ties_resolved``; one that is still tied, or now preferred, stays (with the new test under
+    ``vuong_final``). A rival that is itself among ``added`` is resolved (both are in the model). Edits ``added``
+    in place."""
     if not added:
         return
     last = max(a[stage] for a in added)
