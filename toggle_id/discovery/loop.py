@@ -23,7 +23,7 @@ from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
 from .engine import backward_eliminate, indistinguishable, reconsider_ties, split_explaining, tie_band
-from .residual import prediction_report, residual_report, residual_structure_energy
+from .residual import prediction_report, residual_report, residual_structure_energy, structure_energy_of
 from .noise import WHITE, fit_noise
 from .stats import f_test
 from .validation import Judge
@@ -128,13 +128,13 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                         settings.noise_max_order, settings.ambiguity_alpha, say)
 
     # the noise-aware structure test decides whether the effects explain the residual or only compensate
-    diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
+    diag_after, r_after, states_after = residual_report(model, current.theta, settings, split)
     structure = bool(diag_after.get("verdict", {}).get("structure_left", False))
     compensating: list[dict] = []
     with_compensating = None
     if structure and added:
         # structure is left: an effect explains only if it removed most of the structure energy it was added for
-        e_with = residual_structure_energy(model, current.theta, settings)
+        e_with = structure_energy_of(model, r_after, states_after, settings)
         added, compensating = split_explaining(
             added, e_with, lambda a: residual_structure_energy(model, (a.get("_reduced") or _without(
                 model, current, a["name"], added, held, settings)).theta, settings), settings.explain_fraction)

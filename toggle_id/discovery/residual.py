@@ -23,10 +23,14 @@ def _residual(model: Model, theta: np.ndarray) -> tuple[np.ndarray, dict | None,
     return r, R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]])), status
 
 
-def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings) -> dict:
+def _signals(model: Model, states: dict) -> dict:
     rec = model.record
-    return locate(None, r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
-                  alpha=settings.alpha_diag, lags=settings.ccf_lags, lag_step=settings.ccf_step)
+    return signals_of(rec.t, rec.v_in, states)
+
+
+def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings) -> dict:
+    return locate(None, r, _signals(model, states), bins=settings.structure_bins, alpha=settings.alpha_diag,
+                  lags=settings.ccf_lags, lag_step=settings.ccf_step)
 
 
 def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None
@@ -68,11 +72,16 @@ def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettin
             "structure_left": bool(loc["structure_left"]), "text": loc["text"], "localisation": loc}
 
 
-def residual_structure_energy(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> float:
-    """:func:`.localise.structure_energy` of the residual of ``theta`` (inf when it cannot be simulated)."""
-    r, states, _ = _residual(model, theta)
-    if states is None:
+def structure_energy_of(model: Model, r: np.ndarray, states: dict | None, settings: DiscoverSettings) -> float:
+    """:func:`.localise.structure_energy` of a residual ``r`` with its plant ``states`` (inf without them: the
+    model could not be simulated)."""
+    if not states:
         return float("inf")
-    rec = model.record
-    return structure_energy(r, signals_of(rec.t, rec.v_in, states), bins=settings.structure_bins,
-                            lags=settings.ccf_lags, lag_step=settings.ccf_step)
+    return structure_energy(r, _signals(model, states), bins=settings.structure_bins, lags=settings.ccf_lags,
+                            lag_step=settings.ccf_step)
+
+
+def residual_structure_energy(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> float:
+    """:func:`structure_energy_of` the residual of ``theta``."""
+    r, states, _ = _residual(model, theta)
+    return structure_energy_of(model, r, states, settings)

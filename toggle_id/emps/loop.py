@@ -371,25 +371,19 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     return report
 
 
-def _without(record: EmpsRecord, current: OEFitResult, name: str, fit_kw: Mapping) -> OEFitResult:
-    """The current model refitted with effect ``name`` off."""
-    eff = EFFECTS[name]
-    theta = current.theta.copy()
-    for p in eff.params:
-        theta[INDEX[p]] = OFF[INDEX[p]]
-    return fit_output_error(record, [p for p in current.free if p not in eff.params], theta, **fit_kw)
-
-
-def _swapped(record: EmpsRecord, current: OEFitResult, name: str, rival: Mapping, fit_kw: Mapping) -> OEFitResult:
-    """The current model with effect ``name`` replaced by ``rival`` ({name, params}: started at its refit values),
-    refitted."""
-    gone, new = EFFECTS[name], EFFECTS[rival["name"]]
+def _without(record: EmpsRecord, current: OEFitResult, name: str, fit_kw: Mapping,
+             rival: Mapping | None = None) -> OEFitResult:
+    """The current model refitted with effect ``name`` off — and, when ``rival`` ({name, params}) is given, with
+    that effect in its place, started at its refit values."""
+    gone = EFFECTS[name]
     theta = current.theta.copy()
     for p in gone.params:
         theta[INDEX[p]] = OFF[INDEX[p]]
-    for p, v in rival["params"].items():
-        theta[INDEX[p]] = v
-    free = [p for p in current.free if p not in gone.params] + [p for p in new.params if p not in current.free]
+    free = [p for p in current.free if p not in gone.params]
+    if rival is not None:
+        for p, v in rival["params"].items():
+            theta[INDEX[p]] = v
+        free += [p for p in EFFECTS[rival["name"]].params if p not in current.free]
     return fit_output_error(record, free, theta, **fit_kw)
 
 
@@ -423,8 +417,8 @@ def _verdict_rules(record: EmpsRecord, current: OEFitResult, added: list[dict], 
         rejected += [{"name": e["name"], "round": None, "params": {}, "evidence": e["evidence"],
                       "reason": "eliminated (backward): " + e["reason"]} for e in eliminated]
     if ambiguity_alpha > 0 and added:
-        reconsider_ties(current, added, lambda cur, a, rv: None if required(a, added) else _swapped(
-            record, cur, a["name"], rv, fit_kw), lambda fit: fit.residual, lambda fit: len(fit.free),
+        reconsider_ties(current, added, lambda cur, a, rv: None if required(a, added) else _without(
+            record, cur, a["name"], fit_kw, rival=rv), lambda fit: fit.residual, lambda fit: len(fit.free),
             lambda fit: {"rel_error_pct": float(fit.rel_error_pct)}, int(judge_kw["noise_max_order"]),
             ambiguity_alpha, lambda msg: None, stage="round")
     loc = localise(record, current.theta, sim_kw, bins=bins, alpha=alpha)
