@@ -32,6 +32,16 @@ def with_effects(theta: np.ndarray) -> np.ndarray:
     return th
 
 
+def with_generic_force(theta: np.ndarray, f_v, g_x, v_range=(-0.5, 0.5), x_range=(0.01, 0.09)) -> np.ndarray:
+    """``theta`` with the generic slider force f(ẋ_B) + g(x_B) interpolating ``f_v`` and ``g_x`` at its knots."""
+    th = theta.copy()
+    th[K.GV_LO], th[K.GV_HI] = v_range
+    th[K.GX_LO], th[K.GX_HI] = x_range
+    th[K.GV_W0:K.GV_W0 + K.N_GEN] = f_v(np.linspace(*v_range, K.N_GEN))
+    th[K.GX_W0:K.GX_W0 + K.N_GEN] = g_x(np.linspace(*x_range, K.N_GEN))
+    return th
+
+
 # q from near the singular end of link 5 (closed-form fallback) through the table to beyond the clamp
 Q_GRID = np.concatenate([np.linspace(0.105, 1.5, 301), [Q_L - 1e-9, Q_L + 1e-9]])
 
@@ -86,12 +96,14 @@ def test_rhs_matches_plant_rhs_in_both_modes():
         assert idot == pytest.approx(ref[2], rel=1e-10, abs=1e-8)
 
 
-@pytest.mark.parametrize("effects", [False, True])
+@pytest.mark.parametrize("effects", [False, True, "generic force"])
 @pytest.mark.parametrize("contact", [0, 1])
 def test_analytic_jacobian_matches_finite_differences(effects, contact):
     rng = np.random.default_rng(7 + contact)
     th = extend(ASSIGNED)[0]
     th = with_effects(th) if effects else th
+    if effects == "generic force":  # kinks at the knots: a random point lies within the FD step of one rarely
+        th = with_generic_force(th, lambda v: 400.0 * v * np.abs(v) + 15.0, lambda x: 3e3 * (x - 0.05) ** 2)
     pc = consts(th)
     for _ in range(60):
         q = rng.uniform(0.2, 1.4)
@@ -108,6 +120,43 @@ def test_analytic_jacobian_matches_finite_differences(effects, contact):
         scale = np.sum(np.abs(J * dy), axis=1, keepdims=True)
         assert np.all(err <= 1e-5 * scale), (q, w, iq, Ja, J)
         assert r[10] == pytest.approx(ft[2], rel=1e-5, abs=1e-6 * abs(pc[K.PC_KI] * pc[K.PC_ILQ]))
+
+
+@pytest.mark.parametrize("contact", [0, 1])
+def test_generic_force_reproduces_the_library_forces_it_can_take_the_shape_of(contact):
+    """A constant f (or g) is the constant load force, a linear f on the knots' range the slider's viscous
+    friction: the same right-hand side and Jacobian to rounding."""
+    rng = np.random.default_rng(11)
+    base = extend(ASSIGNED)[0]
+    pairs = []
+    for F in (-40.0, 25.0):
+        load = base.copy()
+        load[K.F_LOAD] = F
+        pairs.append((load, with_generic_force(base, lambda v: 0 * v + F, lambda x: 0 * x)))
+        pairs.append((load, with_generic_force(base, lambda v: 0 * v, lambda x: 0 * x + F)))
+    visc = base.copy()
+    visc[K.C_B] = 300.0
+    pairs.append((visc, with_generic_force(base, lambda v: 300.0 * v, lambda x: 0 * x, v_range=(-5.0, 5.0))))
+    for lib, gen in pairs:
+        pc_lib, pc_gen = consts(lib), consts(gen)
+        assert pc_gen[K.PC_GEN] == 1.0 and pc_lib[K.PC_GEN] == 0.0
+        for _ in range(40):
+            q = rng.uniform(0.2, 1.4)
+            w, iq, t = rng.uniform(-3.0, 3.0), rng.uniform(-50.0, 400.0), rng.uniform(0.0, 5.0)
+            a = KR._rhs_jac(t, q, w, iq, contact, pc_lib, GEO, TAB, HEAD, NO_SAMPLES)
+            b = KR._rhs_jac(t, q, w, iq, contact, pc_gen, GEO, TAB, HEAD, NO_SAMPLES)
+            np.testing.assert_allclose(b[1:], a[1:], rtol=1e-9, atol=1e-9)
+
+
+def test_generic_force_is_off_at_zero_weights_and_constant_beyond_its_end_knots():
+    base = extend(ASSIGNED)[0]
+    assert consts(base)[K.PC_GEN] == 0.0
+    gen = with_generic_force(base, lambda v: 10.0 + 100.0 * v, lambda x: 0 * x, v_range=(-0.1, 0.1))
+    pc = consts(gen)
+    for v, want in ((-0.1, 0.0), (-1.0, 0.0), (0.1, 20.0), (2.0, 20.0), (0.05, 15.0)):
+        assert KR._hat(v, pc[K.PC_GVLO], pc[K.PC_GVIH], pc, K.PC_GVW)[0] == pytest.approx(want, abs=1e-12)
+    assert KR._hat(2.0, pc[K.PC_GVLO], pc[K.PC_GVIH], pc, K.PC_GVW)[1] == 0.0
+    assert KR._hat(0.0, pc[K.PC_GVLO], pc[K.PC_GVIH], pc, K.PC_GVW)[1] == pytest.approx(100.0)
 
 
 def test_input_matches_sweep_and_its_slope():

@@ -112,19 +112,40 @@ EFFECTS: tuple[Effect, ...] = (
 
 EFFECTS_BY_NAME: dict[str, Effect] = {e.name: e for e in EFFECTS}
 
-#: Names of the extended parameter vector (kernel order): the 15 physical ones, then the effect parameters.
+
+def _generic_params(prefix: str, lo: int, w0: int, unit: str) -> tuple[EffectParam, ...]:
+    knots = (EffectParam(f"{prefix}_lo", lo, unit, -1e3, 1e3, 0.0, True),
+             EffectParam(f"{prefix}_hi", lo + 1, unit, -1e3, 1e3, 0.0, True))
+    return knots + tuple(EffectParam(f"{prefix}_w{k}", w0 + k, "N", -5e3, 5e3) for k in range(K.N_GEN))
+
+
+#: Not a library effect, never named: a force on slider B of any shape in its speed and position,
+#: f(ẋ_B) + g(x_B), each piecewise linear on ``N_GEN`` uniform knots over the range the record covers
+#: (``gv_lo``…``gv_hi`` m/s, ``gx_lo``…``gx_hi`` m; set from the record, not fitted). The discovery loop fits
+#: it when structure is left, to ask whether an accepted effect does anything such a force would not do
+#: (:mod:`toggle_id.discovery.catchall`).
+GENERIC_FORCE = Effect(
+    "generic_slider_force", "a force on slider B, any piecewise-linear function of its speed plus one of its "
+    "position, −f(ẋ_B) − g(x_B)",
+    _generic_params("gv", K.GV_LO, K.GV_W0, "m/s") + _generic_params("gx", K.GX_LO, K.GX_W0, "m"),
+    # the probes give the fits the weights' typical size (finite-difference steps, trust region): a force that
+    # moves x_B well above the integrator's error
+    tuple({f"{p}_w{k}": 100.0} for p in ("gv", "gx") for k in range(K.N_GEN)))
+
+#: Names of the library effects' parameters (kernel order); the extended parameter vector holds the 15 physical
+#: ones, then these, then the generic force's (which no report lists: it is never part of a reported model).
 EXTRA_NAMES: tuple[str, ...] = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a_cog", "n_cog", "phi_cog",
                                 "F_load", "k3", "s_sat", "x_off", "c_kt")
-ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES
+ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES + GENERIC_FORCE.names
 ALL_INDEX: dict[str, int] = {n: i for i, n in enumerate(ALL_NAMES)}
 assert len(ALL_NAMES) == K.N_THETA
-for _e in EFFECTS:
+for _e in EFFECTS + (GENERIC_FORCE,):
     for _p in _e.params:
         assert ALL_INDEX[_p.name] == _p.slot, _p
 
 #: Values of the effect parameters in the nominal model (all effects off; nuisance ones at their defaults).
 EXTRA_DEFAULTS = np.zeros(K.N_THETA - N_PARAMS)
-for _e in EFFECTS:
+for _e in EFFECTS + (GENERIC_FORCE,):
     for _p in _e.params:
         EXTRA_DEFAULTS[_p.slot - N_PARAMS] = _p.off
 
@@ -138,5 +159,5 @@ def effect(name: str) -> Effect:
 
 def effect_bounds(names) -> tuple[np.ndarray, np.ndarray]:
     """Feasible domain of extended (effect) parameter names."""
-    lookup = {p.name: p for e in EFFECTS for p in e.params}
+    lookup = {p.name: p for e in EFFECTS + (GENERIC_FORCE,) for p in e.params}
     return (np.array([lookup[n].lower for n in names], float), np.array([lookup[n].upper for n in names], float))

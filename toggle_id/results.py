@@ -11,7 +11,7 @@ import numpy as np
 
 from . import params as P
 from .curve import CurvePoint
-from .effects import ALL_INDEX, ALL_NAMES
+from .effects import ALL_INDEX, EXTRA_NAMES
 
 
 @dataclass
@@ -85,7 +85,7 @@ class IdentificationResult:
         return sum(s.n_simulations for s in self.stages)
 
     def to_dict(self) -> dict:
-        extra = {n: float(self.theta[ALL_INDEX[n]]) for n in ALL_NAMES[P.N_PARAMS:]}
+        extra = {n: float(self.theta[ALL_INDEX[n]]) for n in EXTRA_NAMES}
         return {"method": self.method, "params": self.params, "effect_params": extra,
                 "fitness": self.fitness, "sse_m2": self.sse, "rmse_m": self.rmse_m, "rmse_um": 1e6 * self.rmse_m,
                 "n_samples": self.n_samples, "n_simulations": self.n_simulations,

@@ -24,7 +24,9 @@ term and an :class:`~toggle_id.effects.Effect` entry.
 6. *What is left* (:mod:`.residual`, :mod:`.localise`): a structure test of the prewhitened residual against
    functions of position, velocity, current and input. When structure is left the result is *unexplained*, the
    report says where the residual concentrates, and an effect that removed less than ``explain_fraction`` of the
-   structure energy is listed as *compensating* (it lowers the error but does not explain it), not as added.
+   structure energy is listed as *compensating* (it lowers the error but does not explain it), not as added; so
+   is one that a generic force on slider B, any function of its speed and position, makes unnecessary
+   (:mod:`.catchall`: a stand-in for physics outside the library).
 7. *Report* (:mod:`.report`): parameters at the representative nearest the reference along the exact symmetries
    (force-type magnitudes are determined only relative to the mechanism's scale), the three lists with their
    evidence, figures. The job ``python -m jobs.run +experiment=discover`` (nominal fit, this loop, MLflow,

@@ -22,6 +22,7 @@ from .refit import Refit, guard_null, refit_candidate, scout_candidate
 from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
+from .catchall import catch_all
 from .engine import backward_eliminate, indistinguishable, reconsider_ties, split_explaining, tie_band
 from .residual import prediction_report, residual_report, residual_structure_energy, structure_energy_of
 from .noise import WHITE, fit_noise
@@ -131,13 +132,20 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     diag_after, r_after, states_after = residual_report(model, current.theta, settings, split)
     structure = bool(diag_after.get("verdict", {}).get("structure_left", False))
     compensating: list[dict] = []
-    with_compensating = None
+    with_compensating = catch_report = None
     if structure and added:
-        # structure is left: an effect explains only if it removed most of the structure energy it was added for
+        # structure is left: an effect explains only if it removed most of the structure energy it was added for,
+        # and if it does something a force of unknown shape on slider B would not (the catch-all check)
         e_with = structure_energy_of(model, r_after, states_after, settings)
+        all_added = list(added)
         added, compensating = split_explaining(
             added, e_with, lambda a: residual_structure_energy(model, (a.get("_reduced") or _without(
-                model, current, a["name"], added, held, settings)).theta, settings), settings.explain_fraction)
+                model, current, a["name"], all_added, held, settings)).theta, settings), settings.explain_fraction)
+        if added and settings.catch_all and states_after:
+            added, more, catch_report = catch_all(
+                model, judge, current, added, states_after,
+                lambda fit, a: _without(model, fit, a["name"], all_added, held, settings), settings, say)
+            compensating += more
         if compensating:
             demoted = [c["name"] for c in compensating]
             say("structure remains; " + ", ".join(demoted) + " lower the error but do not explain it (listed as "
@@ -202,7 +210,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,
              "noise_model": {"before": noise0.to_dict(), "after": noise_after.to_dict()},
              "localisation": diag_after.get("localisation"),
-             "validation_record": validation.name if validation is not None else None,
+             "validation_record": validation.name if validation is not None else None, "catch_all": catch_report,
              "validation_prediction": predicted}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)

@@ -8,7 +8,7 @@ import numpy as np
 
 from .. import params as P
 from .. import residuals as R
-from ..effects import ALL_INDEX, ALL_NAMES
+from ..effects import ALL_INDEX, EXTRA_NAMES
 from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE
@@ -51,7 +51,7 @@ class DiscoveryResult:
     def to_dict(self) -> dict:
         def params_of(fit: Fit) -> dict:
             return {"physical": {nm: float(fit.theta[i]) for i, nm in enumerate(P.PARAM_NAMES)},
-                    "effects": {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]},
+                    "effects": {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in EXTRA_NAMES},
                     "free": list(fit.free)}
 
         sse0, sse1 = self.rmse_before_m ** 2 * self.n, self.rmse_after_m ** 2 * self.n  # raw residuals
@@ -63,7 +63,7 @@ class DiscoveryResult:
                 "sse_before_m2": sse0, "sse_after_m2": sse1,
                 "params_before": params_of(self.baseline), "params_after": params_of(self.final),
                 "final_params": {**params_of(self.final)["physical"],
-                                 **{nm: float(self.final.theta[ALL_INDEX[nm]]) for nm in ALL_NAMES[P.N_PARAMS:]}},
+                                 **{nm: float(self.final.theta[ALL_INDEX[nm]]) for nm in EXTRA_NAMES}},
                 "residual_tests_before": self.diagnostics_before, "residual_tests_after": self.diagnostics_after,
                 "conclusion": self.conclusion, "unexplained": self.unexplained, "iterations": self.iterations,
                 "baseline_polish": self.baseline.info, "nominal": self.nominal, "seconds": self.seconds,

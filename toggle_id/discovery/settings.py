@@ -47,7 +47,9 @@ class DiscoverSettings:
       at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
       an accepted effect still counts as an explanation if it removed at least this fraction of the structure
       energy of the model without it (:func:`.localise.structure_energy`: it explains most of what it was added
-      for); otherwise it is compensating.
+      for); otherwise it is compensating. catch_all: when structure is left, fit a generic force on slider B
+      (any piecewise-linear function of its speed and position) on top of the final model; if it is supported,
+      an accepted effect it makes unnecessary is compensating, not added (:mod:`.catchall`).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added).
@@ -85,6 +87,7 @@ class DiscoverSettings:
     scout_all: bool = True
     backward: bool = True
     explain_fraction: float = 0.5
+    catch_all: bool = True
     ambiguity_alpha: float = 0.05
 
     def validate(self) -> DiscoverSettings:
@@ -123,7 +126,7 @@ class DiscoverSettings:
         if not (isinstance(self.ambiguity_alpha, (int, float)) and not isinstance(self.ambiguity_alpha, bool)
                 and 0.0 <= float(self.ambiguity_alpha) < 1.0):
             raise ConfigError(f"discover.ambiguity_alpha must lie in [0, 1), got {self.ambiguity_alpha!r}")
-        for name in ("scout_all", "backward"):
+        for name in ("scout_all", "backward", "catch_all"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std > 0):

@@ -16,6 +16,20 @@ import numpy as np
 
 from .geometry import _lookup, _lookup_d
 from .slots import (
+    GV_HI,
+    GV_LO,
+    GV_W0,
+    GX_HI,
+    GX_LO,
+    GX_W0,
+    N_GEN,
+    PC_GEN,
+    PC_GVIH,
+    PC_GVLO,
+    PC_GVW,
+    PC_GXIH,
+    PC_GXLO,
+    PC_GXW,
     A_COG,
     B_M,
     C_KT,
@@ -136,6 +150,16 @@ def _derived(th, geo, sweep, use_sweep, t0_rec, dt_rec):
     pc[PC_SWEEP] = 1.0 if use_sweep else 0.0
     pc[PC_XOFF] = th[X_OFF]
     pc[PC_CKT] = th[C_KT]
+    # the generic slider force (the discovery loop's catch-all check): knots and weights; on when a weight is not 0
+    pc[PC_GEN] = 0.0
+    for k in range(N_GEN):
+        pc[PC_GVW + k] = th[GV_W0 + k]
+        pc[PC_GXW + k] = th[GX_W0 + k]
+        if th[GV_W0 + k] != 0.0 or th[GX_W0 + k] != 0.0:
+            pc[PC_GEN] = 1.0
+    pc[PC_GVLO], pc[PC_GXLO] = th[GV_LO], th[GX_LO]
+    pc[PC_GVIH] = (N_GEN - 1) / (th[GV_HI] - th[GV_LO]) if th[GV_HI] > th[GV_LO] else 0.0
+    pc[PC_GXIH] = (N_GEN - 1) / (th[GX_HI] - th[GX_LO]) if th[GX_HI] > th[GX_LO] else 0.0
     return pc
 
 
@@ -193,6 +217,22 @@ def _motor_force(iq, v_rot, x_rot, pc):
 
 
 @nb.njit(cache=True, inline="always")
+def _hat(s, lo, ih, pc, w0):
+    """Piecewise-linear interpolation at ``s`` of the N_GEN weights ``pc[w0:]`` on uniform knots from ``lo``
+    with spacing 1/``ih`` (constant beyond the end knots; the first weight everywhere when ``ih`` = 0): value
+    and slope."""
+    u = (s - lo) * ih
+    if u <= 0.0:
+        return pc[w0], 0.0
+    if u >= N_GEN - 1:
+        return pc[w0 + N_GEN - 1], 0.0
+    k = int(math.floor(u))
+    a = pc[w0 + k]
+    b = pc[w0 + k + 1]
+    return a + (u - k) * (b - a), (b - a) * ih
+
+
+@nb.njit(cache=True, inline="always")
 def _forces(q, w, iq, contact, pc, geo, tab, head):
     """Geometry at q and the generalised force terms shared by the right-hand sides and the Jacobian (the last
     value, (x_C'²)', serves the backlash kernel's linkage without the rotor)."""
@@ -208,6 +248,8 @@ def _forces(q, w, iq, contact, pc, geo, tab, head):
     if pc[PC_FS] != 0.0:
         r = vB * pc[PC_IVS]
         F_f -= pc[PC_FS] * math.exp(-r * r) * sg
+    if pc[PC_GEN] != 0.0:  # the generic force f(ẋ_B) + g(x_B), positive opposes closing (as F_load)
+        F_f -= _hat(vB, pc[PC_GVLO], pc[PC_GVIH], pc, PC_GVW)[0] + _hat(x_B, pc[PC_GXLO], pc[PC_GXIH], pc, PC_GXW)[0]
     z = x_B - pc[PC_XBL]
     F_i = 0.0
     if contact:
@@ -260,7 +302,7 @@ def _rhs_jac(t, q, w, iq, contact, pc, geo, tab, head, v):
 def _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head):
     """Right-hand side for the command u and its analytic Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] and
     ∂i̇/∂t (from du/dt). Returns ok, q̇, ẇ, i̇, a, b, c, d, e, g, ft."""
-    ok, _, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q, _ = _forces(q, w, iq, contact, pc, geo, tab,
+    ok, x_B, dxB, dxC, x_C, M, dM, vB, vC, F_C, sg, F_f, z, F_i, Q, _ = _forces(q, w, iq, contact, pc, geo, tab,
                                                                             head)
     okd, ddxB, ddxC, ddb3, ddb5, ddgB, ddgC = _lookup_d(q, geo, tab, head)
     if not (ok and okd):
@@ -283,6 +325,10 @@ def _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head):
         r = vB * pc[PC_IVS]
         ex = math.exp(-r * r)
         dFf_dvB -= pc[PC_FS] * ex * (dsg - 2.0 * r * pc[PC_IVS] * sg)
+    dFf_dx = 0.0
+    if pc[PC_GEN] != 0.0:
+        dFf_dvB -= _hat(vB, pc[PC_GVLO], pc[PC_GVIH], pc, PC_GVW)[1]
+        dFf_dx = -_hat(x_B, pc[PC_GXLO], pc[PC_GXIH], pc, PC_GXW)[1]
     dFi_dz = 0.0
     dFi_dvB = 0.0
     if contact:
@@ -291,7 +337,7 @@ def _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head):
     dM2 = pc[PC_M3] * ddb3 + pc[PC_M5] * ddb5 + pc[PC_MB] * ddgB + pc[PC_MC] * ddgC
     dQ_dw = dFC_dvC * dxC * dxC + (dFf_dvB - dFi_dvB) * dxB * dxB
     dQ_dq = ((dFC_dvC * ddxC * w + dFC_dq) * dxC + F_C * ddxC
-             + ((dFf_dvB - dFi_dvB) * ddxB * w - dFi_dz * dxB) * dxB + (F_f - F_i) * ddxB)
+             + ((dFf_dvB - dFi_dvB) * ddxB * w + (dFf_dx - dFi_dz) * dxB) * dxB + (F_f - F_i) * ddxB)
     ja = (dQ_dq - 0.5 * dM2 * w * w - wdot * dM) * inv_m
     jb = (dQ_dw - dM * w) * inv_m
     jc = pc[PC_ZKT] * _torque_current(iq, pc)[1] * dxC * inv_m

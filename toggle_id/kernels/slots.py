@@ -8,7 +8,14 @@ from __future__ import annotations
 # ---- layout of the extended parameter vector (names in toggle_id.params / toggle_id.effects) -------------
 B_M, D_, J_M, K_I, K_L, K_T, L_Q, R_S, M2, M3, M5, MB, MC, MU, LAMBDA_D = range(15)
 TAU_C, F_S, V_S, C_B, TAU_D, B_L, A_COG, N_COG, PHI_COG, F_LOAD, K3, S_SAT, X_OFF, C_KT = range(15, 29)
-N_THETA = 29
+# the generic slider force of the discovery loop's catch-all check (not a library effect): piecewise-linear
+# functions of slider B's speed and position on N_GEN uniform knots from *_LO to *_HI, weights *_W0 … (N)
+N_GEN = 10
+GV_LO, GV_HI = 29, 30
+GV_W0 = 31
+GX_LO, GX_HI = GV_W0 + N_GEN, GV_W0 + N_GEN + 1
+GX_W0 = GX_HI + 1
+N_THETA = GX_W0 + N_GEN
 
 # ---- layout of the geometry array (toggle_id.plant.Geometry.as_array) --------------------------------------
 G_R1, G_R2, G_R3, G_R4, G_R5, G_H, G_PHI, G_P, G_Z, G_G, G_XBL, G_EPS = range(12)
@@ -25,7 +32,11 @@ METHOD_DOPRI5, METHOD_MIXED, METHOD_RODAS4 = 0, 1, 2
 (PC_M0, PC_M3, PC_M5, PC_MB, PC_MC, PC_ZKT, PC_Z2BM, PC_FMU, PC_IEPS, PC_CB, PC_FLOAD, PC_KL, PC_D, PC_K3,
  PC_XBL, PC_KI, PC_ILQ, PC_RSL, PC_PLZL, PC_ULIM, PC_ZTAUC, PC_ZACOG, PC_NZ, PC_PHI, PC_FS, PC_IVS, PC_TAUD,
  PC_SA, PC_SB, PC_SW0, PC_SDW, PC_ST, PC_SIT, PC_SDWT, PC_T0, PC_IDT, PC_SWEEP, PC_XOFF, PC_CKT) = range(39)
-N_PC = 39
+# the generic slider force: on/off flag, knot origin and 1/spacing of speed and position, then the weights
+PC_GEN, PC_GVLO, PC_GVIH, PC_GXLO, PC_GXIH = range(39, 44)
+PC_GVW = 44
+PC_GXW = PC_GVW + N_GEN
+N_PC = PC_GXW + N_GEN
 
 # ---- geometry table: cubic Hermite interpolation of the q-only functions, shared by all individuals ---------
 # columns (value block, then derivative block): x_B, x_B', x_C', b3, b5, b3', b5', (x_B'²)', (x_C'²)', x_C

@@ -1,0 +1,109 @@
+"""The catch-all check: does an accepted effect do anything that a force of unknown shape would not?
+
+When structure is left in the residual of the final model, the record holds something the library lacks, and
+an accepted effect may only stand in for it — a constant load force for a drag that, on a stroke run mostly
+one way, acts nearly as one. Its F-test, BIC and cross-validation cannot tell: each compares the effect
+with the model *without* it, and against that model a stand-in does lower the error, in and out of sample.
+
+The check asks the question against a model that could hold the missing physics instead. It fits the final
+model with a generic force on slider B, any piecewise-linear function of the slider's speed plus one of its
+position (:data:`toggle_id.effects.GENERIC_FORCE`; the knots span the range the record covers, so the
+force is a non-parametric stand-in for every friction, drag, load or spring acting there). If the judge finds
+that force significant (prewhitened F-test, BIC, out of sample, and the validation record when given), every
+accepted effect is taken out of the model with the generic force in turn: one whose removal the judge does not
+find significant — or that keeps less than ``explain_fraction`` of the error reduction it brings to the final
+model (a least-squares polish converges only so far, and the F-test on thousands of samples finds a 0.1 % gap)
+— does nothing the generic force does not do, and is listed as *compensating*, never as added.
+An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
+the generic force explains nothing more — the missing physics is then not a force on slider B, and the check
+decides nothing. The generic force is never part of the reported model.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from ..effects import EFFECTS_BY_NAME, GENERIC_FORCE
+from ..kernels.slots import N_GEN
+from .model import Fit, Model, _off_values, _with, fit_free
+from .settings import DiscoverSettings
+from .validation import Judge
+
+#: The fitted weights of the generic force (its knots are set from the record). g is held at 0 at its first knot:
+#: f and g each hold the constant, and a direction of the fit that changes nothing would slow it down.
+WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_FORCE.names if "_w" in nm and nm != "gx_w0")
+
+
+def knots_of(states: dict) -> dict[str, float]:
+    """The knot ranges of the generic force from a model's plant states: slider B's speed and position, each from
+    its smallest to its largest value on the record."""
+    v = np.asarray(states["xdot_B"], float)
+    x = np.asarray(states["x_B"], float)
+    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(x))):
+        raise ValueError("the plant states are not finite")
+    return {"gv_lo": float(v.min()), "gv_hi": float(v.max()), "gx_lo": float(x.min()), "gx_hi": float(x.max())}
+
+
+def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
+              without: Callable[[Fit, dict], Fit], settings: DiscoverSettings, say: Callable[[str], None]
+              ) -> tuple[list[dict], list[dict], dict]:
+    """(kept, compensating, report) of the accepted effects ``added`` of the final model ``current`` (structure
+    left in its residual; ``states``: its plant states). ``without(fit, a)``: ``fit`` refitted with effect ``a``
+    switched off. See the module docstring."""
+    n = model.n
+    knots = knots_of(states)
+    free = tuple(current.free) + WEIGHTS
+    # the weights alone first (the force's shape, the model held), then everything
+    shaped = fit_free(model, _with(current.theta, knots), WEIGHTS, settings.baseline_nfev, settings.fd_rel_step)
+    generic = fit_free(model, shaped.theta, free, settings.baseline_nfev, settings.fd_rel_step,
+                       rounds=settings.rounds)
+
+    def taken_out(a: dict) -> Fit:  # the force's shape takes over first (the model held), then the whole refit
+        off = fit_free(model, _with(generic.theta, _off_values(EFFECTS_BY_NAME[a["name"]])), WEIGHTS,
+                       settings.baseline_nfev, settings.fd_rel_step)
+        return without(replace(off, free=generic.free), a)
+
+    for attempt in range(len(added) + 1):
+        reduced = {a["name"]: taken_out(a) for a in added}
+        # nested models: the fit with every effect can do what one without an effect did; a polish stuck above it
+        # is continued from there, and the effects are taken out of that better fit again
+        best = min(reduced.values(), key=lambda f: f.sse)
+        if best.sse >= generic.sse or attempt == len(added):
+            break
+        generic = fit_free(model, best.theta, free, settings.baseline_nfev, settings.fd_rel_step,
+                           rounds=settings.rounds)
+    ev = judge.judge_pair(current, generic)
+    report = {"knots": knots, "n_knots": N_GEN, "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
+              "evidence": ev.to_dict(), "supported": ev.passed, "effects": {}}
+    say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms "
+        f"{current.rmse(n) * 1e6:.4g} → {generic.rmse(n) * 1e6:.4g} µm, "
+        + ("supported" if ev.passed else "not supported (" + ev.reason + "); it decides nothing"))
+    if not ev.passed:
+        return list(added), [], report
+    kept, compensating = [], []
+    for a in added:
+        small = reduced[a["name"]]
+        ev_a = judge.judge_pair(small, generic)
+        # what the effect still explains beside the generic force, as a fraction of what it explains without it
+        alone = a.get("_reduced") or without(current, a)
+        gain = alone.sse - current.sse
+        kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
+        needed = ev_a.passed and kept_fraction >= settings.explain_fraction
+        report["effects"][a["name"]] = {"rmse_without_m": small.rmse(n), "rmse_final_without_m": alone.rmse(n),
+                                        "kept_fraction": kept_fraction, "evidence": ev_a.to_dict(),
+                                        "needed": needed}
+        say(f"  without {a['name']}: rms {small.rmse(n) * 1e6:.4g} µm ({kept_fraction:.1%} of what it explains "
+            f"without the generic force) → " + ("still needed" if needed else "not needed" + (
+                f" ({ev_a.reason})" if not ev_a.passed else "")))
+        if needed:
+            kept.append(a)
+        else:
+            compensating.append(dict(a, reason=(
+                f"lowers the error, but a generic force on slider B (any function of its speed and position) does "
+                f"its work: with that force {generic.rmse(n) * 1e6:.4g} µm, and {small.rmse(n) * 1e6:.4g} µm "
+                f"without {a['name']} (it keeps {kept_fraction:.1%} of what it explains in the final model, "
+                f"{alone.rmse(n) * 1e6:.4g} → {current.rmse(n) * 1e6:.4g} µm). It stands in for something outside "
+                "the library")))
+    return kept, compensating, report
