@@ -9,11 +9,11 @@ The check asks the question against a model that could hold the missing physics 
 model with a generic force on slider B, any piecewise-linear function of the slider's speed plus one of its
 position (:data:`toggle_id.effects.GENERIC_FORCE`; the knots span the range the record covers, so the
 force is a non-parametric stand-in for every friction, drag, load or spring acting there). If the judge finds
-that force significant (prewhitened F-test, BIC, out of sample, and the validation record when given), every
-accepted effect is taken out of the model with the generic force in turn: one whose removal the judge does not
-find significant — or that keeps less than ``explain_fraction`` of the error reduction it brings to the final
-model (a least-squares polish converges only so far, and the F-test on thousands of samples finds a 0.1 % gap)
-— does nothing the generic force does not do, and is listed as *compensating*, never as added.
+that force significant (prewhitened F-test and BIC, and the validation record when given; see :data:`SUPPORT`),
+every accepted effect is taken out of the model with the generic force in turn: one whose removal the same checks do
+not find significant — or that keeps less than ``catch_all_keep`` (10 %) of the error reduction it brings to the
+final model (a least-squares polish converges only so far, and an F-test on thousands of samples finds a 0.1 %
+gap) — does nothing the generic force does not do, and is listed as *compensating*, never as added.
 An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
 the generic force explains nothing more — the missing physics is then not a force on slider B, and the check
 decides nothing. The generic force is never part of the reported model.
@@ -34,6 +34,16 @@ from .validation import Judge
 #: The fitted weights of the generic force (its knots are set from the record). g is held at 0 at its first knot:
 #: f and g each hold the constant, and a direction of the fit that changes nothing would slow it down.
 WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_FORCE.names if "_w" in nm and nm != "gx_w0")
+
+
+#: The judge's checks that decide whether the generic force is supported, and whether an effect is still needed
+#: beside it. Not the time-block cross-validation:
+#: the force's weights are determined by the few hundred samples in motion (on the experiment sweep ~110 of 5001),
+#: a 10-sample block takes out much of what fixes a knot, and the one-step refit of a fold then measures the
+#: basis's leverage, not the force (measured on the drag record of tests/test_catchall.py: in sample 1.369 →
+#: 0.9989 µm, out of sample 1.29e-8 → 3.65e-8 m², and 5.0e-9 m² with the refit truncated at the directions above
+#: 1e-4 of the largest). The force is never accepted: it only casts doubt on effects that were.
+SUPPORT: tuple[str, ...] = ("f_test", "bic", "validation_record")
 
 
 def knots_of(states: dict) -> dict[str, float]:
@@ -75,12 +85,15 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         generic = fit_free(model, best.theta, free, settings.baseline_nfev, settings.fd_rel_step,
                            rounds=settings.rounds)
     ev = judge.judge_pair(current, generic)
+    # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
+    # (see SUPPORT)
+    supported = all(ok for check, ok in ev.checks.items() if check in SUPPORT)
     report = {"knots": knots, "n_knots": N_GEN, "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
-              "evidence": ev.to_dict(), "supported": ev.passed, "effects": {}}
+              "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT), "effects": {}}
     say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms "
         f"{current.rmse(n) * 1e6:.4g} → {generic.rmse(n) * 1e6:.4g} µm, "
-        + ("supported" if ev.passed else "not supported (" + ev.reason + "); it decides nothing"))
-    if not ev.passed:
+        + ("supported" if supported else "not supported (" + ev.reason + "); it decides nothing"))
+    if not supported:
         return list(added), [], report
     kept, compensating = [], []
     for a in added:
@@ -90,13 +103,13 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         alone = a.get("_reduced") or without(current, a)
         gain = alone.sse - current.sse
         kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
-        needed = ev_a.passed and kept_fraction >= settings.explain_fraction
+        needed = all(ok for check, ok in ev_a.checks.items() if check in SUPPORT) and \
+            kept_fraction >= settings.catch_all_keep
         report["effects"][a["name"]] = {"rmse_without_m": small.rmse(n), "rmse_final_without_m": alone.rmse(n),
                                         "kept_fraction": kept_fraction, "evidence": ev_a.to_dict(),
                                         "needed": needed}
-        say(f"  without {a['name']}: rms {small.rmse(n) * 1e6:.4g} µm ({kept_fraction:.1%} of what it explains "
-            f"without the generic force) → " + ("still needed" if needed else "not needed" + (
-                f" ({ev_a.reason})" if not ev_a.passed else "")))
+        say(f"  without {a['name']}: rms {small.rmse(n) * 1e6:.4g} µm (it keeps {kept_fraction:.1%} of what it "
+            f"explains without the generic force; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
         if needed:
             kept.append(a)
         else:

@@ -49,7 +49,9 @@ class DiscoverSettings:
       energy of the model without it (:func:`.localise.structure_energy`: it explains most of what it was added
       for); otherwise it is compensating. catch_all: when structure is left, fit a generic force on slider B
       (any piecewise-linear function of its speed and position) on top of the final model; if it is supported,
-      an accepted effect it makes unnecessary is compensating, not added (:mod:`.catchall`).
+      an accepted effect it makes unnecessary is compensating, not added (:mod:`.catchall`). catch_all_keep: an
+      effect is still needed beside that force if its removal is significant in sample and costs at least this
+      fraction of the error reduction it brings to the final model.
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added).
@@ -88,6 +90,7 @@ class DiscoverSettings:
     backward: bool = True
     explain_fraction: float = 0.5
     catch_all: bool = True
+    catch_all_keep: float = 0.1
     ambiguity_alpha: float = 0.05
 
     def validate(self) -> DiscoverSettings:
@@ -123,6 +126,9 @@ class DiscoverSettings:
             raise ConfigError(f"discover.cv_folds must be an integer ≥ 2, got {self.cv_folds!r}")
         if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
             raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
+        if not (isinstance(self.catch_all_keep, (int, float)) and not isinstance(self.catch_all_keep, bool)
+                and 0.0 <= float(self.catch_all_keep) < 1.0):
+            raise ConfigError(f"discover.catch_all_keep must lie in [0, 1), got {self.catch_all_keep!r}")
         if not (isinstance(self.ambiguity_alpha, (int, float)) and not isinstance(self.ambiguity_alpha, bool)
                 and 0.0 <= float(self.ambiguity_alpha) < 1.0):
             raise ConfigError(f"discover.ambiguity_alpha must lie in [0, 1), got {self.ambiguity_alpha!r}")
