@@ -4,6 +4,7 @@ is tested against the library forces it can take the shape of in tests/test_kern
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -122,6 +123,29 @@ def test_an_unsupported_generic_force_decides_nothing(monkeypatch):
     assert [a["name"] for a in kept] == ["constant_load_force", "cogging_torque"] and comp == []
     assert not report["supported"] and report["effects"] == {}
     assert "decides nothing" in said[0]
+
+
+def test_the_report_gives_the_forces_shape_its_figure_and_a_sentence_of_the_conclusion(monkeypatch, tmp_path):
+    from toggle_id import figures
+    from toggle_id.discovery.report import _conclusion
+
+    _, comp, report, _ = _run(monkeypatch, 2.0, {"constant_load_force": 2.1, "cogging_torque": 9.0},
+                              {"constant_load_force": 30.0, "cogging_torque": 16.0})
+    sh = report["shape"]
+    assert sh["x_m"][0] == pytest.approx(0.02) and sh["x_m"][-1] == pytest.approx(0.07) and len(sh["g_N"]) == K.N_GEN
+    th = extend(ASSIGNED)[0]
+    th[ALL_INDEX["gv_lo"]], th[ALL_INDEX["gv_hi"]] = -0.1, 0.8
+    th[K.GV_W0:K.GV_W0 + K.N_GEN] = np.arange(K.N_GEN)
+    got = catchall.shape_of(th)
+    assert got["f_N"] == list(range(K.N_GEN)) and got["v_m_s"][-1] == pytest.approx(0.8)
+    png = figures.save(catchall.figure(report), tmp_path / "catch_all.png")
+    assert Path(png).stat().st_size > 5000
+    before = {"rms_m": 3e-6}
+    after = {"rms_m": 1.3e-6, "verdict": {"structure_left": True}, "localisation": {"text": "a bump"}}
+    text = _conclusion([], before, after, True, DiscoverSettings(), comp, catch={**report, "rmse_m": 1.0e-6})
+    assert "force on slider B of unknown shape" in text and "1 µm" in text and "catch_all.png" in text
+    assert "unknown shape" not in _conclusion([], before, after, True, DiscoverSettings(), comp,
+                                              catch={**report, "supported": False})
 
 
 def test_the_generic_force_is_no_library_effect_and_off_by_default():

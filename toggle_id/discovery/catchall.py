@@ -25,7 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..effects import EFFECTS_BY_NAME, GENERIC_FORCE
+from ..effects import ALL_INDEX, EFFECTS_BY_NAME, GENERIC_FORCE
 from ..kernels.slots import N_GEN
 from .model import Fit, Model, _off_values, _with, fit_free
 from .settings import DiscoverSettings
@@ -54,6 +54,39 @@ def knots_of(states: dict) -> dict[str, float]:
     if not (np.all(np.isfinite(v)) and np.all(np.isfinite(x))):
         raise ValueError("the plant states are not finite")
     return {"gv_lo": float(v.min()), "gv_hi": float(v.max()), "gx_lo": float(x.min()), "gx_hi": float(x.max())}
+
+
+def shape_of(theta: np.ndarray) -> dict[str, list[float]]:
+    """The generic force of ``theta`` at its knots: speeds ``v_m_s`` and f (N), positions ``x_m`` and g (N); f is
+    fixed only up to a constant that g (held at 0 at its first knot) and any constant slider force of the model
+    share with it."""
+    th = np.asarray(theta, float)
+    v = np.linspace(th[ALL_INDEX["gv_lo"]], th[ALL_INDEX["gv_hi"]], N_GEN)
+    x = np.linspace(th[ALL_INDEX["gx_lo"]], th[ALL_INDEX["gx_hi"]], N_GEN)
+    f = [float(th[ALL_INDEX[f"gv_w{k}"]]) for k in range(N_GEN)]
+    g = [float(th[ALL_INDEX[f"gx_w{k}"]]) for k in range(N_GEN)]
+    return {"v_m_s": v.tolist(), "f_N": f, "x_m": x.tolist(), "g_N": g}
+
+
+def figure(report: dict, title: str | None = None):
+    """The fitted generic force: f against slider B's speed and g against its position, at the knots (a
+    matplotlib Figure)."""
+    from ..figures import _finish, _new_figure
+
+    sh = report["shape"]
+    fig, (a1, a2) = _new_figure(1, 2, height=3.4, width=9.0)
+    a1.plot(np.asarray(sh["v_m_s"]) * 1e3, sh["f_N"], "o-")
+    a1.set_xlabel("slider B speed ẋ_B (mm/s)")
+    a1.set_ylabel("f(ẋ_B) (N, opposes closing)")
+    a2.plot(np.asarray(sh["x_m"]) * 1e3, sh["g_N"], "o-", color="tab:orange")
+    a2.set_xlabel("slider B position x_B (mm)")
+    a2.set_ylabel("g(x_B) (N)")
+    for ax in (a1, a2):
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        ax.grid(alpha=0.3)
+    return _finish(fig, title or f"The force on slider B the model lacks, as a generic force fits it: rms "
+                              f"{report['rmse_before_m'] * 1e6:.4g} → {report['rmse_m'] * 1e6:.4g} µm "
+                              "(f up to a constant shared with g and any constant load)")
 
 
 def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
@@ -89,7 +122,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     # (see SUPPORT)
     supported = all(ok for check, ok in ev.checks.items() if check in SUPPORT)
     report = {"knots": knots, "n_knots": N_GEN, "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
-              "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT), "effects": {}}
+              "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
+              "shape": shape_of(generic.theta), "effects": {}}
     say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms "
         f"{current.rmse(n) * 1e6:.4g} → {generic.rmse(n) * 1e6:.4g} µm, "
         + ("supported" if supported else "not supported (" + ev.reason + "); it decides nothing"))

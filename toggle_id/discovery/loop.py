@@ -204,7 +204,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     if predicted is not None and predicted.get("structure_left"):
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
-                             ambiguous)
+                             ambiguous, catch_report)
     extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after},
              "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,

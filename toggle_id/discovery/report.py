@@ -72,7 +72,8 @@ class DiscoveryResult:
 
 
 def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings,
-                compensating: list[dict] = (), predicted: dict | None = None, ambiguous: list[dict] = ()) -> str:
+                compensating: list[dict] = (), predicted: dict | None = None, ambiguous: list[dict] = (),
+                catch: dict | None = None) -> str:
     """A few plain sentences on what was found, what only compensates, and what is left."""
     def noise(d: dict) -> str:
         nm = d.get("noise_model") or {}
@@ -104,6 +105,10 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                  f" (noise model {noise(after)}).")
     else:
         text += f" The residual is consistent with {noise(after)} noise independent of the states and the input."
+    if catch and catch.get("supported"):
+        text += (f" A force on slider B of unknown shape (generic, piecewise linear in its speed and position) takes "
+                 f"the error to {catch['rmse_m'] * 1e6:.4g} µm: what is missing acts like a force on the slider "
+                 "(its fitted shape: catch_all.png).")
     if predicted is not None and predicted.get("structure_left"):
         text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "
                  f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm; {predicted.get('text', '')}): the model "
@@ -144,6 +149,11 @@ def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings:
         fig = localisation_figure(loc, r, signals_of(record.t, record.v_in, states),
                                   title=f"Where the residual concentrates ({label}): {loc['text']}")
         out.append(figures.save(fig, run_dir / f"localisation_{label}.png"))
+    catch = res.extra.get("catch_all")
+    if catch and catch.get("supported"):
+        from .catchall import figure as catch_figure
+
+        out.append(figures.save(catch_figure(catch), run_dir / "catch_all.png"))
     if np.all(np.isfinite(res.residual_before)) and np.all(np.isfinite(res.residual_after)):
         names = ", ".join(a["name"] for a in res.effects_added) or "no effect added"
         fig = R.comparison_figure(record.t, {"before (nominal)": res.residual_before, f"after ({names})":

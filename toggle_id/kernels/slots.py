@@ -11,8 +11,8 @@ TAU_C, F_S, V_S, C_B, TAU_D, B_L, A_COG, N_COG, PHI_COG, F_LOAD, K3, S_SAT, X_OF
 # the generic slider force of the discovery loop's catch-all check (not a library effect): piecewise-linear
 # functions of slider B's speed and position on N_GEN uniform knots from *_LO to *_HI, weights *_W0 … (N)
 N_GEN = 10
-GV_LO, GV_HI = 29, 30
-GV_W0 = 31
+GV_LO, GV_HI = C_KT + 1, C_KT + 2
+GV_W0 = GV_HI + 1
 GX_LO, GX_HI = GV_W0 + N_GEN, GV_W0 + N_GEN + 1
 GX_W0 = GX_HI + 1
 N_THETA = GX_W0 + N_GEN
