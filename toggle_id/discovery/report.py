@@ -107,8 +107,8 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
         text += f" The residual is consistent with {noise(after)} noise independent of the states and the input."
     if catch and catch.get("supported"):
         text += (f" A force on slider B of unknown shape (generic, piecewise linear in its speed and position) takes "
-                 f"the error to {catch['rmse_m'] * 1e6:.4g} µm: what is missing acts like a force on the slider "
-                 "(its fitted shape: catch_all.png).")
+                 f"the error to {catch['rmse_m'] * 1e6:.4g} µm: what is missing acts, at least in part, like a force "
+                 "on the slider (its fitted shape: catch_all.png).")
     if predicted is not None and predicted.get("structure_left"):
         text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "
                  f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm; {predicted.get('text', '')}): the model "
