@@ -132,6 +132,9 @@ GENERIC_FORCE = Effect(
     # moves x_B well above the integrator's error
     tuple({f"{p}_w{k}": 100.0} for p in ("gv", "gx") for k in range(K.N_GEN)))
 
+#: Every term of the extended parameter vector beyond the 15 physical parameters: the library, then the generic force.
+TERMS: tuple[Effect, ...] = EFFECTS + (GENERIC_FORCE,)
+
 #: Names of the library effects' parameters (kernel order); the extended parameter vector holds the 15 physical
 #: ones, then these, then the generic force's (which no report lists: it is never part of a reported model).
 EXTRA_NAMES: tuple[str, ...] = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a_cog", "n_cog", "phi_cog",
@@ -139,13 +142,13 @@ EXTRA_NAMES: tuple[str, ...] = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a
 ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES + GENERIC_FORCE.names
 ALL_INDEX: dict[str, int] = {n: i for i, n in enumerate(ALL_NAMES)}
 assert len(ALL_NAMES) == K.N_THETA
-for _e in EFFECTS + (GENERIC_FORCE,):
+for _e in TERMS:
     for _p in _e.params:
         assert ALL_INDEX[_p.name] == _p.slot, _p
 
 #: Values of the effect parameters in the nominal model (all effects off; nuisance ones at their defaults).
 EXTRA_DEFAULTS = np.zeros(K.N_THETA - N_PARAMS)
-for _e in EFFECTS + (GENERIC_FORCE,):
+for _e in TERMS:
     for _p in _e.params:
         EXTRA_DEFAULTS[_p.slot - N_PARAMS] = _p.off
 
@@ -159,5 +162,5 @@ def effect(name: str) -> Effect:
 
 def effect_bounds(names) -> tuple[np.ndarray, np.ndarray]:
     """Feasible domain of extended (effect) parameter names."""
-    lookup = {p.name: p for e in EFFECTS + (GENERIC_FORCE,) for p in e.params}
+    lookup = {p.name: p for e in TERMS for p in e.params}
     return (np.array([lookup[n].lower for n in names], float), np.array([lookup[n].upper for n in names], float))

@@ -46,6 +46,11 @@ WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_FORCE.names if "_w" in nm 
 SUPPORT: tuple[str, ...] = ("f_test", "bic", "validation_record")
 
 
+def _supports(ev) -> bool:
+    """Whether the judge's evidence ``ev`` passes the checks of :data:`SUPPORT` it ran."""
+    return all(ok for check, ok in ev.checks.items() if check in SUPPORT)
+
+
 def knots_of(states: dict) -> dict[str, float]:
     """The knot ranges of the generic force from a model's plant states: slider B's speed and position, each from
     its smallest to its largest value on the record."""
@@ -120,7 +125,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     ev = judge.judge_pair(current, generic)
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)
-    supported = all(ok for check, ok in ev.checks.items() if check in SUPPORT)
+    supported = _supports(ev)
     report = {"knots": knots, "n_knots": N_GEN, "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
               "shape": shape_of(generic.theta), "effects": {}}
@@ -137,8 +142,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         alone = a.get("_reduced") or without(current, a)
         gain = alone.sse - current.sse
         kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
-        needed = all(ok for check, ok in ev_a.checks.items() if check in SUPPORT) and \
-            kept_fraction >= settings.catch_all_keep
+        needed = _supports(ev_a) and kept_fraction >= settings.catch_all_keep
         report["effects"][a["name"]] = {"rmse_without_m": small.rmse(n), "rmse_final_without_m": alone.rmse(n),
                                         "kept_fraction": kept_fraction, "evidence": ev_a.to_dict(),
                                         "needed": needed}

@@ -138,13 +138,18 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         # and if it does something a force of unknown shape on slider B would not (the catch-all check)
         e_with = structure_energy_of(model, r_after, states_after, settings)
         all_added = list(added)
+
+        def without(fit: Fit, a: dict) -> Fit:
+            return _without(model, fit, a["name"], all_added, held, settings)
+
+        for a in added:  # the final model without each effect (backward elimination has most): both rules use it
+            if a.get("_reduced") is None:
+                a["_reduced"] = without(current, a)
         added, compensating = split_explaining(
-            added, e_with, lambda a: residual_structure_energy(model, (a.get("_reduced") or _without(
-                model, current, a["name"], all_added, held, settings)).theta, settings), settings.explain_fraction)
+            added, e_with, lambda a: residual_structure_energy(model, a["_reduced"].theta, settings),
+            settings.explain_fraction)
         if added and settings.catch_all and states_after:
-            added, more, catch_report = catch_all(
-                model, judge, current, added, states_after,
-                lambda fit, a: _without(model, fit, a["name"], all_added, held, settings), settings, say)
+            added, more, catch_report = catch_all(model, judge, current, added, states_after, without, settings, say)
             compensating += more
         if compensating:
             demoted = [c["name"] for c in compensating]

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from .. import params as P
-from ..effects import ALL_INDEX, EFFECTS, GENERIC_FORCE, Effect
+from ..effects import ALL_INDEX, EFFECTS, TERMS, Effect
 from ..errors import ConfigError, DataError
 from ..identify import stage_bounds
 from ..polish import polish
@@ -101,7 +101,7 @@ def _typical(names: Sequence[str], theta: np.ndarray) -> np.ndarray:
     """A typical magnitude per parameter: |value|, or for an effect parameter at 0 its probe size."""
     out = np.abs(np.array([theta[ALL_INDEX[n]] for n in names], float))
     probe_size: dict[str, float] = {}
-    for e in EFFECTS + (GENERIC_FORCE,):
+    for e in TERMS:
         for pr in e.probe:
             for k, v in pr.items():
                 off = next(p.off for p in e.params if p.name == k)
