@@ -89,9 +89,9 @@ def figure(report: dict, title: str | None = None):
     for ax in (a1, a2):
         ax.axhline(0.0, color="0.6", lw=0.8)
         ax.grid(alpha=0.3)
-    return _finish(fig, title or f"The force on slider B the model lacks, as a generic force fits it: rms "
-                              f"{report['rmse_before_m'] * 1e6:.4g} → {report['rmse_m'] * 1e6:.4g} µm "
-                              "(f up to a constant shared with g and any constant load)")
+    return _finish(fig, title or f"A generic force on slider B on top of the final model: rms "
+                              f"{report['rmse_before_m'] * 1e6:.4g} → {report['rmse_m'] * 1e6:.4g} µm\n"
+                              "(fitted beside the model's effects: f up to a constant shared with g and any load)")
 
 
 def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
