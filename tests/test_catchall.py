@@ -176,7 +176,7 @@ def test_on_the_plant_a_load_force_standing_in_for_a_drag_is_compensating_and_a_
     x, _, _ = simulate_outside(truth, rec, Outside(drag=1958.6))  # the adversarial set's rec22 magnitude
     rec.x_B = x + offset + 1e-6 * rng.standard_normal(rec.n)
     s = DiscoverSettings().validate()
-    model = Model(rec, PRECISE, s.parallel)
+    model = Model(rec, PRECISE, s.parallel, jacobian=s.jacobian)
     added = [{"name": "constant_load_force"}] + ([{"name": "sensor_offset"}] if offset else [])
     free = tuple(nm for nm in PARAM_NAMES if nm not in ("K_l", "K_i", "m_C")) + tuple(
         nm for a in added for nm in EFFECTS_BY_NAME[a["name"]].names)

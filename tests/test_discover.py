@@ -59,7 +59,7 @@ def test_settings_validate_and_reject_bad_values():
     for bad, needle in [({"top_k": 0}, "top_k"), ({"alpha": 1.5}, "alpha"), ({"candidates": ["nope"]}, "nope"),
                         ({"bogus": 1}, "bogus"), ({"max_effects": -1}, "max_effects"),
                         ({"noise_std": -1.0}, "noise_std"), ({"catch_all_keep": 1.0}, "catch_all_keep"),
-                        ({"catch_all": "yes"}, "catch_all")]:
+                        ({"catch_all": "yes"}, "catch_all"), ({"fd_tier": "loose"}, "fd_tier")]:
         with pytest.raises(ConfigError, match=needle):
             D.DiscoverSettings.from_dict(bad)
     with pytest.raises(ConfigError, match="nominal"):

@@ -215,3 +215,13 @@ def test_the_discovery_loops_run_with_one_blas_thread():
     assert blas_threads() == before
     for loop in (discover, run_emps_loop):
         assert loop.__wrapped__ is not None and "record" in loop.__doc__
+
+
+@pytest.mark.parametrize("node, needle", [({"fd_tier": "loose"}, "polish.fd_tier"), ({"n_starts": 0}, "n_starts"),
+                                          ({"bogus": 1}, "bogus")])
+def test_polish_settings_reject_bad_values_in_one_line(node, needle):
+    from toggle_id.app.common import polish_settings
+
+    with pytest.raises(ConfigError, match=needle):
+        polish_settings({"polish": node})
+    assert polish_settings({"polish": {"fd_tier": "precise"}}).jacobian[1] == 1e-6

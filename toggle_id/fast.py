@@ -87,14 +87,18 @@ class FastSettings:
 
 
 def successive_halving(problem: FitProblem, starts: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                       settings: FastSettings, tier: SolverSettings = FAST) -> tuple[list[np.ndarray], dict]:
+                       settings: FastSettings, tier: SolverSettings = FAST,
+                       precise_jac: tuple[SolverSettings, float] | None = None) -> tuple[list[np.ndarray], dict]:
     """Multistart bounded least squares on ``problem`` from the rows of ``starts`` (see the module docstring).
-    Returns the PRECISE polishes of the finalists, best first, and a record of the rounds."""
+    Returns the PRECISE polishes of the finalists, best first, and a record of the rounds. ``precise_jac``: the
+    integrator and relative step of the PRECISE polishes' Jacobians (:attr:`PolishSettings.jacobian`; default
+    PRECISE at ``settings.fd_rel_step``)."""
     def resid(t: SolverSettings) -> Callable[[np.ndarray], np.ndarray]:
         return lambda x: problem.residuals(x[None, :], t)[0]
 
     def jac(t: SolverSettings) -> Callable[[np.ndarray], np.ndarray]:
-        return lambda x: batched_jacobian(problem, x, settings.fd_rel_step, t)
+        jt, step = precise_jac if t is PRECISE and precise_jac is not None else (t, settings.fd_rel_step)
+        return lambda x: batched_jacobian(problem, x, step, jt)
 
     alive = [np.clip(np.asarray(s, float), lower, upper) for s in starts]
     budget = settings.first_nfev
@@ -161,7 +165,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         t0, n0 = time.perf_counter(), simulations_run()
         starts = _draw(rng, k, lo, hi, centre=problem.x0() if name == "stage2" else None)
         halving = fast if name != plan[0][0] else dataclasses.replace(fast, finalists=max(fast.finalists, n_paths))
-        finals, info = successive_halving(problem, starts, lo, hi, halving, settings)
+        finals, info = successive_halving(problem, starts, lo, hi, halving, settings, polish_settings.jacobian)
         x = finals[0]
         sse = float(problem.sse(x[None, :], PRECISE)[0])
         st = StageResult(name=name, free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],

@@ -94,7 +94,8 @@ def polish_stage(problem: FitProblem | JointProblem, ga: RGA, lower: np.ndarray,
             if not any(np.allclose(last[i], s) for s in starts):
                 starts.append(last[i])
     resid = lambda x: problem.residuals(x[None, :], PRECISE)[0]  # noqa: E731
-    jac = lambda x: batched_jacobian(problem, x, cfg.fd_rel_step, PRECISE)  # noqa: E731
+    tier, step = cfg.jacobian
+    jac = lambda x: batched_jacobian(problem, x, step, tier)  # noqa: E731
     res = polish_many(resid, np.array(starts), lower, upper, jac_fn=jac, max_nfev=cfg.max_nfev)
     info = {"improved": bool(res.improved), "sse_before": float(res.sse0), "sse_after": float(res.sse),
             "nfev": int(res.nfev), "start_index": int(getattr(res, "start_index", 0)), "message": str(res.message)}

@@ -88,7 +88,31 @@ PRECISE_STIFF = SolverSettings(rtol=1e-9, atol_q=1e-11, atol_w=1e-8, atol_i=1e-5
                                method="rodas4")
 PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=20_000,
                          method="dopri5", fallback=PRECISE_STIFF)
+#: Jacobian tier (the finite-difference Jacobians of the PRECISE polishes, beside PRECISE residuals): DOPRI5 100×
+#: looser than PRECISE, about half its cost; with :data:`JACOBIAN_REL_STEP` its forward differences stay within
+#: ~2 % of PRECISE central differences on every column (1e-4 steps: up to 10 %, step-selection jitter). A
+#: trust-region step needs no more; residuals, statistics and sensitivities stay PRECISE.
+JACOBIAN_STIFF = SolverSettings(rtol=1e-7, atol_q=1e-9, atol_w=1e-6, atol_i=1e-3, hmax=2e-3, max_steps=500_000,
+                                method="rodas4")
+JACOBIAN = SolverSettings(rtol=1e-8, atol_q=1e-10, atol_w=1e-7, atol_i=1e-4, hmax=2e-3, max_steps=20_000,
+                          method="dopri5", fallback=JACOBIAN_STIFF)
+#: relative forward-difference step of a Jacobian in the :data:`JACOBIAN` tier
+JACOBIAN_REL_STEP = 1e-3
 TIERS = {"fast": FAST, "precise": PRECISE}
+
+#: The integrators a PRECISE polish's finite-difference Jacobian may use (``fd_tier`` of the polish and discovery
+#: settings): ``jacobian`` (:data:`JACOBIAN` at :data:`JACOBIAN_REL_STEP`) or ``precise`` (the residuals' own tier,
+#: at the settings' ``fd_rel_step``).
+FD_TIERS = ("jacobian", "precise")
+
+
+def precise_jacobian(fd_tier: str, fd_rel_step: float) -> tuple[SolverSettings, float]:
+    """The integrator and relative step of a PRECISE polish's finite-difference Jacobian (see :data:`FD_TIERS`)."""
+    if fd_tier == "jacobian":
+        return JACOBIAN, JACOBIAN_REL_STEP
+    if fd_tier == "precise":
+        return PRECISE, fd_rel_step
+    raise ConfigError(f"fd_tier must be one of {', '.join(FD_TIERS)}, got {fd_tier!r}")
 
 
 @dataclass

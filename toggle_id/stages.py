@@ -23,7 +23,7 @@ from .problem import FitProblem, joint
 from .record import Record
 from .results import IdentificationResult, StageResult
 from .sensitivity import batched_jacobian, identifiability_report
-from .simulate import FAST, PRECISE, STATUS_OK, SolverSettings, simulate, simulations_run
+from .simulate import FAST, PRECISE, STATUS_OK, SolverSettings, precise_jacobian, simulate, simulations_run
 
 
 METHODS = ("one_stage", "two_stage", "fast")  # fast: multistart least squares in the two stages (toggle_id/fast.py)
@@ -36,8 +36,15 @@ class PolishSettings:
     enabled: bool = True
     n_starts: int = 3          # the GA's best distinct individuals to start from
     max_nfev: int = 60         # residual evaluations per start (finite-difference Jacobians counted apart)
-    fd_rel_step: float = 1e-6  # relative finite-difference step of the Jacobian (PRECISE simulations)
+    fd_rel_step: float = 1e-6  # relative finite-difference step of the Jacobian in the residuals' own tier
+    fd_tier: str = "jacobian"  # a PRECISE polish's Jacobian: jacobian (simulate.JACOBIAN, 1e-3 step, half the cost)
+    #                            or precise (PRECISE itself, at fd_rel_step)
     final_joint: bool = True   # two-stage: finish with a polish of all free parameters on the whole record
+
+    @property
+    def jacobian(self) -> tuple[SolverSettings, float]:
+        """The integrator and relative step of a PRECISE polish's finite-difference Jacobian (``fd_tier``)."""
+        return precise_jacobian(self.fd_tier, self.fd_rel_step)
 
 
 def stage_bounds(names: Sequence[str], overrides: Mapping[str, Sequence[float]] | None = None
@@ -156,7 +163,11 @@ def joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, setti
         return lambda x: problem.residuals(x[None, :], tier)[0]
 
     def jac(tier: SolverSettings):
-        return lambda x: batched_jacobian(problem, x, polish.fd_rel_step, tier)
+        if tier is PRECISE:
+            tier, step = polish.jacobian
+        else:
+            step = polish.fd_rel_step
+        return lambda x: batched_jacobian(problem, x, step, tier)
 
     start = x0
     if pre_tier is not None:

@@ -85,6 +85,10 @@ def polish_settings(cfg: Mapping) -> PolishSettings:
         raise ConfigError(f"polish: {err}") from err
     if ps.n_starts < 1 or ps.max_nfev < 1 or not ps.fd_rel_step > 0:
         raise ConfigError("polish: n_starts and max_nfev must be >= 1 and fd_rel_step > 0")
+    try:
+        ps.jacobian
+    except ConfigError as err:
+        raise ConfigError(f"polish.{err}") from err
     return ps
 
 

@@ -68,7 +68,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     settings = (settings or DiscoverSettings()).validate()
     say = progress or (lambda msg: log.info(msg))
     t_start = time.perf_counter()
-    model = Model(record, PRECISE, settings.parallel)
+    model = Model(record, PRECISE, settings.parallel, jacobian=settings.jacobian)
     judge = Judge(model, settings, validation)
     fixed = dict(fixed or {})
     for k in fixed:

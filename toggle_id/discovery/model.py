@@ -45,11 +45,15 @@ class Model:
     fell back, later batches with that set go to the fallback directly (:attr:`stiff`) — the same
     integrator the rows ended in, at about half the cost."""
 
-    def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True) -> None:
+    def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True,
+                 jacobian: tuple[SolverSettings, float] | None = None) -> None:
         if record.x_B is None:
             raise DataError(f"record {record.name!r} has no measured x_B to fit")
         self.record = record
         self.settings = settings
+        #: the integrator of the polishes' finite-difference Jacobians and of the screening grids (default
+        #: ``settings``, the residuals' own) and their relative step (None: each fit's ``fd_rel_step``)
+        self.jacobian, self.jacobian_step = jacobian if jacobian is not None else (settings, None)
         self.parallel = parallel
         self.n_sims = 0
         self.noise = WHITE_ASSUMED
@@ -60,29 +64,32 @@ class Model:
     def n(self) -> int:
         return self.record.n
 
-    def _settings_for(self, theta: np.ndarray) -> SolverSettings:
-        fb = self.settings.fallback
-        return fb if fb is not None and effects_on(theta) in self.stiff else self.settings
+    def _settings_for(self, theta: np.ndarray, tier: SolverSettings | None = None) -> SolverSettings:
+        tier = tier if tier is not None else self.settings
+        fb = tier.fallback
+        return fb if fb is not None and effects_on(theta) in self.stiff else tier
 
-    def outputs(self, thetas: np.ndarray) -> np.ndarray:
-        """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA); NaN rows for failures."""
+    def outputs(self, thetas: np.ndarray, tier: SolverSettings | None = None) -> np.ndarray:
+        """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA); NaN rows for failures. ``tier``:
+        the integrator settings (default :attr:`settings`; the stiff fallback once the effect set is known stiff)."""
         thetas = np.atleast_2d(thetas)
         self.n_sims += thetas.shape[0]
-        settings = self._settings_for(thetas[0])
+        tier = tier if tier is not None else self.settings
+        settings = self._settings_for(thetas[0], tier)
         res = simulate(thetas, self.record, settings, parallel=self.parallel and thetas.shape[0] > 1)
-        if settings is self.settings and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(thetas):
+        if settings is tier and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(thetas):
             self.stiff.add(effects_on(thetas[0]))
         x = res.x_B
         x[res.status != STATUS_OK] = np.nan
         return x
 
-    def residuals(self, thetas: np.ndarray) -> np.ndarray:
+    def residuals(self, thetas: np.ndarray, tier: SolverSettings | None = None) -> np.ndarray:
         """(P, N) measured − model [m]."""
-        return self.record.x_B[None, :] - self.outputs(thetas)
+        return self.record.x_B[None, :] - self.outputs(thetas, tier)
 
-    def fit_residuals(self, thetas: np.ndarray) -> np.ndarray:
+    def fit_residuals(self, thetas: np.ndarray, tier: SolverSettings | None = None) -> np.ndarray:
         """(P, N) residuals prewhitened by :attr:`noise` (what a fit minimises)."""
-        return self.noise.whiten(self.residuals(thetas))
+        return self.noise.whiten(self.residuals(thetas, tier))
 
     def response(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """x_B [m], i_q [A] and the status of one vector."""
@@ -276,13 +283,13 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
         return r
 
     def jac(x: np.ndarray) -> np.ndarray:
-        h = fd_rel_step * np.maximum(np.abs(x), typ)
+        h = (model.jacobian_step or fd_rel_step) * np.maximum(np.abs(x), typ)
         h = np.where(x + h > hi, -h, h)
         X = x[None, :] + np.diag(h)
-        if last and np.array_equal(last[0][0], x):
+        if model.jacobian is model.settings and last and np.array_equal(last[0][0], x):
             r0, Rr = last[0][1], model.fit_residuals(thetas_of(X))
-        else:
-            R = model.fit_residuals(thetas_of(np.vstack([x[None, :], X])))
+        else:  # the point itself in the Jacobian's tier too: both ends of every difference from one integrator
+            R = model.fit_residuals(thetas_of(np.vstack([x[None, :], X])), model.jacobian)
             r0, Rr = R[0], R[1:]
         return (Rr - r0).T / h
 

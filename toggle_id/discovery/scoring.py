@@ -176,7 +176,8 @@ def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Project
     sigma2 = ref / max(n - proj.rank, 1)
     if not rows:
         return Profile(effect.name, 0.0, {}, [], np.zeros((0, n)), [], 0, "no grid")
-    Rr = noise.whiten(model.residuals(np.array(rows)))
+    # a screening grid: in the Jacobian's tier (its ~1e-9-m integration error is ~1e-3 of a σ² in the score)
+    Rr = noise.whiten(model.residuals(np.array(rows), model.jacobian))
     ok = np.all(np.isfinite(Rr), axis=1)
     perp = np.full(len(rows), np.inf)
     if ok.any():

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..effects import EFFECTS_BY_NAME
 from ..errors import ConfigError
+from ..simulate import FD_TIERS, SolverSettings, precise_jacobian
 
 
 @dataclass
@@ -32,8 +33,11 @@ class DiscoverSettings:
     - hold_gauge: during the loop's polishes, hold one parameter per exact symmetry of x_B (K_l, K_i, m_C; see
       :data:`GAUGE_HELD`) at its value — the same fits without the flat directions that stall the trust region
       in long valleys; an effect that breaks a symmetry (``Effect.breaks``) frees its parameter again.
-    - fd_rel_step: relative forward-difference step of the polish Jacobian (1e-4: smaller steps drown in the
-      adaptive integrator's step-selection noise); jac_rel_step: (log-)step of the sensitivities J;
+    - fd_tier: the integrator of the polishes' finite-difference Jacobians: ``jacobian``
+      (:data:`toggle_id.simulate.JACOBIAN` at a 1e-3 step, DOPRI5 100× looser than the residuals' PRECISE tier,
+      about half the cost, columns within ~2 % of PRECISE central differences; the residuals, statistics and
+      sensitivities stay PRECISE, and the screening grids run in it too) or ``precise``, at fd_rel_step (1e-4:
+      smaller steps drown in the adaptive integrator's step-selection noise); jac_rel_step: (log-)step of the sensitivities J;
       rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
       as absorbed by the free parameters.
     - noise_std: known measurement noise (m), only reported as rms/noise (the discover job: None takes
@@ -76,6 +80,7 @@ class DiscoverSettings:
     gauge: bool = True
     hold_gauge: bool = True
     grid_points: int = 10
+    fd_tier: str = "jacobian"
     fd_rel_step: float = 1e-4
     jac_rel_step: float = 1e-4
     rank_rtol: float = 1e-7
@@ -92,6 +97,11 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     ambiguity_alpha: float = 0.05
+
+    @property
+    def jacobian(self) -> tuple[SolverSettings, float]:
+        """The integrator and relative step of the polishes' finite-difference Jacobians (``fd_tier``)."""
+        return precise_jacobian(self.fd_tier, self.fd_rel_step)
 
     def validate(self) -> DiscoverSettings:
         """Raise ConfigError naming the first bad value; normalise ``candidates``."""
@@ -119,6 +129,8 @@ class DiscoverSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0.0 < float(v) < 1.0):
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
+        if self.fd_tier not in FD_TIERS:
+            raise ConfigError(f"discover.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
         if not isinstance(self.noise_max_order, int) or isinstance(self.noise_max_order, bool) or \
                 self.noise_max_order < 0:
             raise ConfigError(f"discover.noise_max_order must be a non-negative integer, got {self.noise_max_order!r}")
