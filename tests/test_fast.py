@@ -55,7 +55,8 @@ def test_fast_is_deterministic(record):
     np.testing.assert_array_equal(a.theta, b.theta)
 
 
-@pytest.mark.parametrize("bad", [{"starts": 0}, {"keep": 1.0}, {"final_nfev": 2.5}, {"fd_rel_step": 0.0}])
+@pytest.mark.parametrize("bad", [{"starts": 0}, {"keep": 1.0}, {"final_nfev": 2.5}, {"fd_rel_step": 0.0},
+                                 {"fd_tier": "loose"}])
 def test_fast_settings_are_checked(bad):
     with pytest.raises(ConfigError, match="fast\\."):
         FastSettings(**bad).validate()

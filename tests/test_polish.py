@@ -224,4 +224,4 @@ def test_polish_settings_reject_bad_values_in_one_line(node, needle):
 
     with pytest.raises(ConfigError, match=needle):
         polish_settings({"polish": node})
-    assert polish_settings({"polish": {"fd_tier": "precise"}}).jacobian[1] == 1e-6
+    assert polish_settings({"polish": {}}).jacobian[1] == 1e-6  # the default: PRECISE at fd_rel_step

@@ -34,7 +34,7 @@ from .problem import FitProblem, joint
 from .record import Record
 from .results import IdentificationResult, StageResult
 from .sensitivity import batched_jacobian, identifiability_report
-from .simulate import FAST, PRECISE, SolverSettings, simulations_run
+from .simulate import FAST, PRECISE, SolverSettings, precise_jacobian, simulations_run
 from .stages import PolishSettings, joint_plan, joint_polish, stage_bounds, stage_problem, whole_record_result
 
 
@@ -59,9 +59,16 @@ class FastSettings:
     joint_prepolish: bool = True  # the joint polish on the GA's (fast) tier first, then on PRECISE ...
     joint_final_nfev: int = 15    # ... with this many evaluations
     fd_rel_step: float = 1e-6     # relative step of the forward-difference Jacobians
+    fd_tier: str = "jacobian"     # the finalists' PRECISE polishes' Jacobians: jacobian (simulate.JACOBIAN, 1e-3 step)
+    #                               or precise (PRECISE at fd_rel_step); the joint polish always PRECISE
     paths: int = 1                # stage 1's finalists carried through stage 2 and the joint polish ...
     paths_short: int = 4          # ... or this many (and as many finalists) when stage 1 has fewer than
     short_samples_per_param: float = 10.0  # this many samples per free parameter (an early clamp)
+
+    @property
+    def jacobian(self) -> tuple[SolverSettings, float]:
+        """The integrator and relative step of the finalists' PRECISE polishes' Jacobians (``fd_tier``)."""
+        return precise_jacobian(self.fd_tier, self.fd_rel_step)
 
     def validate(self) -> FastSettings:
         if self.route not in ("two_stage", "one_stage"):
@@ -77,6 +84,10 @@ class FastSettings:
             raise ConfigError(f"fast.keep must lie in (0, 1), got {self.keep!r}")
         if not 0.0 < float(self.fd_rel_step) < 0.1:
             raise ConfigError(f"fast.fd_rel_step must lie in (0, 0.1), got {self.fd_rel_step!r}")
+        try:
+            self.jacobian
+        except ConfigError as err:
+            raise ConfigError(f"fast.{err}") from err
         if self.paths > 1 and self.route != "two_stage":
             raise ConfigError(f"fast.paths > 1 needs route two_stage (the paths are stage 1's finalists), got "
                               f"route {self.route!r}")
@@ -91,7 +102,7 @@ def successive_halving(problem: FitProblem, starts: np.ndarray, lower: np.ndarra
                        precise_jac: tuple[SolverSettings, float] | None = None) -> tuple[list[np.ndarray], dict]:
     """Multistart bounded least squares on ``problem`` from the rows of ``starts`` (see the module docstring).
     Returns the PRECISE polishes of the finalists, best first, and a record of the rounds. ``precise_jac``: the
-    integrator and relative step of the PRECISE polishes' Jacobians (:attr:`PolishSettings.jacobian`; default
+    integrator and relative step of the PRECISE polishes' Jacobians (:attr:`FastSettings.jacobian`; default
     PRECISE at ``settings.fd_rel_step``)."""
     def resid(t: SolverSettings) -> Callable[[np.ndarray], np.ndarray]:
         return lambda x: problem.residuals(x[None, :], t)[0]
@@ -165,7 +176,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         t0, n0 = time.perf_counter(), simulations_run()
         starts = _draw(rng, k, lo, hi, centre=problem.x0() if name == "stage2" else None)
         halving = fast if name != plan[0][0] else dataclasses.replace(fast, finalists=max(fast.finalists, n_paths))
-        finals, info = successive_halving(problem, starts, lo, hi, halving, settings, polish_settings.jacobian)
+        finals, info = successive_halving(problem, starts, lo, hi, halving, settings, fast.jacobian)
         x = finals[0]
         sse = float(problem.sse(x[None, :], PRECISE)[0])
         st = StageResult(name=name, free=free, x=x, theta=problem.thetas(x[None, :])[0], window=windows[0],

@@ -37,8 +37,8 @@ class PolishSettings:
     n_starts: int = 3          # the GA's best distinct individuals to start from
     max_nfev: int = 60         # residual evaluations per start (finite-difference Jacobians counted apart)
     fd_rel_step: float = 1e-6  # relative finite-difference step of the Jacobian in the residuals' own tier
-    fd_tier: str = "jacobian"  # a PRECISE polish's Jacobian: jacobian (simulate.JACOBIAN, 1e-3 step, half the cost)
-    #                            or precise (PRECISE itself, at fd_rel_step)
+    fd_tier: str = "precise"   # a GA stage's PRECISE polish's Jacobian: precise (PRECISE, fd_rel_step) or jacobian
+    #                            (simulate.JACOBIAN, 1e-3 step, half the cost); the joint polish always PRECISE
     final_joint: bool = True   # two-stage: finish with a polish of all free parameters on the whole record
 
     @property
@@ -162,12 +162,8 @@ def joint_polish(records: Sequence[Record], plan: list, theta: np.ndarray, setti
     def resid(tier: SolverSettings):
         return lambda x: problem.residuals(x[None, :], tier)[0]
 
-    def jac(tier: SolverSettings):
-        if tier is PRECISE:
-            tier, step = polish.jacobian
-        else:
-            step = polish.fd_rel_step
-        return lambda x: batched_jacobian(problem, x, step, tier)
+    def jac(tier: SolverSettings):  # the identification's last word: PRECISE Jacobians whatever polish.fd_tier
+        return lambda x: batched_jacobian(problem, x, polish.fd_rel_step, tier)
 
     start = x0
     if pre_tier is not None:
