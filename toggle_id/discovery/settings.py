@@ -37,8 +37,8 @@ class DiscoverSettings:
       fd_rel_step (1e-4: smaller steps drown in the adaptive integrator's step-selection noise), or ``jacobian``
       (:data:`toggle_id.simulate.JACOBIAN` at a 1e-3 step, about half the cost, each polish finished by a PRECISE
       round, the screening grids in it too; residuals, statistics, sensitivities and scouts stay PRECISE) — ~20 %
-      faster, but it moved verdicts of the adversarial set (README), so it is not the default; jac_rel_step: (log-)step of the sensitivities J;
-      rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
+      faster, but it moved verdicts of the adversarial set (README), so it is not the default;
+      jac_rel_step: (log-)step of the sensitivities J; rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
       as absorbed by the free parameters.
     - noise_std: known measurement noise (m), only reported as rms/noise (the discover job: None takes
       ``data.noise_m`` of a simulated record); parallel: threaded simulation batches.
