@@ -193,8 +193,8 @@ def test_precise_tier_is_smooth_in_the_parameters():
 
 def test_jacobian_tier_forward_differences_match_precise_central_differences():
     """The JACOBIAN tier at its step gives each column of the x_B Jacobian (the 15 parameters, a 2-s sweep record
-    with its clamping) within 3 % of PRECISE central differences, at about half the PRECISE cost; the claim the
-    polishes rely on. The PRECISE tier's own forward differences at that step are the yardstick's scatter."""
+    with its clamping) within 3 % of PRECISE central differences: the claim the polishes rely on (its cost is a
+    benchmark's figure, README)."""
     rec = Record.from_sweep("simulation", 2.0)
     n = len(ASSIGNED)
 

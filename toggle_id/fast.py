@@ -34,7 +34,7 @@ from .problem import FitProblem, joint
 from .record import Record
 from .results import IdentificationResult, StageResult
 from .sensitivity import batched_jacobian, identifiability_report
-from .simulate import FAST, PRECISE, SolverSettings, precise_jacobian, simulations_run
+from .simulate import FAST, FD_TIERS, PRECISE, SolverSettings, precise_jacobian, simulations_run
 from .stages import PolishSettings, joint_plan, joint_polish, stage_bounds, stage_problem, whole_record_result
 
 
@@ -84,10 +84,8 @@ class FastSettings:
             raise ConfigError(f"fast.keep must lie in (0, 1), got {self.keep!r}")
         if not 0.0 < float(self.fd_rel_step) < 0.1:
             raise ConfigError(f"fast.fd_rel_step must lie in (0, 0.1), got {self.fd_rel_step!r}")
-        try:
-            self.jacobian
-        except ConfigError as err:
-            raise ConfigError(f"fast.{err}") from err
+        if self.fd_tier not in FD_TIERS:
+            raise ConfigError(f"fast.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
         if self.paths > 1 and self.route != "two_stage":
             raise ConfigError(f"fast.paths > 1 needs route two_stage (the paths are stage 1's finalists), got "
                               f"route {self.route!r}")
