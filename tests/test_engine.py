@@ -11,6 +11,7 @@ from toggle_id.discovery.engine import (
     explained_fraction,
     indistinguishable,
     reconsider_ties,
+    settle_ties_out_of_sample,
     split_explaining,
     tie_band,
 )
@@ -139,6 +140,41 @@ def test_a_tie_found_while_an_effect_was_missing_is_judged_again_on_the_final_mo
     assert set(resolved) == {"B", "C"} and resolved["B"]["vuong_final"]["z"] > 3
     assert resolved["B"]["swapped"] == {"fit": "B instead of A"}
     assert [r["name"] for r in c["indistinguishable_from"]] == ["E"] and "ties_resolved" not in c
+
+
+def test_a_tie_the_fitted_record_leaves_is_settled_by_the_record_it_was_not_fitted_on():
+    """On the validation record: A's model predicts it with white noise only, B in A's place leaves a structured
+    miss (A named, B resolved), D in A's place predicts it as well (still tied, with the test kept). For effect C
+    the rival E predicts it better: the item becomes E's (its own evidence, ``replaced`` naming C) and the model
+    with E is returned as the final model."""
+    rng = np.random.default_rng(5)
+    n = 5000
+    e = rng.standard_normal(n)
+    miss = np.sin(2 * np.pi * 3 * np.linspace(0.0, 1.0, n))
+    val = {"final": e + 0.3 * miss, "B instead of A": e + 0.6 * miss, "D instead of A": e + 0.3 * miss
+           + 0.01 * rng.standard_normal(n), "E instead of C": e}
+    added = [{"name": "A", "iteration": 1, "F": 50.0, "indistinguishable_from": [{"name": "B"}, {"name": "D"}]},
+             {"name": "C", "iteration": 2, "F": 40.0, "evidence": {"of": "C"},
+              "indistinguishable_from": [{"name": "E", "F": 39.0, "evidence": {"of": "E"}, "params": {"e": 1.0}}]}]
+
+    def swap(current, a, rival):
+        return f"{rival['name']} instead of {a['name']}"
+
+    final = settle_ties_out_of_sample("final", added, swap, val.__getitem__, lambda fit: 7, lambda fit: {"fit": fit},
+                                      noise_max_order=8, alpha=0.05, say=lambda msg: None)
+    a, c = added
+    assert [r["name"] for r in a["indistinguishable_from"]] == ["D"]
+    assert a["indistinguishable_from"][0]["vuong_validation"]["tied"]
+    assert [r["name"] for r in a["ties_resolved"]] == ["B"] and "A predicts" in a["ties_resolved"][0]["reason"]
+    assert final == "E instead of C"
+    assert c["name"] == "E" and c["F"] == 39.0 and c["evidence"] == {"of": "E"} and c["params_at_acceptance"] == {"e": 1.0}
+    assert c["replaced"]["name"] == "C" and c["replaced"]["evidence"] == {"of": "C"}
+    assert c["indistinguishable_from"] == [] and [r["name"] for r in c["ties_resolved"]] == ["C"]
+    # nothing to settle: the model and the items are left as they were
+    untouched = [{"name": "A", "iteration": 1}]
+    assert settle_ties_out_of_sample("m", untouched, swap, val.__getitem__, lambda fit: 7, lambda fit: {},
+                                     noise_max_order=8, alpha=0.05, say=lambda msg: None) == "m"
+    assert untouched == [{"name": "A", "iteration": 1}]
 
 
 def test_the_tie_band_follows_the_level_and_is_off_at_zero():

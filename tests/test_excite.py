@@ -20,9 +20,10 @@ from toggle_id.effects import ALL_INDEX
 from toggle_id.errors import ConfigError
 from toggle_id.excite import (FAMILY_PARAMS, Candidate, ExciteSettings, Rival, Scorer, candidate_record,
                               clamp_check, input_signal, linear_separation, refit_separation, search, spectrum)
-from toggle_id.excite.rivals import FREE_B
+from toggle_id.excite.rivals import FREE_B, effect_rival, specs_from_discovery
 from toggle_id.excite.score import responses
 from toggle_id.excite.search import resolved_sv
+from toggle_id.excite.settings import RivalSpec
 from toggle_id.params import ASSIGNED
 from toggle_id.record import Record
 from toggle_id.simulate import PRECISE, extend, simulate
@@ -47,10 +48,34 @@ def test_settings_validate_and_reject_bad_values_in_one_line():
                         ({"rivals": [{"effect": "warp"}]}, "warp"),
                         ({"rivals": [{"effect": "coulomb_friction_motor", "params": {"tau_c": 0.0}}]}, "magnitude"),
                         ({"rivals": [{"effect": "coulomb_friction_motor", "params": {"tau_c": 99.0}}]}, "domain"),
-                        ({"rivals": ["coulomb_friction_motor"]}, "magnitude"), ({"duration": 0.01}, "samples")]:
+                        ({"rivals": ["coulomb_friction_motor"]}, "magnitude"), ({"duration": 0.01}, "samples"),
+                        ({"rivals": [{"effect": "coulomb_friction_motor", "params": {"tau_c": 0.3},
+                                      "against": {"effect": "coulomb_friction_motor", "params": {"tau_c": 0.1}}}]},
+                         "its own rival"),
+                        ({"rivals": [{"effect": "coulomb_friction_motor", "params": {"tau_c": 0.3},
+                                      "against": {"effect": "sensor_offset", "params": {}}}]}, "against.*magnitude")]:
         with pytest.raises(ConfigError, match=needle) as err:
             ExciteSettings.from_dict(bad)
         assert "\n" not in str(err.value)
+
+
+def test_a_pair_of_effects_is_one_rival_and_a_discovery_gives_its_ambiguous_pairs(tmp_path):
+    s = ExciteSettings.from_dict({"rivals": [{"effect": "torque_constant_saturation", "params": {"c_kt": 3e-7},
+                                              "against": {"effect": "contact_nonlinear_stiffness",
+                                                          "params": {"k3": 1e12}, "against": None}}]})
+    r = s.rivals[0]
+    assert r.against.effect == "contact_nonlinear_stiffness" and r.against.params == {"k3": 1e12}
+    assert r.key == "torque_constant_saturation_vs_contact_nonlinear_stiffness"
+    disc = {"effects_added": [{"name": "sensor_offset", "params": {"x_off": 1e-4}}], "compensating": [],
+            "ambiguous": [{"name": "torque_constant_saturation", "params": {"c_kt": 3e-7},
+                           "indistinguishable_from": [{"name": "contact_nonlinear_stiffness", "params": {"k3": 2e12}},
+                                                      {"name": "warp_drive", "params": {"w": 1.0}}]}]}
+    (tmp_path / "discovery.json").write_text(json.dumps(disc))
+    specs = specs_from_discovery(tmp_path / "discovery.json")
+    assert [(sp.key, sp.params) for sp in specs] == [
+        ("sensor_offset", {"x_off": 1e-4}),
+        ("torque_constant_saturation_vs_contact_nonlinear_stiffness", {"c_kt": 3e-7})]
+    assert specs[1].against.params == {"k3": 2e12}
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -105,6 +130,30 @@ def test_a_large_torque_the_nominal_model_cannot_absorb_is_separated():
     assert 10e-6 < out["separation_m"] <= raw and 10e-6 < lin <= raw
     # what is left is what the refitted B really leaves
     assert out["separation_m"] == pytest.approx(float(np.sqrt(np.mean((y[0] - out["y_b_refit"]) ** 2))))
+
+
+def test_a_pair_rival_lets_the_refit_move_the_other_effect():
+    """Rival A: a cubic contact stiffness; rival B: the nominal model with a motor Coulomb torque instead. B is
+    built by refitting its nominal parameters with the torque on, and B's refits may move the torque: what they
+    leave is at most what a B with the torque held leaves (the same starts, one more free parameter)."""
+    rec = short_record()
+    theta_a = THETA.copy()
+    theta_a[ALL_INDEX["k3"]] = 3e13
+    y, _ = responses(rec, theta_a)
+    data = Record(t=rec.t, v_in=rec.v_in, x_B=y[0], sweep=rec.sweep, x_B0=rec.x_B0, name="k3")
+    spec = RivalSpec("contact_nonlinear_stiffness", {"k3": 3e13},
+                     against=RivalSpec("coulomb_friction_motor", {"tau_c": 0.5}))
+    rival = effect_rival(data, THETA, spec, max_nfev=4, rounds=1)
+    assert rival.name == "contact_nonlinear_stiffness vs coulomb_friction_motor" and rival.against == "coulomb_friction_motor"
+    assert "tau_c" in rival.free_b and rival.theta_b[ALL_INDEX["tau_c"]] > 0 and rival.theta_b[ALL_INDEX["k3"]] == 0
+    assert rival.theta_a[ALL_INDEX["k3"]] == 3e13 and rival.theta_a[ALL_INDEX["tau_c"]] == 0
+    assert rival.to_dict()["theta_b"]["tau_c"] == rival.theta_b[ALL_INDEX["tau_c"]]
+    y_a, _ = responses(rec, rival.theta_a)
+    free = refit_separation(rec, rival, y_a[0], max_nfev=6, rounds=1)
+    held = refit_separation(rec, Rival("held", rival.effect, rival.params, rival.theta_a, rival.theta_b,
+                                       tuple(nm for nm in rival.free_b if nm != "tau_c")), y_a[0], max_nfev=6, rounds=1)
+    assert free["theta_b_refit"][ALL_INDEX["tau_c"]] != rival.theta_b[ALL_INDEX["tau_c"]]
+    assert 0 < free["separation_m"] <= held["separation_m"] * (1 + 1e-9)
 
 
 def test_spectrum_and_resolved_singular_values():

@@ -17,7 +17,7 @@ from ..effects import ALL_INDEX
 from ..errors import ConfigError, DataError
 from ..identify import identify
 from ..excite.report import summary_text, write_figure
-from ..excite.rivals import build_rivals, specs_from_discovery
+from ..excite.rivals import build_rivals, discovery_base, specs_from_discovery
 from ..excite.score import spectrum, sv_at
 from ..excite.search import Evaluation, Scorer, resolved_sv, search, verify_best
 from ..excite.settings import ExciteSettings
@@ -60,9 +60,14 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
             raise ConfigError(f"fixed: unknown parameter {nm!r}")
     bounds = dict(cfg.get("bounds") or {})
     specs = [(s, "config") for s in settings.rivals]
+    pair_bases = {}
     if settings.discovery:
         dp = Path(settings.discovery).expanduser()
-        specs += [(s, "discovery") for s in specs_from_discovery(dp if dp.is_absolute() else Path(project_root) / dp)]
+        dp = dp if dp.is_absolute() else Path(project_root) / dp
+        specs += [(s, "discovery") for s in specs_from_discovery(dp)]
+        base = discovery_base(dp)
+        if base is not None:
+            pair_bases["discovery"] = base
     if not specs and not settings.parameters:
         raise ConfigError("excite: nothing to tell apart: name excite.rivals, give excite.discovery or set "
                           "excite.parameters=true")
@@ -87,7 +92,7 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         say(f"nominal fit: RMS {1e6 * nominal.rmse_m:.4g} µm ({nominal.seconds:.1f} s); σ = {1e6 * sigma:.3g} µm "
             f"({sigma_source})")
         rivals = build_rivals(record, theta, specs, max_nfev=settings.rival_nfev, fd_rel_step=settings.fd_rel_step,
-                              progress=say)
+                              progress=say, pair_bases=pair_bases)
         baseline = spectrum(record, theta, sigma) if settings.parameters else None
         if baseline is not None and "error" in baseline:
             raise DataError(f"the record's sensitivities: {baseline['error']}")
@@ -123,7 +128,7 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         metrics = {"wall_seconds": report["wall_seconds"], "n_candidates": report["n_candidates"],
                    "n_rejected": report["n_rejected"], "sigma_um": 1e6 * sigma}
         for r in report.get("rivals", []):
-            key = r["effect"]
+            key = r["key"]
             metrics[f"separation_sigma.{key}"] = r["predicted_separation_sigma"]
             metrics[f"separation_um.{key}"] = r["predicted_separation_um"]
         par = report.get("parameters")
@@ -140,7 +145,10 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
 def _settings_dict(s: ExciteSettings) -> dict:
     """The settings as JSON values (rivals as plain dicts) for ``excite.json``."""
     d = asdict(s)
-    d["rivals"] = [{"effect": r.effect, "params": r.params} for r in s.rivals]
+    d["rivals"] = [{"effect": r.effect, "params": r.params} | ({"against": {"effect": r.against.effect,
+                                                                          "params": r.against.params}}
+                                                               if r.against is not None else {})
+                   for r in s.rivals]
     d["families"] = list(s.families)
     return d
 
@@ -200,7 +208,7 @@ def _describe(record: Record, report: Mapping) -> str:
     best = report.get("proposed")
     if not best:
         return f"excite on {record.name}: no candidate input passed the checks"
-    parts = [f"{r['effect']} {r['predicted_separation_sigma']:.3g} σ" for r in report.get("rivals", [])]
+    parts = [f"{r['name']} {r['predicted_separation_sigma']:.3g} σ" for r in report.get("rivals", [])]
     par = report.get("parameters")
     if par:
         parts.append(f"rank {par['rank_before']} → {par['rank_after']}")

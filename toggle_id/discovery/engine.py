@@ -17,7 +17,9 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
   cannot tell apart (Vuong's test of the non-nested models, :func:`.stats.vuong`) are reported together, neither
   as added. A tie found while other effects were still missing is judged again on the final model
   (:func:`reconsider_ties`): the missing structure, left in both residuals, can hide a difference that the
-  complete model shows.
+  complete model shows. With a second record of the machine (never fitted), a tie that the fitted record leaves
+  is judged on it (:func:`settle_ties_out_of_sample`): the model that predicts it better, by Vuong's test, names
+  its effect.
 """
 from __future__ import annotations
 
@@ -173,3 +175,74 @@ def reconsider_ties(current: Any, added: Sequence[dict], swap: Callable[[Any, di
         a["indistinguishable_from"] = keep
         if resolved:
             a["ties_resolved"] = resolved
+
+
+def settle_ties_out_of_sample(current: Any, added: list[dict], swap: Callable[[Any, dict, dict], Any],
+                              residual: Callable[[Any], np.ndarray], n_free: Callable[[Any], int],
+                              summary: Callable[[Any], dict], noise_max_order: int, alpha: float,
+                              say: Callable[[str], None]) -> Any:
+    """Judge the ties the fitted record left on a second record of the same machine that was never fitted.
+
+    Two effects tied on the fitted record may act differently under another command (a torque saturation and a
+    cubic contact stiffness agree wherever the motor draws a large current only in the clamp; an open/close
+    cycling command draws it in free motion too). For each item of ``added`` with ties: ``swap(current, a,
+    rival)`` is the final model with the rival in ``a``'s place (refitted to the fitted record, or None where
+    that is impossible) and ``residual(fit)`` its residual on the second record. Vuong's test of the two
+    predictions — both whitened by the noise model of the better prediction's residual — decides at ``alpha``:
+    the effect of the better prediction is named (the rival moves to ``ties_resolved``); when it is the rival,
+    the item becomes the rival's (its own forward evidence, ``replaced`` naming the effect it replaces) and the
+    swapped model becomes the final model, which is returned. A tie the second record does not settle either
+    stays, with the test under ``vuong_validation``. Edits ``added`` in place."""
+    for i, a in enumerate(list(added)):
+        rivals = list(a.get("indistinguishable_from") or [])
+        if not rivals:
+            continue
+        keep, resolved, winner = [], [], None
+        r_cur = residual(current)
+        for rv in rivals:
+            swapped = swap(current, a, rv)
+            if swapped is None or winner is not None:
+                keep.append(rv)
+                continue
+            r_sw = residual(swapped)
+            if not (np.all(np.isfinite(r_cur)) and np.all(np.isfinite(r_sw))):
+                keep.append(rv)
+                continue
+            rival_better = float(r_sw @ r_sw) < float(r_cur @ r_cur)
+            ref, other = (r_sw, n_free(swapped)), (r_cur, n_free(current))
+            if not rival_better:
+                ref, other = other, ref
+            v = indistinguishable(ref[0], ref[1], [other], noise_max_order, alpha)[0]
+            entry = {**rv, "vuong_validation": v, "swapped_validation": summary(swapped),
+                     "validation_rms_m": {a["name"]: float(np.sqrt(np.mean(r_cur ** 2))),
+                                          rv["name"]: float(np.sqrt(np.mean(r_sw ** 2)))}}
+            better, worse = (rv["name"], a["name"]) if rival_better else (a["name"], rv["name"])
+            say(f"tie {a['name']} / {rv['name']} judged on the validation record: {better} predicts it better "
+                f"(Vuong z {v['z']:.2f}, p {v['p_value']:.2g}) — {'still tied' if v['tied'] else 'resolved'}")
+            if v["tied"]:
+                keep.append(entry)
+                continue
+            entry["reason"] = (f"{better} predicts the validation record better than {worse} (Vuong z {v['z']:.2f}, "
+                               f"p {v['p_value']:.2g})")
+            if rival_better:
+                winner = (swapped, entry)
+            else:
+                resolved.append(entry)
+        if winner is not None:
+            swapped, entry = winner
+            loser = {k: a[k] for k in ("name", "params_at_acceptance", "evidence", "F", "p_value", "delta_bic")
+                     if k in a}
+            new = {**a, **{k: entry[k] for k in ("F", "p_value", "delta_bic", "evidence") if k in entry},
+                   "name": entry["name"], "params_at_acceptance": entry.get("params", {}),
+                   "rmse_after_m": (summary(swapped) or {}).get("rmse_m", a.get("rmse_after_m")),
+                   "replaced": {**loser, "reason": entry["reason"]},
+                   "indistinguishable_from": [r for r in keep if r["name"] != entry["name"]],
+                   "ties_resolved": [*a.get("ties_resolved", []), *resolved,
+                                     {**{k: v for k, v in entry.items() if k != "name"}, "name": a["name"]}]}
+            added[i] = new
+            current = swapped
+            continue
+        a["indistinguishable_from"] = keep
+        if resolved:
+            a["ties_resolved"] = [*a.get("ties_resolved", []), *resolved]
+    return current

@@ -23,7 +23,8 @@ from .report import DiscoveryResult, _conclusion
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
 from .catchall import catch_all
-from .engine import backward_eliminate, indistinguishable, reconsider_ties, split_explaining, tie_band
+from .engine import (backward_eliminate, indistinguishable, reconsider_ties, settle_ties_out_of_sample,
+                     split_explaining, tie_band)
 from .residual import prediction_report, residual_report, residual_structure_energy, structure_energy_of
 from .noise import WHITE, fit_noise
 from .stats import f_test
@@ -127,6 +128,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         reconsider_ties(current, added, lambda cur, a, rv: _without(model, cur, a["name"], added, held, settings, rv),
                         judge.residual, lambda fit: len(fit.free), lambda fit: {"rmse_m": fit.rmse(n)},
                         settings.noise_max_order, settings.ambiguity_alpha, say)
+        if judge.validation is not None:
+            current = settle_ties_out_of_sample(
+                current, added, lambda cur, a, rv: _without(model, cur, a["name"], added, held, settings, rv),
+                lambda fit: judge.validation.residuals(fit.theta[None, :])[0], lambda fit: len(fit.free),
+                lambda fit: {"rmse_m": fit.rmse(n)}, settings.noise_max_order, settings.ambiguity_alpha, say)
 
     # the noise-aware structure test decides whether the effects explain the residual or only compensate
     diag_after, r_after, states_after = residual_report(model, current.theta, settings, split)
@@ -363,7 +369,8 @@ def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: Dis
         if v["tied"]:
             rf.reason = (f"fits as well as {chosen.name} (Vuong z {v['z']:.2f}, p {v['p_value']:.2g}): the record "
                          "cannot tell them apart")
-            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(judge.model.n), "vuong": v})
+            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(judge.model.n), "vuong": v,
+                        "F": rf.F, "p_value": rf.p_value, "delta_bic": rf.delta_bic, "evidence": rf.evidence})
     return out
 
 

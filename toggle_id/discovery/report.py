@@ -202,7 +202,9 @@ def summary_text(res: DiscoveryResult) -> str:
                      f"{a['magnitude']['unit']}) or " + " or ".join(
                          f"{r['name']} ({', '.join(f'{k} = {v:.5g}' for k, v in r['params'].items())}; Vuong z "
                          f"{r.get('vuong_final', r['vuong'])['z']:.2f}, "
-                         f"p {r.get('vuong_final', r['vuong'])['p_value']:.2g})" for r in a["indistinguishable_from"])
+                         f"p {r.get('vuong_final', r['vuong'])['p_value']:.2g}" +
+                         (f"; on the validation record z {r['vuong_validation']['z']:.2f}"
+                          if "vuong_validation" in r else "") + ")" for r in a["indistinguishable_from"])
                      + " — the record cannot tell them apart")
     for c in res.extra.get("compensating", []):
         lines.append(f"compensating {c['name']}: {c['reason']}")

@@ -34,8 +34,9 @@ from ..simulate import PRECISE, STATUS_NAMES, STATUS_OK, simulate
 @dataclass
 class Rival:
     """Two explanations of one record: ``theta_a`` (extended vector, effect ``effect`` on) and ``theta_b`` (the
-    nominal model, effect off). ``free_b``: B's parameters a refit may move. ``rms_a_m`` / ``rms_b_m``: their
-    RMS errors on the record (both should be near the noise: the record cannot tell them apart)."""
+    nominal model, effect off; or the effect ``against`` on instead). ``free_b``: B's parameters a refit may move.
+    ``rms_a_m`` / ``rms_b_m``: their RMS errors on the record (both should be near the noise: the record cannot
+    tell them apart). ``key``: the rival's name in metrics (default ``effect``)."""
 
     name: str
     effect: str
@@ -48,12 +49,19 @@ class Rival:
     source: str = "config"
     record_separation_m: float = float("nan")
     extra: dict = field(default_factory=dict)
+    key: str = ""
+    against: str | None = None
+
+    def __post_init__(self) -> None:
+        self.key = self.key or self.effect
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "effect": self.effect, "params": dict(self.params), "source": self.source,
+        b_names = (*P.PARAM_NAMES, *(nm for nm in self.free_b if nm not in P.PARAM_NAMES))
+        return {"name": self.name, "key": self.key, "effect": self.effect, "against": self.against,
+                "params": dict(self.params), "source": self.source,
                 "free_b": list(self.free_b), "rms_a_um": 1e6 * self.rms_a_m, "rms_b_um": 1e6 * self.rms_b_m,
                 "theta_a": {nm: float(self.theta_a[ALL_INDEX[nm]]) for nm in (*P.PARAM_NAMES, *self.params)},
-                "theta_b": {nm: float(self.theta_b[i]) for i, nm in enumerate(P.PARAM_NAMES)}, **self.extra}
+                "theta_b": {nm: float(self.theta_b[ALL_INDEX[nm]]) for nm in b_names}, **self.extra}
 
 
 def responses(record: Record, thetas: np.ndarray) -> tuple[np.ndarray, list[str]]:

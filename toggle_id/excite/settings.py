@@ -15,17 +15,26 @@ FAMILIES = ("sweep", "cycling", "multisine", "steps")
 @dataclass
 class RivalSpec:
     """A rival explanation named in the configuration: the effect ``effect`` switched on with ``params``
-    (effect parameter → value; its magnitude must be non-zero) against the nominal model without it."""
+    (effect parameter → value; its magnitude must be non-zero) against the nominal model without it — or, with
+    ``against``, against the nominal model with that other effect on instead (its parameters are where its fit
+    starts; a refit moves them): two effects a record could not tell apart (a discovery's *ambiguous* pair)."""
 
     effect: str
     params: dict[str, float] = field(default_factory=dict)
+    against: RivalSpec | None = None
+
+    @property
+    def key(self) -> str:
+        """A name for metrics and logs: the effect, or ``A_vs_B``."""
+        return self.effect if self.against is None else f"{self.effect}_vs_{self.against.effect}"
 
     @classmethod
     def from_dict(cls, d: Any, where: str = "excite.rivals") -> RivalSpec:
         if isinstance(d, str):
             raise ConfigError(f"{where}: {d!r} needs its magnitude, e.g. {{effect: {d}, params: {{...}}}}")
-        if not isinstance(d, Mapping) or set(d) - {"effect", "params"} or "effect" not in d:
-            raise ConfigError(f"{where}: each rival is {{effect: NAME, params: {{NAME: VALUE}}}}, got {d!r}")
+        if not isinstance(d, Mapping) or set(d) - {"effect", "params", "against"} or "effect" not in d:
+            raise ConfigError(f"{where}: each rival is {{effect: NAME, params: {{NAME: VALUE}}}} (optionally "
+                              f"against: {{effect: NAME, params: {{...}}}}), got {d!r}")
         name = d["effect"]
         if name not in EFFECTS_BY_NAME:
             raise ConfigError(f"{where}: unknown effect {name!r}; known: {', '.join(EFFECTS_BY_NAME)}")
@@ -45,7 +54,14 @@ class RivalSpec:
         mag = eff.magnitude
         if params.get(mag.name, mag.off) == mag.off:
             raise ConfigError(f"{where}: {name} needs a non-zero magnitude {mag.name} ({mag.unit})")
-        return cls(name, params)
+        against = d.get("against")
+        if against is not None:
+            if isinstance(against, Mapping) and against.get("against") is not None:
+                raise ConfigError(f"{where}: {name}.against is one effect, not a chain")
+            against = cls.from_dict(against, f"{where}: {name}.against")
+            if against.effect == name:
+                raise ConfigError(f"{where}: {name} cannot be its own rival (against: {name})")
+        return cls(name, params, against)
 
 
 @dataclass
@@ -64,7 +80,7 @@ class ExciteSettings:
       record; ``fd_rel_step``: forward-difference step of the refits; ``jac_rel_step``: (log-)step of the
       linearised separation.
     - Rivals: ``rivals`` (:class:`RivalSpec`), ``discovery`` (a discovery.json whose accepted and compensating
-      effects become rivals), ``parameters`` (the weak directions of the 15 parameters as a rival),
+      effects and ambiguous pairs become rivals), ``parameters`` (the weak directions of the 15 parameters as a rival),
       ``sv_index`` (the k-th singular value compared, 1-based).
     - Goals: ``separation_target`` (σ) and ``sv_gain_target`` (×) — a candidate's score is the smallest share of
       its goals it meets; ``noise_std_m``: σ (m; None: the simulated record's noise, else the nominal RMS).
@@ -92,8 +108,8 @@ class ExciteSettings:
     fd_rel_step: float = 1e-4       # forward-difference step of the refits
     jac_rel_step: float = 1e-5      # (log-)step of the first-order separation's sensitivities
     # the rivals
-    rivals: tuple[RivalSpec, ...] = field(default_factory=tuple)  # effect on (at its magnitude) vs the model without it
-    discovery: str | None = None    # a discovery.json: its accepted and compensating effects become rivals too
+    rivals: tuple[RivalSpec, ...] = field(default_factory=tuple)  # effect on (at its magnitude) vs the model without it, or vs another
+    discovery: str | None = None    # a discovery.json: its accepted, compensating and ambiguous effects become rivals
     parameters: bool = True         # the 15 parameters' weak directions: the sv_index-th resolved singular value
     sv_index: int = 8
     # goals (a candidate's score is the smallest share of its goals it meets)
