@@ -230,8 +230,14 @@ def test_a_bad_input_file_is_one_line_and_a_non_zero_exit(tmp_path, kind, needle
 def test_excite_job_end_to_end(tmp_path, job_env):
     from conftest import run_job
 
+    # a discovery that left a tied pair: it becomes a second rival, started from its final model
+    final = {nm: float(THETA[ALL_INDEX[nm]]) for nm in ALL_INDEX}
+    (tmp_path / "discovery.json").write_text(json.dumps({
+        "effects_added": [], "compensating": [], "final_params": final,
+        "ambiguous": [{"name": "torque_constant_saturation", "params": {"c_kt": 1e-6},
+                       "indistinguishable_from": [{"name": "contact_nonlinear_stiffness", "params": {"k3": 1e13}}]}]}))
     proc = run_job("jobs.run", "+experiment=excite", f"hydra.run.dir={tmp_path / 'run'}", "data.duration=1.0",
-                   "data.effects.tau_c=0.3", "excite.duration=1.0", "excite.n_random=2", "excite.n_refine=1",
+                   "data.effects.tau_c=0.3", f"excite.discovery={tmp_path / 'discovery.json'}", "excite.duration=1.0", "excite.n_random=2", "excite.n_refine=1",
                    "excite.refit_top=1", "excite.refit_nfev=5", "excite.refit_rounds=1", "excite.rival_nfev=5",
                    "excite.families=[steps,cycling]", "fast.starts=2", "fast.final_nfev=10", "tracking.log_model=false",
                    "tracking.system_metrics.enabled=false", cwd=tmp_path, env=job_env, timeout=300)
@@ -244,8 +250,10 @@ def test_excite_job_end_to_end(tmp_path, job_env):
     for key in ("proposed", "rivals", "parameters", "candidates", "families", "separates", "sigma_um", "limits"):
         assert key in d, key
     assert d["n_candidates"] == len(d["candidates"]) >= 4 and d["sigma_um"] == pytest.approx(1.0)
-    rv = d["rivals"][0]
+    rv, pair = d["rivals"]
     assert rv["effect"] == "coulomb_friction_motor" and rv["params"] == {"tau_c": 0.3}
+    assert pair["name"] == "torque_constant_saturation vs contact_nonlinear_stiffness" and pair["source"] == "discovery"
+    assert pair["theta_a"]["c_kt"] == 1e-6 and pair["theta_b"]["k3"] > 0 and "k3" in pair["free_b"]
     if d["proposed"] is not None:
         assert rv["predicted_separation_um"] >= 0 and "predicted_separation_sigma" in rv
         ex = read_csv(tmp_path / "run" / "excitation.csv", require_x_B=False, expect_rate_hz=1000.0)
@@ -258,6 +266,8 @@ def test_excite_job_end_to_end(tmp_path, job_env):
     runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
     assert len(runs) == 1 and runs[0].info.run_name.startswith("excite ")
     assert "sigma_um" in runs[0].data.metrics
+    if d["proposed"] is not None:
+        assert "separation_sigma.torque_constant_saturation_vs_contact_nonlinear_stiffness" in runs[0].data.metrics
 
 
 # ---------------------------------------------------------------------------------------------- acceptance
