@@ -143,17 +143,18 @@ def test_a_tie_found_while_an_effect_was_missing_is_judged_again_on_the_final_mo
 
 
 def test_a_tie_the_fitted_record_leaves_is_settled_by_the_record_it_was_not_fitted_on():
-    """On the validation record: A's model predicts it with white noise only, B in A's place leaves a structured
-    miss (A named, B resolved), D in A's place predicts it as well (still tied, with the test kept). For effect C
-    the rival E predicts it better: the item becomes E's (its own evidence, ``replaced`` naming C) and the model
-    with E is returned as the final model."""
+    """On the validation record: B in A's place leaves twice the structured miss of the final model (A named, B
+    resolved), D in A's place predicts it as well (still tied, with the test kept), and C, itself in the model,
+    is resolved unswapped. For effect C the rival E predicts it better (no miss): the item becomes E's (its own
+    evidence, ``replaced`` naming C) and the model with E is returned as the final model."""
     rng = np.random.default_rng(5)
     n = 5000
     e = rng.standard_normal(n)
     miss = np.sin(2 * np.pi * 3 * np.linspace(0.0, 1.0, n))
     val = {"final": e + 0.3 * miss, "B instead of A": e + 0.6 * miss, "D instead of A": e + 0.3 * miss
            + 0.01 * rng.standard_normal(n), "E instead of C": e}
-    added = [{"name": "A", "iteration": 1, "F": 50.0, "indistinguishable_from": [{"name": "B"}, {"name": "D"}]},
+    added = [{"name": "A", "iteration": 1, "F": 50.0,
+              "indistinguishable_from": [{"name": "B"}, {"name": "D"}, {"name": "C"}]},
              {"name": "C", "iteration": 2, "F": 40.0, "evidence": {"of": "C"},
               "indistinguishable_from": [{"name": "E", "F": 39.0, "evidence": {"of": "E"}, "params": {"e": 1.0}}]}]
 
@@ -165,7 +166,8 @@ def test_a_tie_the_fitted_record_leaves_is_settled_by_the_record_it_was_not_fitt
     a, c = added
     assert [r["name"] for r in a["indistinguishable_from"]] == ["D"]
     assert a["indistinguishable_from"][0]["vuong_validation"]["tied"]
-    assert [r["name"] for r in a["ties_resolved"]] == ["B"] and "A predicts" in a["ties_resolved"][0]["reason"]
+    assert [r["name"] for r in a["ties_resolved"]] == ["B", "C"] and "A predicts" in a["ties_resolved"][0]["reason"]
+    assert "in the final model too" in a["ties_resolved"][1]["reason"]
     assert final == "E instead of C"
     assert c["name"] == "E" and c["F"] == 39.0 and c["evidence"] == {"of": "E"} and c["params_at_acceptance"] == {"e": 1.0}
     assert c["replaced"]["name"] == "C" and c["replaced"]["evidence"] == {"of": "C"}

@@ -192,7 +192,8 @@ def settle_ties_out_of_sample(current: Any, added: list[dict], swap: Callable[[A
     the effect of the better prediction is named (the rival moves to ``ties_resolved``); when it is the rival,
     the item becomes the rival's (its own forward evidence, ``replaced`` naming the effect it replaces) and the
     swapped model becomes the final model, which is returned. A tie the second record does not settle either
-    stays, with the test under ``vuong_validation``. Edits ``added`` in place."""
+    stays, with the test under ``vuong_validation``; a rival that is itself in the model is resolved. Edits
+    ``added`` in place."""
     for i, a in enumerate(list(added)):
         rivals = list(a.get("indistinguishable_from") or [])
         if not rivals:
@@ -200,6 +201,9 @@ def settle_ties_out_of_sample(current: Any, added: list[dict], swap: Callable[[A
         keep, resolved, winner = [], [], None
         r_cur = residual(current)
         for rv in rivals:
+            if rv["name"] in {b["name"] for b in added}:
+                resolved.append({**rv, "reason": f"{rv['name']} is in the final model too"})
+                continue
             swapped = swap(current, a, rv)
             if swapped is None or winner is not None:
                 keep.append(rv)
