@@ -49,6 +49,7 @@ def test_settings_validate_and_reject_bad_values_in_one_line():
                         ({"rivals": [{"effect": "coulomb_friction_motor", "params": {"tau_c": 0.0}}]}, "magnitude"),
                         ({"rivals": [{"effect": "coulomb_friction_motor", "params": {"tau_c": 99.0}}]}, "domain"),
                         ({"rivals": ["coulomb_friction_motor"]}, "magnitude"), ({"duration": 0.01}, "samples"),
+                        ({"rival_rms_sigma": 0}, "rival_rms_sigma"),
                         ({"rivals": [{"effect": "coulomb_friction_motor", "params": {"tau_c": 0.3},
                                       "against": {"effect": "coulomb_friction_motor", "params": {"tau_c": 0.1}}}]},
                          "its own rival"),
@@ -76,6 +77,17 @@ def test_a_pair_of_effects_is_one_rival_and_a_discovery_gives_its_ambiguous_pair
         ("sensor_offset", {"x_off": 1e-4}),
         ("torque_constant_saturation_vs_contact_nonlinear_stiffness", {"c_kt": 3e-7})]
     assert specs[1].against.params == {"k3": 2e12}
+
+
+def test_a_rival_that_does_not_explain_the_record_is_flagged():
+    from toggle_id.app.excite import rival_warnings
+
+    good = Rival("good", "coulomb_friction_motor", {"tau_c": 0.3}, THETA, THETA, FREE_B, rms_a_m=1.0e-6, rms_b_m=1.2e-6)
+    stuck = Rival("stuck", "coulomb_friction_motor", {"tau_c": 0.3}, THETA, THETA, FREE_B, rms_a_m=1e-6, rms_b_m=9e-6)
+    failed = Rival("failed", "coulomb_friction_motor", {"tau_c": 0.3}, THETA, THETA, FREE_B)   # RMS NaN
+    out = rival_warnings([good, stuck, failed], 1e-6, 1.5)
+    assert len(out) == 2 and out[0].startswith("stuck: ") and "B 9 µm" in out[0] and out[1].startswith("failed: ")
+    assert rival_warnings([good], 1e-6, 1.25) == [] and len(rival_warnings([good], 1e-6, 1.15)) == 1
 
 
 # ---------------------------------------------------------------------------------------------- inputs

@@ -93,6 +93,9 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
             f"({sigma_source})")
         rivals = build_rivals(record, theta, specs, max_nfev=settings.rival_nfev, fd_rel_step=settings.fd_rel_step,
                               progress=say, pair_bases=pair_bases)
+        warnings = rival_warnings(rivals, sigma, settings.rival_rms_sigma)
+        for w in warnings:
+            say(f"warning: {w}")
         baseline = spectrum(record, theta, sigma) if settings.parameters else None
         if baseline is not None and "error" in baseline:
             raise DataError(f"the record's sensitivities: {baseline['error']}")
@@ -104,6 +107,7 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         verified = verify_best(scorer, evals, say)
         best = verified[0] if verified else None
         report = _report(settings, record, rivals, evals, verified, best, baseline, sigma, sigma_source)
+        report["warnings"] = warnings
         report.update({"job": "excite", "nominal": {"rmse_um": 1e6 * nominal.rmse_m, "seconds": nominal.seconds,
                                                     "params": {n: float(theta[i]) for i, n in enumerate(P.PARAM_NAMES)}},
                        "datasets": datasets, "mlflow_run_id": run.run_id, "config": jsonable_config(cfg),
@@ -140,6 +144,20 @@ def run_excite(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         tracker.set_tags({"mlflow.note.content": _describe(record, report)})
         path = publish_report(tracker, run_dir, summary_text(report), report, "excite.json", "excite.txt")
     return path
+
+
+def rival_warnings(rivals, sigma: float, limit: float) -> list[str]:
+    """One line per rival that does not explain the record (either side's RMS above ``limit`` σ): its separations
+    compare explanations of something else, and a nominal fit stuck above the noise is the usual cause."""
+    out = []
+    for r in rivals:
+        worst = max(r.rms_a_m, r.rms_b_m)
+        if not (np.isfinite(worst) and worst <= limit * sigma):
+            out.append(f"{r.name}: the rivals do not both explain the record (RMS A {1e6 * r.rms_a_m:.3g} µm, B "
+                       f"{1e6 * r.rms_b_m:.3g} µm against σ = {1e6 * sigma:.3g} µm, limit {limit:g} σ), so its "
+                       "separations are not evidence; raise excite.rival_nfev, or give the discovery.json of a fit "
+                       "that reached the noise")
+    return out
 
 
 def _settings_dict(s: ExciteSettings) -> dict:

@@ -93,8 +93,9 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
         text += (" Ambiguous: " + " or ".join(names) + " — each explains the record, and the record cannot tell "
                  "them apart (Vuong's test: " + ", ".join(f"z {r.get('vuong_final', r['vuong'])['z']:.2f}"
                                                         for r in a["indistinguishable_from"]) +
-                 f"); the final model uses {a['name']}, the better fit. An experiment that separates them: "
-                 "+experiment=excite.")
+                 f"); the final model uses {a['name']}, the better fit. To separate them: a second record of the "
+                 "machine under another command (validation.path=…), or the experiment that +experiment=excite "
+                 "excite.discovery=<this discovery.json> proposes.")
     if compensating:
         text += (" Compensating (lower the error without explaining it; not added): " +
                  ", ".join(sorted({c['name'] for c in compensating})) + ".")

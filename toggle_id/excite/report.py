@@ -60,6 +60,7 @@ def summary_text(report: Mapping) -> str:
     sigma_um = report["sigma_um"]
     if not best:
         lines.append(f"no candidate input passed the checks ({report['n_candidates']} tried); nothing proposed")
+        lines += [f"warning: {w}" for w in report.get("warnings", [])]
         return "\n".join(lines)
     lines.append(f"proposed input: {best['family']} {_fmt_params(best['params'])} (levels as fractions of v_max; "
                  f"candidate {best['index'] + 1} "
@@ -81,6 +82,7 @@ def summary_text(report: Mapping) -> str:
                      f"{', '.join(par['become_identifiable']) or 'none'}")
     lines.append(f"search: {report['n_candidates']} candidates ({report['n_rejected']} rejected), "
                  f"{report['n_verified']} verified by refits, {report['wall_seconds']:.0f} s")
+    lines += [f"warning: {w}" for w in report.get("warnings", [])]
     return "\n".join(lines)
 
 

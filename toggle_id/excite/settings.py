@@ -77,7 +77,8 @@ class ExciteSettings:
       grown ×1.5 on success, shrunk ×0.6 on failure), ``seed``.
     - Scores: ``refit_top`` candidates (the best by the linearised score) verified by full refits of
       ``refit_nfev`` residual evaluations (``refit_rounds`` restarts); ``rival_nfev``: the fit of rival A to the
-      record; ``fd_rel_step``: forward-difference step of the refits; ``jac_rel_step``: (log-)step of the
+      record (``rival_rms_sigma``: a rival whose A or B leaves more than this many σ on the record is reported as
+      not explaining it); ``fd_rel_step``: forward-difference step of the refits; ``jac_rel_step``: (log-)step of the
       linearised separation.
     - Rivals: ``rivals`` (:class:`RivalSpec`), ``discovery`` (a discovery.json whose accepted and compensating
       effects and ambiguous pairs become rivals), ``parameters`` (the weak directions of the 15 parameters as a rival),
@@ -105,6 +106,7 @@ class ExciteSettings:
     refit_nfev: int = 30            # residual evaluations of a verifying refit of rival B ...
     refit_rounds: int = 2           # ... restarted while it still improves
     rival_nfev: int = 40            # the fit of rival A (effect on) to the record
+    rival_rms_sigma: float = 1.5    # a rival whose A or B leaves more than this many σ on the record is flagged
     fd_rel_step: float = 1e-4       # forward-difference step of the refits
     jac_rel_step: float = 1e-5      # (log-)step of the first-order separation's sensitivities
     # the rivals
@@ -152,6 +154,7 @@ class ExciteSettings:
         number("fd_rel_step", 0.0, 0.1)
         number("jac_rel_step", 0.0, 0.1)
         number("separation_target", 0.0, 1e6)
+        number("rival_rms_sigma", 0.0, 1e6)
         number("sv_gain_target", 0.0, 1e9)
         for name, lo in (("min_clamp_samples", 1), ("min_exits", 0), ("n_random", 1), ("n_refine", 0), ("seed", 0),
                          ("refit_top", 1), ("refit_nfev", 1), ("refit_rounds", 1), ("rival_nfev", 1),
