@@ -125,13 +125,14 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     if settings.backward and added:
         current, added, eliminated = _backward(model, judge, current, added, held, settings, say)
     if settings.ambiguity_alpha > 0:
-        reconsider_ties(current, added, lambda cur, a, rv: _without(model, cur, a["name"], added, held, settings, rv),
-                        judge.residual, lambda fit: len(fit.free), lambda fit: {"rmse_m": fit.rmse(n)},
+        def swap(cur: Fit, a: dict, rv: dict) -> Fit:
+            return _without(model, cur, a["name"], added, held, settings, rv)
+
+        reconsider_ties(current, added, swap, judge.residual, lambda fit: len(fit.free), lambda fit: {"rmse_m": fit.rmse(n)},
                         settings.noise_max_order, settings.ambiguity_alpha, say)
         if judge.validation is not None:
             current = settle_ties_out_of_sample(
-                current, added, lambda cur, a, rv: _without(model, cur, a["name"], added, held, settings, rv),
-                lambda fit: judge.validation.residuals(fit.theta[None, :])[0], lambda fit: len(fit.free),
+                current, added, swap, lambda fit: judge.validation.residuals(fit.theta[None, :])[0], lambda fit: len(fit.free),
                 lambda fit: {"rmse_m": fit.rmse(n)}, settings.noise_max_order, settings.ambiguity_alpha, say)
 
     # the noise-aware structure test decides whether the effects explain the residual or only compensate

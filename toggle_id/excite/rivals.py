@@ -48,15 +48,11 @@ def specs_from_discovery(path: str | Path) -> list[RivalSpec]:
     out: list[RivalSpec] = []
     seen = set()
     for item in list(d.get("effects_added") or []) + list(d.get("compensating") or []):
-        name = item.get("name") if isinstance(item, Mapping) else None
-        if name not in EFFECTS_BY_NAME or name in seen:
+        spec = _spec(item)
+        if spec is None or spec.effect in seen:
             continue
-        params = {k: float(v) for k, v in (item.get("params") or {}).items() if k in EFFECTS_BY_NAME[name].names}
-        mag = EFFECTS_BY_NAME[name].magnitude
-        if params.get(mag.name, mag.off) == mag.off:
-            continue
-        seen.add(name)
-        out.append(RivalSpec(name, params))
+        seen.add(spec.effect)
+        out.append(spec)
     for item in d.get("ambiguous") or []:
         a = _spec(item)
         for tied in (item.get("indistinguishable_from") or []) if isinstance(item, Mapping) else []:
