@@ -56,10 +56,13 @@ def test_settings_validate_and_reject_bad_values():
     s = D.DiscoverSettings.from_dict({"top_k": 2, "candidates": ["dead_time"], "nominal": "ga", "base": {}})
     assert s.top_k == 2 and s.candidates == ("dead_time",)
     assert D.DiscoverSettings.from_dict({"candidates": "all"}).candidates is None
+    assert D.DiscoverSettings.from_dict({"stronger_starts": [2, 5]}).stronger_starts == (2.0, 5.0)
+    assert D.DiscoverSettings.from_dict({"stronger_starts": []}).stronger_starts == ()
     for bad, needle in [({"top_k": 0}, "top_k"), ({"alpha": 1.5}, "alpha"), ({"candidates": ["nope"]}, "nope"),
                         ({"bogus": 1}, "bogus"), ({"max_effects": -1}, "max_effects"),
                         ({"noise_std": -1.0}, "noise_std"), ({"catch_all_keep": 1.0}, "catch_all_keep"),
-                        ({"catch_all": "yes"}, "catch_all"), ({"fd_tier": "loose"}, "fd_tier")]:
+                        ({"catch_all": "yes"}, "catch_all"), ({"fd_tier": "loose"}, "fd_tier"),
+                        ({"stronger_starts": [0.5]}, "stronger_starts"), ({"stronger_starts": 3}, "stronger_starts")]:
         with pytest.raises(ConfigError, match=needle):
             D.DiscoverSettings.from_dict(bad)
     with pytest.raises(ConfigError, match="nominal"):
@@ -480,3 +483,66 @@ def test_guard_null_refits_the_effect_from_a_better_nominal_optimum_before_dismi
     assert again[0][1][ALL_INDEX["tau_c"]] == 0.2  # the refit's effect value on the better optimum's nominal values
     assert rf.accepted and rf.fit.sse == 5.0 and rf.params == {"tau_c": 0.3} and rf.sse0 == 7.0
     assert rf.search["refitted_from_better_null"]
+
+
+def test_stronger_magnitudes_step_out_from_the_larger_of_refit_and_grid_within_the_domain():
+    from toggle_id.discovery.refit import stronger_magnitudes
+
+    coulomb = EFFECTS_BY_NAME["coulomb_friction_motor"]  # tau_c in [0, 20], off 0
+    assert stronger_magnitudes(coulomb, 0.0086, 0.0091, (3, 10)) == pytest.approx([0.0273, 0.091])
+    assert stronger_magnitudes(coulomb, 0.0, 0.01, (3,)) == pytest.approx([0.03])  # refit at off: the grid's side
+    assert stronger_magnitudes(coulomb, 0.0, None, (3,)) == []  # nothing to step out from
+    assert stronger_magnitudes(coulomb, 1.0, None, (3, 100, 1000)) == pytest.approx([3.0, 19.6])  # capped, once
+    load = EFFECTS_BY_NAME["constant_load_force"]  # both signs allowed: the refit's side is kept
+    assert stronger_magnitudes(load, -0.92, -8.08, (3,)) == pytest.approx([-24.24])
+
+
+def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest_sse_is_judged(monkeypatch):
+    """A refit dismissed where it stopped (a small magnitude, in a valley) is repeated from 3× and 10× further
+    out; the start whose polish ends lowest is converged and judged again, and the report says which it was."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import refit as RF
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    eff = EFFECTS_BY_NAME["coulomb_friction_motor"]
+    base = Fit(theta.copy(), ("mu",), sse=100.0)
+    scout_theta = theta.copy()
+    scout_theta[ALL_INDEX["tau_c"]] = 0.01
+    scout = RF.Scout(eff.name, 90.0, scout_theta, {"best_grid": {"tau_c": 0.01}})
+    valley = {0.01: 50.0, 0.03: 45.0, 0.1: 20.0, 0.165: 20.0}  # SSE after a polish started at tau_c
+
+    def fake_fit_free(model, start, names, *a, **k):
+        tc = round(float(start[ALL_INDEX["tau_c"]]), 6)
+        out = Fit(start.copy(), tuple(names), sse=valley.get(tc, 60.0))
+        if tc in (0.1, 0.165):
+            out.theta[ALL_INDEX["tau_c"]] = 0.165  # the polish from far out reaches the optimum
+        return out
+
+    judged = []
+
+    def pair(small, large):  # the valley's refit is dismissed, the optimum's accepted
+        judged.append(large.sse)
+        ok = large.sse < 30.0
+        return SimpleNamespace(F=1.0, p_value=0.0 if ok else 1.0, delta_bic=-1.0, passed=ok,
+                               reason="ok" if ok else "no better out of sample", to_dict=lambda: {})
+
+    monkeypatch.setattr(RF, "fit_free", fake_fit_free)
+    monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
+    monkeypatch.setattr(RF, "revived", lambda th, free: None)
+    model = SimpleNamespace(n=1000)
+    rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair))
+    assert [s["start"] for s in rf.search["stronger_starts"]] == pytest.approx([0.03, 0.1])
+    assert [s["chosen"] for s in rf.search["stronger_starts"]] == [False, True]
+    assert rf.params == {"tau_c": pytest.approx(0.165)} and judged == [50.0, 20.0]  # converged there, judged
+    assert rf.accepted and rf.search["before_stronger_start"]["reason"] == "no better out of sample"
+    off = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(stronger_starts=()), 1,
+                             SimpleNamespace(judge_pair=pair))
+    assert "stronger_starts" not in off.search and off.params == {"tau_c": pytest.approx(0.01)}
+    assert not off.accepted
+    judged.clear()
+    valley[0.01] = 25.0  # accepted where it stopped: no stronger start is tried
+    kept = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair))
+    assert kept.accepted and "stronger_starts" not in kept.search and judged == [25.0]

@@ -59,6 +59,11 @@ class DiscoverSettings:
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added).
+    - stronger_starts: a refit that is significant as least squares but dismissed is repeated from these
+      multiples (> 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
+      from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
+      started small can stop where nominal parameters absorb the effect (:func:`.refit.stronger_magnitudes`);
+      empty: off.
     """
 
     top_k: int = 3
@@ -97,6 +102,7 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     ambiguity_alpha: float = 0.05
+    stronger_starts: tuple[float, ...] = (3.0, 10.0)
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -144,6 +150,11 @@ class DiscoverSettings:
         if not (isinstance(self.ambiguity_alpha, (int, float)) and not isinstance(self.ambiguity_alpha, bool)
                 and 0.0 <= float(self.ambiguity_alpha) < 1.0):
             raise ConfigError(f"discover.ambiguity_alpha must lie in [0, 1), got {self.ambiguity_alpha!r}")
+        factors = self.stronger_starts
+        if isinstance(factors, (int, float)) or not all(
+                isinstance(f, (int, float)) and not isinstance(f, bool) and f > 1 for f in factors):
+            raise ConfigError(f"discover.stronger_starts must be a list of numbers > 1, got {factors!r}")
+        self.stronger_starts = tuple(float(f) for f in factors)
         for name in ("scout_all", "backward", "catch_all"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
@@ -170,8 +181,9 @@ class DiscoverSettings:
         if extra:
             raise ConfigError(f"discover: unknown setting(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
         kw = {k: v for k, v in node.items() if k in known}
-        if isinstance(kw.get("candidates"), (list, tuple)):
-            kw["candidates"] = tuple(kw["candidates"])
+        for key in ("candidates", "stronger_starts"):
+            if isinstance(kw.get(key), (list, tuple)):
+                kw[key] = tuple(kw[key])
         return cls(**kw).validate()
 
 
