@@ -490,6 +490,8 @@ def test_stronger_magnitudes_step_out_from_the_larger_of_refit_and_grid_within_t
 
     coulomb = EFFECTS_BY_NAME["coulomb_friction_motor"]  # tau_c in [0, 20], off 0
     assert stronger_magnitudes(coulomb, 0.0086, 0.0091, (3, 10)) == pytest.approx([0.0273, 0.091])
+    assert stronger_magnitudes(coulomb, 0.0086, 0.0091, (1, 3)) == pytest.approx([0.0091, 0.0273])  # grid's best
+    assert stronger_magnitudes(coulomb, 0.0091, 0.0086, (1, 3)) == pytest.approx([0.0273])  # x1: where it stopped
     assert stronger_magnitudes(coulomb, 0.0, 0.01, (3,)) == pytest.approx([0.03])  # refit at off: the grid's side
     assert stronger_magnitudes(coulomb, 0.0, None, (3,)) == []  # nothing to step out from
     assert stronger_magnitudes(coulomb, 1.0, None, (3, 100, 1000)) == pytest.approx([3.0, 19.6])  # capped, once
@@ -534,6 +536,7 @@ def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest
     monkeypatch.setattr(RF, "revived", lambda th, free: None)
     model = SimpleNamespace(n=1000)
     rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair))
+    # x1 is the refit's own magnitude here (grid and refit agree): not repeated
     assert [s["start"] for s in rf.search["stronger_starts"]] == pytest.approx([0.03, 0.1])
     assert [s["chosen"] for s in rf.search["stronger_starts"]] == [False, True]
     assert rf.params == {"tau_c": pytest.approx(0.165)} and judged == [50.0, 20.0]  # converged there, judged

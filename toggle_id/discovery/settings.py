@@ -60,10 +60,10 @@ class DiscoverSettings:
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added).
     - stronger_starts: a refit that is significant as least squares but dismissed is repeated from these
-      multiples (> 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
+      multiples (≥ 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
       from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
-      started small can stop where nominal parameters absorb the effect (:func:`.refit.stronger_magnitudes`);
-      empty: off.
+      started small, or from a start the linear correction bent, can stop where nominal parameters absorb the
+      effect (:func:`.refit.stronger_magnitudes`); empty: off.
     """
 
     top_k: int = 3
@@ -102,7 +102,7 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     ambiguity_alpha: float = 0.05
-    stronger_starts: tuple[float, ...] = (3.0, 10.0)
+    stronger_starts: tuple[float, ...] = (1.0, 3.0, 10.0)
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -152,8 +152,8 @@ class DiscoverSettings:
             raise ConfigError(f"discover.ambiguity_alpha must lie in [0, 1), got {self.ambiguity_alpha!r}")
         factors = self.stronger_starts
         if isinstance(factors, (int, float)) or not all(
-                isinstance(f, (int, float)) and not isinstance(f, bool) and f > 1 for f in factors):
-            raise ConfigError(f"discover.stronger_starts must be a list of numbers > 1, got {factors!r}")
+                isinstance(f, (int, float)) and not isinstance(f, bool) and f >= 1 for f in factors):
+            raise ConfigError(f"discover.stronger_starts must be a list of numbers ≥ 1, got {factors!r}")
         self.stronger_starts = tuple(float(f) for f in factors)
         for name in ("scout_all", "backward", "catch_all"):
             if not isinstance(getattr(self, name), bool):
