@@ -182,8 +182,8 @@ def stronger_magnitudes(effect: Effect, fitted: float, grid_best: float | None, 
 def _stronger(model: Model, base: Fit, fit: Fit, effect: Effect, scout: Scout, free: Sequence[str],
               settings: DiscoverSettings) -> tuple[Fit, list[dict]]:
     """The refit repeated from larger magnitudes of the effect (:func:`stronger_magnitudes`), from the baseline's
-    nominal parameters with the refit's other effect values; the lowest SSE of all is returned with a record of
-    each start.
+    nominal (and gauge) parameters with the refit's other effect values; the lowest SSE of all is returned with a
+    record of each start.
 
     A refit that starts at a small magnitude, or from a start the linear correction bent, can stop in a valley
     where nominal parameters absorb the effect (a motor Coulomb torque taken up by the slider friction, a backlash
@@ -195,7 +195,9 @@ def _stronger(model: Model, base: Fit, fit: Fit, effect: Effect, scout: Scout, f
     mag = effect.magnitude
     fitted = float(fit.theta[ALL_INDEX[mag.name]])
     grid_best = scout.search.get("best_grid", {}).get(mag.name)
-    others = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in free if nm not in base.free}
+    # the effect's other parameters (a cogging's order and phase) as refitted; a gauge parameter it frees (m_C
+    # for a backlash) as in the baseline, like the nominal ones
+    others = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in effect.names}
     best, report = fit, []
     for m in stronger_magnitudes(effect, fitted, grid_best, settings.stronger_starts):
         f2 = fit_free(model, _with(base.theta, {**others, mag.name: m}), free, settings.refit_nfev,
