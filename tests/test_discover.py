@@ -536,7 +536,6 @@ def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest
     monkeypatch.setattr(RF, "revived", lambda th, free: None)
     model = SimpleNamespace(n=1000)
     rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair))
-    # x1 is the refit's own magnitude here (grid and refit agree): not repeated
     assert [s["start"] for s in rf.search["stronger_starts"]] == pytest.approx([0.03, 0.1])
     assert [s["chosen"] for s in rf.search["stronger_starts"]] == [False, True]
     assert rf.params == {"tau_c": pytest.approx(0.165)} and judged == [50.0, 20.0]  # converged there, judged

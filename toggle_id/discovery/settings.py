@@ -62,8 +62,8 @@ class DiscoverSettings:
     - stronger_starts: a refit that is significant as least squares but dismissed is repeated from these
       multiples (≥ 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
       from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
-      started small, or from a start the linear correction bent, can stop where nominal parameters absorb the
-      effect (:func:`.refit.stronger_magnitudes`); empty: off.
+      started small can stop where nominal parameters absorb the effect (:func:`.refit.stronger_magnitudes`);
+      empty: off.
     """
 
     top_k: int = 3
@@ -102,7 +102,7 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     ambiguity_alpha: float = 0.05
-    stronger_starts: tuple[float, ...] = (1.0, 3.0, 10.0)
+    stronger_starts: tuple[float, ...] = (3.0, 10.0)
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
