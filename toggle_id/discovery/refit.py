@@ -166,8 +166,8 @@ def stronger_magnitudes(effect: Effect, fitted: float, grid_best: float | None, 
     room to the bound), without repeats."""
     mag = effect.magnitude
     d = max(abs(fitted - mag.off), abs(grid_best - mag.off) if grid_best is not None else 0.0)
-    ref = grid_best if abs(fitted - mag.off) < 1e-300 and grid_best is not None else fitted
-    sign = 1.0 if ref >= mag.off else -1.0
+    side = grid_best if fitted == mag.off and grid_best is not None else fitted
+    sign = 1.0 if side >= mag.off else -1.0
     room = ((mag.upper if sign > 0 else mag.lower) - mag.off) * sign
     if not d > 0 or not room > 0:
         return []
@@ -198,16 +198,16 @@ def _stronger(model: Model, base: Fit, fit: Fit, effect: Effect, scout: Scout, f
     # the effect's other parameters (a cogging's order and phase) as refitted; a gauge parameter it frees (m_C
     # for a backlash) as in the baseline, like the nominal ones
     others = {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in effect.names}
-    best, report = fit, []
-    for m in stronger_magnitudes(effect, fitted, grid_best, settings.stronger_starts):
+    best, chosen, report = fit, None, []
+    for i, m in enumerate(stronger_magnitudes(effect, fitted, grid_best, settings.stronger_starts)):
         f2 = fit_free(model, _with(base.theta, {**others, mag.name: m}), free, settings.refit_nfev,
                       settings.fd_rel_step, rounds=settings.refit_rounds)
         report.append({"start": m, "sse_m2": f2.sse, "magnitude": float(f2.theta[ALL_INDEX[mag.name]]),
                        "chosen": False})
         if f2.sse < best.sse:
-            best = f2
-    for r in report:
-        r["chosen"] = best is not fit and r["sse_m2"] == best.sse
+            best, chosen = f2, i
+    if chosen is not None:
+        report[chosen]["chosen"] = True
     return best, report
 
 
