@@ -548,3 +548,44 @@ def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest
     valley[0.01] = 25.0  # accepted where it stopped: no stronger start is tried
     kept = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair))
     assert kept.accepted and "stronger_starts" not in kept.search and judged == [25.0]
+
+
+def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_models_whitened_fit(monkeypatch):
+    """Under a coloured noise model both fits are refitted whitened; the larger one also from the smaller one's
+    whitened fit with its extra parameters added (nested), and the lower of its two refits is judged: from its
+    own least-squares point alone it ends above the smaller model here (F < 0)."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import validation as V
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    small = Fit(theta.copy(), ("mu",), sse=10.0)
+    large = Fit(theta.copy(), ("mu", "tau_c"), sse=8.0)
+    large.theta[ALL_INDEX["tau_c"]], large.theta[ALL_INDEX["mu"]] = 0.2, 0.5
+
+    def fake_fit_free(model, start, names, *a, **k):
+        names = tuple(names)
+        out = Fit(start.copy(), names, sse=9.0)
+        if names == ("mu",):
+            out.theta[ALL_INDEX["mu"]] = 0.3  # the smaller model's whitened optimum
+        else:  # the larger one: from its least-squares point 9.5, from the nested start 7.0
+            out.sse = 7.0 if start[ALL_INDEX["mu"]] == 0.3 else 9.5
+        return out
+
+    monkeypatch.setattr(V, "fit_free", fake_fit_free)
+    monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=False))
+    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False), DiscoverSettings())
+    monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (np.zeros(5), None))
+    seen = []
+    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)))
+    judge.judge_pair(small, large)
+    small_w, large_w = seen[0]
+    assert small_w.sse == 9.0 and large_w.sse == 7.0
+    assert large_w.theta[ALL_INDEX["mu"]] == 0.3 and large_w.theta[ALL_INDEX["tau_c"]] == 0.2
+    assert judge.model.noise == "white"  # the model's own noise model is restored
+    seen.clear()
+    monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=True))
+    judge.judge_pair(small, large)  # white: the least-squares fits are compared as they are
+    assert seen[0] == (small, large)
