@@ -22,9 +22,9 @@ from jobs._cli import guarded, precheck
 
 
 def write_record(cfg: dict, cwd: str) -> Path:
+    from toggle_id.app.records import build_record
     from toggle_id.data import write_csv
     from toggle_id.errors import ConfigError
-    from toggle_id.app.records import build_record
 
     out = cfg.get("out")
     if not out or out == "???":
@@ -53,9 +53,9 @@ def write_record(cfg: dict, cwd: str) -> Path:
 
 def record_under_input(data: dict, inp: dict, cwd: str):
     """The record of ``data``'s truth and noise under the input of the CSV ``inp['path']`` (t, v_in)."""
+    from toggle_id.app.records import measure_truth
     from toggle_id.data import read_input
     from toggle_id.errors import ConfigError
-    from toggle_id.app.records import measure_truth
 
     limits = {"v_max": inp.get("v_max", 0.3), "max_duration": inp.get("max_duration", 60.0),
               "rate_hz": data.get("rate_hz", 1000.0), "x_B0": data.get("x_B0", 0.020)}
