@@ -162,7 +162,7 @@ def test_on_the_plant_a_load_force_standing_in_for_a_drag_is_compensating_and_a_
     second case. The catch-all check on the fitted model demotes the load force and keeps the offset."""
     from outside_plant import Outside, simulate_outside
 
-    from toggle_id.discovery.loop import _without
+    from toggle_id.discovery.toggle_plant import _without
     from toggle_id.discovery.model import Model, _with, fit_free
     from toggle_id.discovery.residual import residual_report
     from toggle_id.discovery.validation import Judge

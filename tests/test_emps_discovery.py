@@ -135,25 +135,29 @@ def test_friction_bump_outside_the_library_is_left_and_localised():
 
 
 def test_a_tie_of_an_earlier_round_is_judged_again_on_the_final_model():
-    """The engine's rule (:func:`toggle_id.discovery.engine.reconsider_ties`) in the EMPS loop: an offset found tied
+    """The engine's rule (:func:`toggle_id.discovery.engine.reconsider_ties`, through its verdict rules) on the
+    EMPS plant: an offset found tied
     with Stribeck friction in round 1, Coulomb friction added in round 2; on the final model (the truth: Coulomb and
     an offset) Stribeck friction in the offset's place fits far worse, so the tie is resolved. A tie whose effect
     another added effect refines (Stribeck refines Coulomb) cannot be swapped and stays as it was."""
+    from toggle_id.discovery.engine import verdict_rules
     from toggle_id.emps.fit import fit_output_error
-    from toggle_id.emps.loop import _verdict_rules
+    from toggle_id.emps.loop import EmpsPlant
 
     truth = theta_from_dict({"M": PUBLISHED["M"], "Fv": PUBLISHED["Fv"], "Fc": PUBLISHED["Fc"],
                              "offset": PUBLISHED["offset"]})
     rec = simulated_record(truth, 5000, noise_m=NOISE_M, name="coulomb+offset")
     fit_kw = {"max_nfev": 50, "solver": "polish", "sim_options": None}
     judge_kw = {"alpha": 0.01, "max_corr": 0.99, "noise_max_order": 8, "cv_block": 100, "cv_folds": 5}
-    rules = {"backward": False, "ambiguity_alpha": 0.05, "explain_fraction": 0.5, "bins": 12, "alpha": 0.01}
+    rules = {"backward": False, "ambiguity_alpha": 0.05, "explain_fraction": 0.5, "noise_max_order": 8}
     final = fit_output_error(rec, ["M", "Fv", "Fc", "offset"], truth, **fit_kw)
+    plant = EmpsPlant(rec, ["offset", "coulomb_friction", "stribeck_friction"], final, fit_kw, judge_kw, {}, 12, 0.01,
+                      0.05)
     stribeck = {"name": "stribeck_friction", "params": {"Fs": 5.0, "vs": 0.005}, "vuong": {"z": 0.3}}
     added = [{"name": "offset", "round": 1, "params": {"offset": final.params["offset"]},
               "indistinguishable_from": [dict(stribeck)]},
              {"name": "coulomb_friction", "round": 2, "params": {"Fc": final.params["Fc"]}}]
-    _, kept, *_ = _verdict_rules(rec, final, added, [], [], fit_kw, judge_kw, {}, **rules)
+    kept = verdict_rules(plant, final, added, **rules).added
     offset = kept[0]
     assert offset["indistinguishable_from"] == []
     (resolved,) = offset["ties_resolved"]
@@ -165,5 +169,5 @@ def test_a_tie_of_an_earlier_round_is_judged_again_on_the_final_model():
     added = [{"name": "coulomb_friction", "round": 1, "params": {"Fc": final.params["Fc"]},
               "indistinguishable_from": [dict(offset_tie)]},
              {"name": "stribeck_friction", "round": 2, "params": {"Fs": 0.0, "vs": 0.005}}]
-    _, kept, *_ = _verdict_rules(rec, final, added, [], [], fit_kw, judge_kw, {}, **rules)
+    kept = verdict_rules(plant, final, added, **rules).added
     assert kept[0]["indistinguishable_from"] == [offset_tie] and "ties_resolved" not in kept[0]

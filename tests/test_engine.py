@@ -228,3 +228,110 @@ def test_compensating_lists_each_effect_once_with_its_latest_refit():
                               [{"name": "dead_time", "indistinguishable_from": [{"name": "cogging_torque"}]}])
     assert [(c["name"], c["iteration"]) for c in out] == [("constant_load_force", 2), ("sensor_offset", 2)]
     assert out[0]["reason"] == "constant_load_force in iteration 2" and out[0]["evidence"] == {"iteration": 2}
+
+
+# ---------------------------------------------------------------------------------------------- the loop
+@dataclass(frozen=True)
+class _Fit:
+    effects: frozenset
+    sse: float
+
+
+class _StubPlant:
+    """A plant whose fits are sets of effects with a tabulated SSE and structure energy; forward steps add ``a``
+    then ``b``, then nothing is supported. The judge passes an effect that lowers the SSE by more than 0.5."""
+
+    stage = "iteration"
+    has_validation = False
+
+    def __init__(self, sse: dict, energy: dict, keep: frozenset = frozenset()) -> None:
+        self.sse, self.energy, self.kept, self.log = sse, energy, keep, []
+
+    def fit(self, names) -> _Fit:
+        return _Fit(frozenset(names), self.sse[frozenset(names)])
+
+    def baseline(self):
+        return self.fit(())
+
+    def remaining(self, added):
+        return [nm for nm in "abc" if nm not in {a["name"] for a in added}]
+
+    def forward_step(self, current, added, iteration):
+        from toggle_id.discovery.engine import Step
+
+        if iteration > 2:
+            return Step(current)
+        name = "ab"[iteration - 1]
+        return Step(current, {"name": name, "iteration": iteration}, self.fit(current.effects | {name}))
+
+    def without(self, current, a, added, rival=None):
+        return self.fit(current.effects - {a["name"]})
+
+    def judge(self, small, large):
+        return _Verdict(small.sse - large.sse > 0.5, "not significant")
+
+    def residual(self, fit):
+        return np.zeros(3)
+
+    def n_free(self, fit):
+        return len(fit.effects)
+
+    def summary(self, fit):
+        return {"sse": fit.sse}
+
+    def error_text(self, fit):
+        return f"sse {fit.sse}"
+
+    def keep(self, a, added):
+        return a["name"] in self.kept
+
+    def structure(self, fit):
+        return self.energy[fit.effects] > 0.5, {"energy": self.energy[fit.effects]}
+
+    def structure_energy(self, fit, details=None):
+        return self.energy[fit.effects]
+
+    def explains(self, current, added, details, everyone):
+        return added, []
+
+    def demote(self, current, demoted, added):
+        return self.fit(current.effects - {d["name"] for d in demoted})
+
+    def validation_residual(self, fit):
+        raise AssertionError("no validation record")
+
+    def say(self, msg):
+        self.log.append(msg)
+
+
+def _run(plant):
+    from toggle_id.discovery.engine import run_loop
+
+    return run_loop(plant, max_effects=None, backward=True, ambiguity_alpha=0.05, explain_fraction=0.5,
+                    noise_max_order=4)
+
+
+def test_the_loop_runs_forward_then_drops_what_the_others_make_unnecessary():
+    """Forward: a (10 → 5) then b (5 → 4.9); backward: without b the SSE is 5.0, within the judge's 0.5 → b is
+    eliminated; without a it is 10 → a stays. No structure is left: a is added."""
+    sse = {frozenset(): 10.0, frozenset("a"): 5.0, frozenset("ab"): 4.9, frozenset("b"): 9.0}
+    energy = {k: (0.1 if "a" in k else 3.0) for k in sse}
+    out = _run(_StubPlant(sse, energy))
+    assert [a["name"] for a in out.added] == ["a"] and [e["name"] for e in out.eliminated] == ["b"]
+    assert out.final.effects == frozenset("a") and out.compensating == [] and out.with_compensating is None
+    assert all("_reduced" not in a for a in out.added)
+    kept = _run(_StubPlant(sse, energy, keep=frozenset("b")))  # an effect another refines is never removed
+    assert [a["name"] for a in kept.added] == ["a", "b"] and kept.eliminated == []
+
+
+def test_an_effect_that_leaves_the_structure_is_compensating_and_leaves_the_final_model():
+    """Structure is left with a in the model and a removed only 10 % of its energy: a is compensating, the final
+    model is the one without it, and the model that had it is kept for the report."""
+    sse = {frozenset(): 10.0, frozenset("a"): 5.0, frozenset("ab"): 4.9, frozenset("b"): 9.0}
+    energy = {frozenset(): 2.0, frozenset("a"): 1.8, frozenset("ab"): 1.8, frozenset("b"): 2.0}
+    plant = _StubPlant(sse, energy)
+    out = _run(plant)
+    assert out.added == [] and [c["name"] for c in out.compensating] == ["a"]
+    assert out.compensating[0]["structure_explained"]["fraction"] == pytest.approx(0.1)
+    assert out.final.effects == frozenset() and out.with_compensating.effects == frozenset("a")
+    assert out.structure == {"energy": 2.0} and any("compensating" in m for m in plant.log)

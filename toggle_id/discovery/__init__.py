@@ -1,6 +1,7 @@
 """Model discovery: find what the model lacks, add it, and say how sure we are.
 
-The loop (:func:`discover`, :mod:`.loop`) works on one record and the extended parameter vector of
+The loop (:func:`discover`, :mod:`.loop`) is the engine's (:func:`.engine.run_loop`, which the EMPS plant runs
+too) over the toggle plant (:mod:`.toggle_plant`); it works on one record and the extended parameter vector of
 :mod:`toggle_id.effects`; it never names an effect — it reads the library, so adding an effect is adding a kernel
 term and an :class:`~toggle_id.effects.Effect` entry.
 

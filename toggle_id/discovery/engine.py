@@ -1,5 +1,9 @@
-"""The plant-independent verdict rules of the discovery loop, shared by the toggle plant (:mod:`.loop`) and the
-EMPS plant (:mod:`toggle_id.emps.loop`).
+"""The discovery engine: one loop (:func:`run_loop`) over any plant behind a small interface (:class:`Plant`), run by
+the toggle plant (:class:`toggle_id.discovery.toggle_plant.TogglePlant`, :func:`toggle_id.discovery.discover`) and
+the EMPS plant (:class:`toggle_id.emps.loop.EmpsPlant`, :func:`toggle_id.emps.loop.run_emps_loop`).
+
+The loop is forward steps from the plant's baseline (how a plant searches its library is its own: it knows what a
+refit costs), then the plant-independent verdict rules below (:func:`verdict_rules`).
 
 Each plant brings its own fits (a model with an effect switched off, refitted) and its own judge (an
 :class:`~.validation.Evidence` for a larger model against a smaller one: noise model of the larger model's
@@ -24,6 +28,7 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -250,3 +255,146 @@ def settle_ties_out_of_sample(current: Any, added: list[dict], swap: Callable[[A
         if resolved:
             a["ties_resolved"] = [*a.get("ties_resolved", []), *resolved]
     return current
+
+
+# ------------------------------------------------------------------------------------------ the loop itself
+@dataclass
+class Step:
+    """One forward step of a plant: ``base`` is the current model (or a better optimum of it the step found),
+    ``chosen`` the item of the effect it adds (a dict with ``name`` and the plant's stage key; None: nothing is
+    supported, the forward search ends) and ``after`` the model with it."""
+
+    base: Any
+    chosen: dict | None = None
+    after: Any = None
+
+
+@dataclass
+class Outcome:
+    """What the loop leaves: the final model, the three lists' first two (``added``, ``compensating``), the effects
+    backward elimination dropped, the plant's structure verdict of the final model and, when effects were demoted
+    to compensating, the model that still had them."""
+
+    final: Any
+    added: list[dict]
+    compensating: list[dict]
+    eliminated: list[dict]
+    structure: Any
+    with_compensating: Any = None
+
+
+class Plant(Protocol):
+    """What the discovery engine needs of a plant (the toggle mechanism: :class:`toggle_id.discovery.toggle_plant.TogglePlant`;
+    the EMPS axis: :class:`toggle_id.emps.loop.EmpsPlant`). A *fit* is the plant's own object (a model with some
+    effects on, fitted); an *item* a dict describing an accepted effect (``name``, the forward step under
+    :attr:`stage`, ``indistinguishable_from``, its evidence).
+
+    Forward search: :meth:`baseline` (the nominal model fitted), :meth:`remaining` (the candidates not in the model)
+    and :meth:`forward_step` — how a plant searches its library is its own (the toggle plant scores, scouts and
+    refits a few candidates, each refit costing seconds; the EMPS plant refits them all). The verdict rules are
+    the engine's (:func:`run_loop`) over :meth:`without` (the model refitted with an effect off, or a rival in its
+    place; None where the plant forbids it), :meth:`judge` (the case for a larger model against a smaller:
+    :class:`~.validation.Evidence`), :meth:`residual`, :meth:`n_free`, :meth:`summary` (JSON-able) and
+    :meth:`error_text` of a fit, :meth:`keep` (an item that may not be removed: another refines it),
+    :meth:`structure` ((structure left?, the plant's details) of a fit's residual), :meth:`structure_energy`,
+    :meth:`explains` (a last check of the explaining effects, given all that were accepted, e.g. the catch-all
+    force; may demote more),
+    :meth:`demote` (the model without the compensating effects), :meth:`validation_residual` (the residual on a
+    second record, never fitted, where :attr:`has_validation`) and :meth:`say`. :attr:`stage`: the key of an item's
+    forward step (``iteration``, ``round``)."""
+
+    stage: str
+    has_validation: bool
+
+    def baseline(self) -> Any: ...
+    def remaining(self, added: Sequence[dict]) -> list: ...
+    def forward_step(self, current: Any, added: Sequence[dict], iteration: int) -> Step: ...
+    def without(self, current: Any, a: dict, added: Sequence[dict], rival: dict | None = None) -> Any: ...
+    def judge(self, small: Any, large: Any) -> Verdict: ...
+    def residual(self, fit: Any) -> np.ndarray: ...
+    def n_free(self, fit: Any) -> int: ...
+    def summary(self, fit: Any) -> dict: ...
+    def error_text(self, fit: Any) -> str: ...
+    def keep(self, a: dict, added: Sequence[dict]) -> bool: ...
+    def structure(self, fit: Any) -> tuple[bool | None, Any]: ...
+    def structure_energy(self, fit: Any, details: Any = None) -> float: ...
+    def explains(self, current: Any, added: list[dict], details: Any, everyone: Sequence[dict]
+                 ) -> tuple[list[dict], list[dict]]: ...
+    def demote(self, current: Any, demoted: Sequence[dict], added: Sequence[dict]) -> Any: ...
+    def validation_residual(self, fit: Any) -> np.ndarray | None: ...
+    def say(self, msg: str) -> None: ...
+
+
+def run_loop(plant: Plant, *, max_effects: int | None, backward: bool, ambiguity_alpha: float,
+             explain_fraction: float, noise_max_order: int) -> Outcome:
+    """The discovery loop over any plant: :func:`forward` steps, then the :func:`verdict_rules`."""
+    current, added = forward(plant, max_effects)
+    return verdict_rules(plant, current, added, backward=backward, ambiguity_alpha=ambiguity_alpha,
+                         explain_fraction=explain_fraction, noise_max_order=noise_max_order)
+
+
+def forward(plant: Plant, max_effects: int | None) -> tuple[Any, list[dict]]:
+    """From the plant's baseline, forward steps until none adds an effect or ``max_effects`` are in; the model
+    and the items added."""
+    current = plant.baseline()
+    added: list[dict] = []
+    it = 0
+    while (max_effects is None or len(added) < max_effects) and plant.remaining(added):
+        it += 1
+        step = plant.forward_step(current, added, it)
+        current = step.base
+        if step.chosen is None:
+            break
+        current = step.after
+        added.append(step.chosen)
+    return current, added
+
+
+def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bool, ambiguity_alpha: float,
+                  explain_fraction: float, noise_max_order: int) -> Outcome:
+    """The verdict rules on the model ``current`` with the accepted items ``added``: backward elimination (when
+    ``backward``), ties judged again on the final model (and on a second record when the plant has one; when
+    ``ambiguity_alpha`` > 0), and, when structure is left, the split of the accepted effects into explaining and
+    compensating (at ``explain_fraction``; the compensating ones taken out of the final model)."""
+    eliminated: list[dict] = []
+    if backward and added:
+        current, added, eliminated = backward_eliminate(
+            current, added, lambda cur, a, now: plant.without(cur, a, now), plant.judge, plant.say,
+            plant.error_text, keep=plant.keep)
+    if ambiguity_alpha > 0 and added:
+        def swap(cur: Any, a: dict, rv: dict) -> Any:
+            return None if plant.keep(a, added) else plant.without(cur, a, added, rv)
+
+        reconsider_ties(current, added, swap, plant.residual, plant.n_free, plant.summary, noise_max_order,
+                        ambiguity_alpha, plant.say, stage=plant.stage)
+        if plant.has_validation:
+            current = settle_ties_out_of_sample(current, added, swap, plant.validation_residual, plant.n_free,
+                                                plant.summary, noise_max_order, ambiguity_alpha, plant.say)
+
+    left, details = plant.structure(current)
+    compensating: list[dict] = []
+    with_compensating = None
+    if left and added:
+        # structure is left: an effect explains only if it removed most of the structure energy it was added for
+        e_with = plant.structure_energy(current, details)
+        everyone = list(added)
+        for a in added:  # the final model without each effect (backward elimination has most)
+            if a.get("_reduced") is None:
+                a["_reduced"] = plant.without(current, a, everyone)
+        added, compensating = split_explaining(added, e_with, lambda a: plant.structure_energy(a["_reduced"]),
+                                               explain_fraction)
+        for d in [d for d in compensating if plant.keep(d, added)]:
+            compensating.remove(d)  # an effect that an explaining one refines stays with it
+            added.append({k: v for k, v in d.items() if k != "reason"})
+        if added:
+            added, more = plant.explains(current, added, details, everyone)
+            compensating += more
+        if compensating:
+            plant.say("structure remains; " + ", ".join(c["name"] for c in compensating) + " lower the error but "
+                      "do not explain it (listed as compensating, not added)")
+            with_compensating = current
+            current = plant.demote(current, compensating, added)
+            left, details = plant.structure(current)
+    for a in added + compensating:
+        a.pop("_reduced", None)
+    return Outcome(current, added, compensating, eliminated, details, with_compensating)

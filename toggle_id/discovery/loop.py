@@ -6,28 +6,24 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
-from scipy import stats
 
 from .. import params as P
 from ..effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME, Effect
-from ..errors import ConfigError, DataError
+from ..errors import ConfigError
 from ..polish import one_blas_thread
 from ..identify import IdentificationResult
 from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE, extend
-from .gauge import GAUGE_HELD, _force_like, current_power, freed_with, gauge_fix, gauge_symmetries
-from .model import Fit, Model, _off_values, _with, fit_free, parameter_uncertainty, revived
-from .refit import Refit, guard_null, refit_candidate, scout_candidate
+from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symmetries
+from .model import Fit, Model, _with, parameter_uncertainty
+from .refit import Refit
+from .toggle_plant import TogglePlant
 from .report import DiscoveryResult, _conclusion
-from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
-from .catchall import catch_all
-from .engine import (backward_eliminate, indistinguishable, reconsider_ties, settle_ties_out_of_sample,
-                     split_explaining, tie_band)
-from .residual import prediction_report, residual_report, residual_structure_energy, structure_energy_of
-from .noise import WHITE, fit_noise
-from .stats import f_test
+from .engine import run_loop
+from .residual import prediction_report, residual_report
+from .noise import fit_noise
 from .validation import Judge
 
 log = logging.getLogger("toggle_id")
@@ -89,87 +85,16 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     split = split if 0 < split < record.n else None
     n = record.n
 
-    model.noise = WHITE
-    baseline, anchor = _baseline(model, theta, [_with(_nominal_theta(st), fixed) for st in starts], free,
-                                 settings, say)
-    noise0 = fit_noise(model.residuals(baseline.theta[None, :])[0], settings.noise_max_order)
-    say(f"noise model of the nominal residual: {noise0.describe()}")
-    current = baseline
-    iterations: list[dict] = []
-    added: list[dict] = []
-    first_scores: list[CandidateScore] | None = None
-    all_refits: list[Refit] = []
-    for it in range(1, settings.max_effects + 1):
-        remaining = [e for e in pool if e.name not in {a["name"] for a in added}]
-        if not remaining:
-            break
-        step = _iteration(model, judge, current, anchor, free, remaining, settings, it, held, say, on_refit)
-        all_refits.extend(step["refits"])
-        if first_scores is None:
-            first_scores = step["scores"]
-        current = step["base"]  # the current model, or a better optimum of it found by a guard re-polish
-        if step["better_null"] is not None and not added:  # a better nominal optimum: the error "before" is its
-            baseline = current
-        chosen = step["chosen"]
-        iterations.append(step["record"])
-        if chosen is None:
-            break
-        current = _polish_with_effect(model, chosen, anchor, free, settings, say)
-        added.append({"name": chosen.name, "iteration": it, "F": chosen.F, "p_value": chosen.p_value,
-                      "delta_bic": chosen.delta_bic, "rmse_after_m": current.rmse(n),
-                      "params_at_acceptance": chosen.params, "evidence": chosen.evidence,
-                      "indistinguishable_from": step["rivals"]})
-        say(f"added {chosen.name} {chosen.params}; rms {current.rmse(n) * 1e6:.4g} µm")
-
-    eliminated: list[dict] = []
-    if settings.backward and added:
-        current, added, eliminated = _backward(model, judge, current, added, held, settings, say)
-    if settings.ambiguity_alpha > 0:
-        def swap(cur: Fit, a: dict, rv: dict) -> Fit:
-            return _without(model, cur, a["name"], added, held, settings, rv)
-
-        reconsider_ties(current, added, swap, judge.residual, lambda fit: len(fit.free), lambda fit: {"rmse_m": fit.rmse(n)},
-                        settings.noise_max_order, settings.ambiguity_alpha, say)
-        if judge.validation is not None:
-            current = settle_ties_out_of_sample(
-                current, added, swap, lambda fit: judge.validation.residuals(fit.theta[None, :])[0], lambda fit: len(fit.free),
-                lambda fit: {"rmse_m": fit.rmse(n)}, settings.noise_max_order, settings.ambiguity_alpha, say)
-
-    # the noise-aware structure test decides whether the effects explain the residual or only compensate
-    diag_after, r_after, states_after = residual_report(model, current.theta, settings, split)
-    structure = bool(diag_after.get("verdict", {}).get("structure_left", False))
-    compensating: list[dict] = []
-    with_compensating = catch_report = None
-    if structure and added:
-        # structure is left: an effect explains only if it removed most of the structure energy it was added for,
-        # and if it does something a force of unknown shape on slider B would not (the catch-all check)
-        e_with = structure_energy_of(model, r_after, states_after, settings)
-        all_added = list(added)
-
-        def without(fit: Fit, a: dict) -> Fit:
-            return _without(model, fit, a["name"], all_added, held, settings)
-
-        for a in added:  # the final model without each effect (backward elimination has most): both rules use it
-            if a.get("_reduced") is None:
-                a["_reduced"] = without(current, a)
-        added, compensating = split_explaining(
-            added, e_with, lambda a: residual_structure_energy(model, a["_reduced"].theta, settings),
-            settings.explain_fraction)
-        if added and settings.catch_all and states_after:
-            added, more, catch_report = catch_all(model, judge, current, added, states_after, without, settings, say)
-            compensating += more
-        if compensating:
-            demoted = [c["name"] for c in compensating]
-            say("structure remains; " + ", ".join(demoted) + " lower the error but do not explain it (listed as "
-                "compensating, not added)")
-            with_compensating = current
-            current = baseline if not added else fit_free(
-                model, _with(current.theta, {p.name: p.off for nm in demoted for p in EFFECTS_BY_NAME[nm].params}),
-                tuple(nm for nm in current.free if not any(nm in EFFECTS_BY_NAME[d].names for d in demoted)),
-                settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-            diag_after, r_after, _ = residual_report(model, current.theta, settings, split)
-    for a in added + compensating:
-        a.pop("_reduced", None)
+    plant = TogglePlant(model, judge, settings, theta, [_with(_nominal_theta(st), fixed) for st in starts], free,
+                        held, pool, split, say, on_refit)
+    out = run_loop(plant, max_effects=settings.max_effects, backward=settings.backward,
+                   ambiguity_alpha=settings.ambiguity_alpha, explain_fraction=settings.explain_fraction,
+                   noise_max_order=settings.noise_max_order)
+    baseline, current, added, compensating, eliminated = (plant.baseline_fit, out.final, out.added, out.compensating,
+                                                          out.eliminated)
+    diag_after, r_after, _ = out.structure
+    noise0, first_scores, iterations, all_refits = plant.noise0, plant.first_scores, plant.iterations, plant.all_refits
+    with_compensating, catch_report = out.with_compensating, plant.catch_report
     compensating += compensating_refits(all_refits, compensating, added)
 
     # the representatives of the fits nearest the reference along the exact symmetries (same output)
@@ -232,187 +157,6 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                            nominal=nominal.to_dict() if isinstance(nominal, IdentificationResult) else None,
                            conclusion=conclusion, unexplained=unexplained, seconds=time.perf_counter() - t_start,
                            n_simulations=model.n_sims, refits=all_refits, extra=extra)
-
-
-def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], free: Sequence[str],
-              settings: DiscoverSettings, say: Callable[[str], None]) -> tuple[Fit, np.ndarray]:
-    """The nominal model polished on the whole record from every start; the best and its start."""
-    n = model.n
-    current, anchor, report = None, theta, []
-    anchors = [theta, *others]
-    anchors += [th for th in (revived(a, free) for a in list(anchors)) if th is not None]  # collapsed parameters
-    for k, th0 in enumerate(anchors):
-        if not np.all(np.isfinite(model.residuals(th0[None, :])[0])):
-            report.append({"start": k, "error": "cannot be simulated on this record"})
-            continue
-        say(f"baseline polish of {len(free)} parameters on {n} samples (start {k + 1} of {len(anchors)})")
-        fit = fit_free(model, th0, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-        report.append({"start": k, "rmse_m": fit.rmse(n), "nfev": fit.info["nfev"]})
-        say(f"  rms {fit.rmse(n) * 1e6:.4g} µm ({fit.info['nfev']} evaluations, {fit.info['seconds']:.1f} s)")
-        if current is None or fit.sse < current.sse:
-            current, anchor = fit, th0
-    if current is None:
-        raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
-    current.info["starts"] = report
-    return current, anchor
-
-
-def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, free: Sequence[str],
-               remaining: Sequence[Effect], settings: DiscoverSettings, it: int, held: Sequence[str],
-               say: Callable[[str], None], on_refit: Callable[[Refit], None] | None) -> dict:
-    """Scores, scouts and refits of one iteration; the candidate to add (or None)."""
-    n = model.n
-    noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
-    points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
-    # second linearisation point: the nominal fit as given, with the effects added so far — the polished fit may
-    # have bent the nominal parameters far towards the missing effect, where the local picture is distorted
-    alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
-    if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
-        second = assess(model, "nominal start", alt, current.free, remaining, settings, noise)
-        if second is not None:  # (None: the nominal start cannot be simulated with these effects)
-            points.append(second)
-    scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
-    for c in scores:
-        for pt in points[1:]:
-            c.profile_score_alt = pt.scores[c.name].profile_score
-    say("scores (profile | LM, prewhitened): " + ", ".join(
-        f"{c.name} {c.profile_score:.3g} | {c.score:.3g}" for c in sorted(scores, key=lambda c: -c.profile_score)))
-    screen = float(stats.chi2.isf(settings.screen_alpha, 1))
-    here = points[0].scores
-    if settings.scout_all:  # global screening: every candidate with a grid is scouted
-        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)]
-    else:
-        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
-                    and (max(here[c.name].profile_score, here[c.name].score) > screen
-                         or (c.name not in points[0].profiles
-                             and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
-    scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
-              for c in screened}
-    for c in scores:
-        c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
-    order = sorted(scouts.values(), key=lambda sc: sc.sse)
-    scores.sort(key=lambda c: (scouts[c.name].sse if c.name in scouts else np.inf, -c.profile_score))
-    say("scouts: " + (", ".join(f"{sc.name} {np.sqrt(sc.sse / n) * 1e6:.4g} µm" for sc in order) or "none"))
-    base = current
-    refits: list[Refit] = []
-    better_null: Fit | None = None
-    # the candidate the score test ranks first is refitted whatever its scout: a short polish of a threshold or
-    # delay effect may show little of what its converged refit explains, and the two rankings disagreeing is
-    # itself a reason to look
-    top_score = max((c for c in scores if c.name in scouts and np.isfinite(scouts[c.name].sse)),
-                    key=lambda c: max(c.profile_score, c.score), default=None)
-    for i, sc in enumerate(order):
-        best = min((rf.fit.rmse(n) ** 2 * n for rf in refits if rf.accepted), default=None)
-        # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
-        # (no effect is accepted while a candidate that explains more has not been refitted), and while a scout
-        # comes within reach of it (a rival the record may not tell apart from it); with none accepted yet, while
-        # a scout's short polish is significant as least squares (no effect is dismissed on its scout alone: a
-        # short polish may show little of what a converged refit explains)
-        if not np.isfinite(sc.sse):
-            break
-        if i >= settings.top_k and (top_score is None or sc.name != top_score.name):
-            if best is not None and sc.sse >= best + tie_band(best, n, settings.ambiguity_alpha):
-                continue
-            k_sc = len(freed_with(base.free, EFFECTS_BY_NAME[sc.name], held)) - len(base.free)
-            if best is None and not f_test(base.sse, sc.sse, k_sc, n, len(base.free) + k_sc)[1] < settings.alpha:
-                continue
-        eff = EFFECTS_BY_NAME[sc.name]
-        start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
-        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=start)
-        if rf.accepted:
-            null = guard_null(model, base, rf, eff, settings, judge)
-            if null is not None and null.sse < base.sse:
-                say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
-                    f"{null.rmse(n) * 1e6:.4g} µm")
-                base = better_null = null
-                for other in refits:  # earlier refits are judged against the better baseline too
-                    if other.accepted:
-                        other.judge(judge.judge_pair(base, other.fit), base.sse)
-                        if not other.accepted:
-                            other.reason = "against the re-polished nominal model: " + other.reason
-        ev = rf.evidence
-        say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
-            f"ΔBIC {rf.delta_bic:.4g}, out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
-            f"{ev.get('cv_sse_w_after', np.nan):.4g} → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
-            f"({rf.seconds:.1f} s)")
-        refits.append(rf)
-        if on_refit is not None:
-            on_refit(rf)
-    winners = [rf for rf in refits if rf.accepted]
-    chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
-    rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []
-    for rf in winners:
-        if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
-            rf.reason = f"supported, but {chosen.name} explains more (lower SSE); judged again next iteration"
-    if rivals:
-        say(f"  {chosen.name} and " + ", ".join(r["name"] for r in rivals) + " fit this record equally well "
-            "(Vuong " + ", ".join(f"z {r['vuong']['z']:.2f}" for r in rivals) + "): ambiguous")
-    record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
-              "noise_model_of_current_residual": noise.to_dict(), "points": [pt.label for pt in points],
-              "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
-              "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals}
-    return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
-            "base": base, "rivals": rivals}
-
-
-def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
-    """The other supported refits of the round the record cannot tell apart from ``chosen``
-    (:func:`.engine.indistinguishable`, on the residuals the judge already simulated); each such refit's reason
-    says so."""
-    if not settings.ambiguity_alpha > 0:
-        return []
-    others = [rf for rf in winners if rf is not chosen]
-    found = indistinguishable(judge.residual(chosen.fit), chosen.k, [(judge.residual(rf.fit), rf.k) for rf in others],
-                              settings.noise_max_order, settings.ambiguity_alpha)
-    out = []
-    for rf, v in zip(others, found):
-        rf.evidence["vuong_against_" + chosen.name] = v
-        if v["tied"]:
-            rf.reason = (f"fits as well as {chosen.name} (Vuong z {v['z']:.2f}, p {v['p_value']:.2g}): the record "
-                         "cannot tell them apart")
-            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(judge.model.n), "vuong": v,
-                        "F": rf.F, "p_value": rf.p_value, "delta_bic": rf.delta_bic, "evidence": rf.evidence})
-    return out
-
-
-def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: Sequence[str],
-                        settings: DiscoverSettings, say: Callable[[str], None]) -> Fit:
-    """The accepted refit polished in full, also from the nominal fit as given with the effects' values (the
-    polished baseline may sit in another valley); the better of the two."""
-    n = model.n
-    current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
-                       rounds=settings.rounds)
-    effect_names = [nm for nm in chosen.fit.free if nm not in free]
-    alt = fit_free(model, _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names}),
-                   chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-    if alt.sse < current.sse:
-        say(f"  second start (nominal fit + effects) reached {alt.rmse(n) * 1e6:.4g} µm "
-            f"instead of {current.rmse(n) * 1e6:.4g} µm")
-        current = alt
-    return current
-
-
-def _backward(model: Model, judge: Judge, current: Fit, added: list[dict], held: Sequence[str],
-              settings: DiscoverSettings, say: Callable[[str], None]) -> tuple[Fit, list[dict], list[dict]]:
-    """Backward elimination (:func:`.engine.backward_eliminate`) with the toggle plant's refits and judge."""
-    return backward_eliminate(
-        current, added, lambda cur, a, now: _without(model, cur, a["name"], now, held, settings), judge.judge_pair,
-        say, lambda fit: f"rms {fit.rmse(model.n) * 1e6:.4g} µm")
-
-
-def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held: Sequence[str],
-             settings: DiscoverSettings, rival: dict | None = None) -> Fit:
-    """The current model refitted with effect ``name`` switched off (and the gauge parameter it alone freed held
-    again); with ``rival`` ({name, params}), that effect switched on in its place, started at its ``params``."""
-    eff = EFFECTS_BY_NAME[name]
-    others = {s for b in added if b["name"] != name for s in EFFECTS_BY_NAME[b["name"]].breaks}
-    rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
-    free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
-    start = _with(current.theta, _off_values(eff))
-    if rival is not None:
-        free = freed_with(free, EFFECTS_BY_NAME[rival["name"]], held)
-        start = _with(start, rival["params"])
-    return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
 
 
 def compensating_refits(refits: Sequence[Refit], compensating: Sequence[dict], added: Sequence[dict]) -> list[dict]:

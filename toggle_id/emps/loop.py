@@ -1,4 +1,5 @@
-"""The EMPS plant's greedy effect-discovery loop, :func:`run_emps_loop`.
+"""The EMPS plant of the discovery engine (:class:`EmpsPlant`) and its job's loop, :func:`run_emps_loop`: the
+engine's loop (:func:`toggle_id.discovery.engine.run_loop`, the toggle plant's too) over this plant.
 
 It fits the nominal model (M, Fv) by output error (:mod:`.fit`), then adds effects from
 :data:`~toggle_id.emps.model.EFFECTS` greedily, each judged by :func:`~.fit.judge_effect` into the discovery
@@ -13,7 +14,7 @@ Jacobians) and its new parameters stay identifiable (|correlation| ≤ max_corr)
 with the lowest prewhitened SSE is taken, all of a round's residuals whitened by one noise model (that of the
 refit that explains the most, as the toggle plant ranks its refits).
 
-Then the toggle loop's own verdict rules (:mod:`toggle_id.discovery.engine`): backward elimination, and — when
+Then the engine's verdict rules (:func:`toggle_id.discovery.engine.verdict_rules`): backward elimination, and — when
 the noise-aware structure test (:func:`toggle_id.discovery.localise.locate`) finds structure left in the final
 position residual — an accepted effect that removed less than ``explain_fraction`` of the structure energy is
 listed as compensating, not added; and an accepted effect that the record cannot tell apart from another that
@@ -30,7 +31,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..discovery.engine import backward_eliminate, indistinguishable, reconsider_ties, split_explaining
+from ..discovery.engine import Step, indistinguishable, run_loop
 from ..discovery.localise import locate, structure_energy
 from ..discovery.noise import fit_noise, whitened_sse
 from ..discovery.validation import Evidence
@@ -155,8 +156,7 @@ def three_lists(names: Sequence[str], tried: Sequence[dict], evidence: Mapping[i
         item = {"name": name, "round": last["round"], "params": dict(last["params"]), "reason": ev.reason,
                 "evidence": ev.to_dict()}
         if last["accepted"]:
-            added.append({**item, "F": ev.F, "p_value": ev.p_value, "delta_bic": ev.delta_bic,
-                          "indistinguishable_from": list(last.get("indistinguishable_from") or [])})
+            added.append(added_item(last, ev))
         elif ev.passed:
             item["reason"] = (f"passed every check in round {last['round']} but was not added: the limit "
                               f"emps.max_effects = {max_effects} was reached")
@@ -168,6 +168,137 @@ def three_lists(names: Sequence[str], tried: Sequence[dict], evidence: Mapping[i
             rejected.append(item)
     added.sort(key=lambda a: a["round"])
     return added, compensating, rejected
+
+
+def added_item(entry: dict, ev: Evidence) -> dict:
+    """The item of an accepted effect (``entry`` of the round that accepted it, judged by ``ev``), as
+    ``effects_added`` lists it."""
+    return {"name": entry["name"], "round": entry["round"], "params": dict(entry["params"]), "reason": ev.reason,
+            "evidence": ev.to_dict(), "F": ev.F, "p_value": ev.p_value, "delta_bic": ev.delta_bic,
+            "indistinguishable_from": list(entry.get("indistinguishable_from") or [])}
+
+
+class EmpsPlant:
+    """The EMPS axis as a plant of the discovery engine (:class:`toggle_id.discovery.engine.Plant`): a round refits
+    every remaining candidate whose ``requires`` are in the model (each refit costs well under a second) and judges
+    each against the current model (:func:`~.fit.judge_effect`); an effect another refines may not be removed; the
+    structure test is :func:`localise`. The benchmark's validation record is predicted at the end, never used to
+    choose between effects. Keeps every refit's entry (``tried``, with its Evidence in ``evidence``) and the
+    rounds' ranking noise models (``rounds``)."""
+
+    stage = "round"
+    has_validation = False
+
+    def __init__(self, record: EmpsRecord, names: Sequence[str], nominal: OEFitResult, fit_kw: Mapping,
+                 judge_kw: Mapping, sim_kw: Mapping, bins: int, alpha: float, ambiguity_alpha: float) -> None:
+        self.record, self.names, self.nominal = record, list(names), nominal
+        self.fit_kw, self.judge_kw, self.sim_kw, self.bins, self.alpha = fit_kw, judge_kw, sim_kw, bins, alpha
+        self.ambiguity_alpha = ambiguity_alpha
+        self.free: list[str] = list(nominal.free)
+        self.tried: list[dict] = []
+        self.evidence: dict[int, Evidence] = {}  # id(entry of ``tried``) → its Evidence
+        self.rounds: list[dict] = []
+
+    def say(self, msg: str) -> None:
+        pass
+
+    def baseline(self) -> OEFitResult:
+        return self.nominal
+
+    def remaining(self, added: Sequence[dict]) -> list[str]:
+        return [nm for nm in self.names if nm not in {a["name"] for a in added}]
+
+    def forward_step(self, current: OEFitResult, added: Sequence[dict], rnd: int) -> Step:
+        """One round: every candidate refitted and judged; the best that passes (:func:`_rank_passing`) with its
+        ties (:func:`_ties`)."""
+        in_model = [a["name"] for a in added]
+        n, noise_max_order = self.record.n, int(self.judge_kw["noise_max_order"])
+        refits: list[tuple[dict, OEFitResult, Effect]] = []
+        for name in self.remaining(added):
+            eff = EFFECTS[name]
+            if any(req not in in_model for req in eff.requires):
+                continue
+            th = current.theta.copy()
+            for p, d in zip(eff.params, eff.default):
+                th[INDEX[p]] = d
+            fit = fit_output_error(self.record, self.free + list(eff.params), th, **self.fit_kw)
+            ev = judge_effect(current, fit, **self.judge_kw)
+            entry = {"round": rnd, "name": name,
+                     **evidence_entry(ev, n, new_params_corr(current, fit), self.judge_kw["cv_block"],
+                                      self.judge_kw["cv_folds"]),
+                     "sse_ratio": float(fit.sse / current.sse), "rel_error_pct": fit.rel_error_pct,
+                     "params": {p: float(fit.theta[INDEX[p]]) for p in eff.params}, "accepted": False,
+                     "verdict": "passed" if ev.passed else "rejected", "seconds": fit.seconds}
+            self.tried.append(entry)
+            self.evidence[id(entry)] = ev
+            refits.append((entry, fit, eff))
+        if not refits:
+            return Step(current)
+        chosen, ranking = _rank_passing(refits, noise_max_order)
+        self.rounds.append({"round": rnd, **ranking, "accepted": chosen[2].name if chosen else None})
+        if chosen is None:
+            return Step(current)
+        entry, fit, eff = chosen
+        entry["accepted"] = True
+        entry["verdict"] = "accepted"
+        entry["indistinguishable_from"] = _ties(chosen, refits, noise_max_order, self.ambiguity_alpha)
+        tied = {t["name"] for t in entry["indistinguishable_from"]}
+        for other, _, _ in refits:
+            if other["name"] in tied:
+                other["verdict"] = "ambiguous"
+                other["reason"] = (f"passed every check and fits as well as {eff.name}: the record cannot tell "
+                                   "them apart (Vuong's test)")
+            elif other["passed"] and other is not entry:
+                other["verdict"] = "passed, not the best"
+                other["reason"] = (f"passed every check, but {eff.name} has the lower prewhitened SSE under the "
+                                   f"round's noise model ({entry['sse_w_round']:.4g} against "
+                                   f"{other['sse_w_round']:.4g} m²); judged again next round")
+        self.free += list(eff.params)
+        return Step(current, added_item(entry, self.evidence[id(entry)]), fit)
+
+    def without(self, current: OEFitResult, a: dict, added: Sequence[dict], rival: dict | None = None
+                ) -> OEFitResult:
+        return _without(self.record, current, a["name"], self.fit_kw, rival)
+
+    def judge(self, small: OEFitResult, large: OEFitResult) -> Evidence:
+        return judge_effect(small, _effect_last(large, [p for p in large.free if p not in small.free]),
+                            **self.judge_kw)
+
+    def residual(self, fit: OEFitResult) -> np.ndarray:
+        return fit.residual
+
+    def n_free(self, fit: OEFitResult) -> int:
+        return len(fit.free)
+
+    def summary(self, fit: OEFitResult) -> dict:
+        return {"rel_error_pct": float(fit.rel_error_pct)}
+
+    def error_text(self, fit: OEFitResult) -> str:
+        return f"{fit.rel_error_pct:.3g} %"
+
+    def keep(self, a: dict, added: Sequence[dict]) -> bool:
+        return any(a["name"] in EFFECTS[b["name"]].requires for b in added if b is not a)
+
+    def structure(self, fit: OEFitResult) -> tuple[bool | None, dict]:
+        loc = localise(self.record, fit.theta, self.sim_kw, bins=self.bins, alpha=self.alpha)
+        return loc.get("structure_left"), loc
+
+    def structure_energy(self, fit: OEFitResult, details: dict | None = None) -> float:
+        r, signals = localisation_signals(self.record, fit.theta, self.sim_kw)
+        ok = np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())
+        return structure_energy(r, signals, bins=self.bins) if ok else float("inf")
+
+    def explains(self, current: OEFitResult, added: list[dict], details: dict, everyone: Sequence[dict]
+                 ) -> tuple[list[dict], list[dict]]:
+        return added, []
+
+    def demote(self, current: OEFitResult, demoted: Sequence[dict], added: Sequence[dict]) -> OEFitResult:
+        for d in demoted:
+            current = _without(self.record, current, d["name"], self.fit_kw)
+        return current
+
+    def validation_residual(self, fit: OEFitResult) -> np.ndarray:
+        raise NotImplementedError("the EMPS validation record is predicted, never used to choose")
 
 
 @one_blas_thread
@@ -253,62 +384,16 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     nominal = current
     before = current.rel_error_pct
 
-    in_model: list[str] = []
-    tried: list[dict] = []
-    evidence: dict[int, Evidence] = {}  # id(entry of ``tried``) → its Evidence
-    remaining = list(names)
-    rnd = 0
-    rounds: list[dict] = []
-    while remaining and (max_effects is None or len(in_model) < max_effects):
-        rnd += 1
-        refits: list[tuple[dict, OEFitResult, Effect]] = []
-        for name in remaining:
-            eff = EFFECTS[name]
-            if any(req not in in_model for req in eff.requires):
-                continue
-            th = current.theta.copy()
-            for p, d in zip(eff.params, eff.default):
-                th[INDEX[p]] = d
-            fit = fit_output_error(record, free + list(eff.params), th, **fit_kw)
-            ev = judge_effect(current, fit, **judge_kw)
-            entry = {"round": rnd, "name": name,
-                     **evidence_entry(ev, n, new_params_corr(current, fit), cv_block, cv_folds),
-                     "sse_ratio": float(fit.sse / current.sse), "rel_error_pct": fit.rel_error_pct,
-                     "params": {p: float(fit.theta[INDEX[p]]) for p in eff.params}, "accepted": False,
-                     "verdict": "passed" if ev.passed else "rejected", "seconds": fit.seconds}
-            tried.append(entry)
-            evidence[id(entry)] = ev
-            refits.append((entry, fit, eff))
-        if not refits:
-            break
-        chosen, ranking = _rank_passing(refits, noise_max_order)
-        rounds.append({"round": rnd, **ranking, "accepted": chosen[2].name if chosen else None})
-        if chosen is None:
-            break
-        entry, fit, eff = chosen
-        entry["accepted"] = True
-        entry["verdict"] = "accepted"
-        entry["indistinguishable_from"] = _ties(chosen, refits, noise_max_order, ambiguity_alpha)
-        tied = {t["name"] for t in entry["indistinguishable_from"]}
-        for other, _, _ in refits:
-            if other["name"] in tied:
-                other["verdict"] = "ambiguous"
-                other["reason"] = (f"passed every check and fits as well as {eff.name}: the record cannot tell "
-                                   "them apart (Vuong's test)")
-            elif other["passed"] and other is not entry:
-                other["verdict"] = "passed, not the best"
-                other["reason"] = (f"passed every check, but {eff.name} has the lower prewhitened SSE under the "
-                                   f"round's noise model ({entry['sse_w_round']:.4g} against "
-                                   f"{other['sse_w_round']:.4g} m²); judged again next round")
-        in_model.append(eff.name)
-        free += list(eff.params)
-        current = fit
-        remaining.remove(eff.name)
-    added, compensating, rejected = three_lists(names, tried, evidence, max_effects)
     sim_kw = dict(sim_options or {})
-    current, added, compensating, rejected, loc, rules = _verdict_rules(
-        record, current, added, compensating, rejected, fit_kw, judge_kw, sim_kw, backward=backward,
-        ambiguity_alpha=ambiguity_alpha, explain_fraction=explain_fraction, bins=structure_bins, alpha=structure_alpha)
+    plant = EmpsPlant(record, names, current, fit_kw, judge_kw, sim_kw, structure_bins, structure_alpha,
+                      ambiguity_alpha)
+    out = run_loop(plant, max_effects=max_effects, backward=backward, ambiguity_alpha=ambiguity_alpha,
+                   explain_fraction=explain_fraction, noise_max_order=int(noise_max_order))
+    _, compensating, rejected = three_lists(names, plant.tried, plant.evidence, max_effects)
+    current, added, loc, rounds, tried = out.final, out.added, out.structure, plant.rounds, plant.tried
+    compensating += out.compensating
+    rejected += [{"name": e["name"], "round": None, "params": {}, "evidence": e["evidence"],
+                  "reason": "eliminated (backward): " + e["reason"]} for e in out.eliminated]
     # an effect the record cannot tell apart from another that passed the same round is not named as added
     ambiguous = [a for a in added if a.get("indistinguishable_from")]
     added = [a for a in added if not a.get("indistinguishable_from")]
@@ -335,7 +420,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "noise_model": {**noise_final.to_dict(), "description": noise_final.describe()},
         "structure_left": loc["structure_left"],
         "localisation": loc,
-        "backward_elimination": rules["eliminated"],
+        "backward_elimination": out.eliminated,
         "explain_fraction": float(explain_fraction),
         "identified": current.params,
         "std": dict(current.std),
@@ -394,54 +479,3 @@ def _effect_last(fit: OEFitResult, params: Sequence[str]) -> OEFitResult:
     corr = None if fit.corr is None else fit.corr[np.ix_(order, order)]
     jac = None if fit.jacobian is None else fit.jacobian[:, order]
     return replace(fit, free=tuple(fit.free[i] for i in order), corr=corr, jacobian=jac)
-
-
-def _verdict_rules(record: EmpsRecord, current: OEFitResult, added: list[dict], compensating: list[dict],
-                   rejected: list[dict], fit_kw: Mapping, judge_kw: Mapping, sim_kw: Mapping, *, backward: bool,
-                   ambiguity_alpha: float, explain_fraction: float, bins: int, alpha: float) -> tuple:
-    """The discovery engine's verdict rules (:mod:`toggle_id.discovery.engine`) on the EMPS loop's result: backward
-    elimination over the accepted effects (an effect another accepted one refines stays), the ties of earlier
-    rounds judged again on the final model (:func:`~toggle_id.discovery.engine.reconsider_ties`), then, when the
-    structure test finds structure left, the split into explaining and compensating by the structure energy.
-    Returns the final model, the three lists, the localisation of the final residual and {eliminated, demoted}."""
-    def required(a: dict, now: Sequence[dict]) -> bool:
-        return any(a["name"] in EFFECTS[b["name"]].requires for b in now if b is not a)
-
-    eliminated: list[dict] = []
-    if backward and added:
-        current, added, eliminated = backward_eliminate(
-            current, added, lambda cur, a, now: _without(record, cur, a["name"], fit_kw),
-            lambda small, large: judge_effect(small, _effect_last(large, [p for p in large.free
-                                                                         if p not in small.free]), **judge_kw),
-            lambda msg: None, lambda fit: f"{fit.rel_error_pct:.3g} %", keep=required)
-        rejected += [{"name": e["name"], "round": None, "params": {}, "evidence": e["evidence"],
-                      "reason": "eliminated (backward): " + e["reason"]} for e in eliminated]
-    if ambiguity_alpha > 0 and added:
-        reconsider_ties(current, added, lambda cur, a, rv: None if required(a, added) else _without(
-            record, cur, a["name"], fit_kw, rival=rv), lambda fit: fit.residual, lambda fit: len(fit.free),
-            lambda fit: {"rel_error_pct": float(fit.rel_error_pct)}, int(judge_kw["noise_max_order"]),
-            ambiguity_alpha, lambda msg: None, stage="round")
-    loc = localise(record, current.theta, sim_kw, bins=bins, alpha=alpha)
-    demoted: list[dict] = []
-    if loc.get("structure_left") and added:
-        def energy(theta: np.ndarray) -> float:
-            r, signals = localisation_signals(record, theta, sim_kw)
-            ok = np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())
-            return structure_energy(r, signals, bins=bins) if ok else float("inf")
-
-        e_with = energy(current.theta)
-        added, demoted = split_explaining(
-            added, e_with, lambda a: energy((a.get("_reduced") or _without(record, current, a["name"], fit_kw)).theta),
-            explain_fraction)
-        for d in [d for d in demoted if any(d["name"] in EFFECTS[k["name"]].requires for k in added)]:
-            demoted.remove(d)  # an effect that an explaining one refines stays with it
-            added.append({k: v for k, v in d.items() if k != "reason"})
-        if demoted:
-            for d in demoted:
-                current = _without(record, current, d["name"], fit_kw)
-            loc = localise(record, current.theta, sim_kw, bins=bins, alpha=alpha)
-            compensating += demoted
-    for a in added + compensating:
-        a.pop("_reduced", None)
-    return current, added, compensating, rejected, loc, {"eliminated": eliminated,
-                                                         "demoted": [d["name"] for d in demoted]}

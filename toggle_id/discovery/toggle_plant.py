@@ -1,0 +1,316 @@
+"""The toggle mechanism as a plant of the discovery engine (:class:`.engine.Plant`): the baseline polish, the
+forward step (scores, scouts, refits and their guards), the refits without an effect, the structure test and the
+catch-all check. :func:`.loop.discover` runs the engine's loop over it."""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from scipy import stats
+
+from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
+from ..errors import DataError
+from .catchall import catch_all
+from .engine import Step, indistinguishable, tie_band
+from .gauge import GAUGE_HELD, freed_with
+from .model import Fit, Model, _off_values, _with, fit_free, revived
+from .noise import WHITE, fit_noise
+from .refit import Refit, guard_null, refit_candidate, scout_candidate
+from .residual import residual_report, residual_structure_energy, structure_energy_of
+from .scoring import CandidateScore, assess
+from .settings import DiscoverSettings
+from .stats import f_test
+from .validation import Evidence, Judge
+
+
+class TogglePlant:
+    """The toggle mechanism as a plant of the discovery engine (:class:`.engine.Plant`): its baseline polish, its
+    forward step (scores, scouts, refits, guards: :func:`_iteration`), its refits without an effect (the gauge
+    parameter the effect alone freed held again) and its structure test and catch-all check. Keeps what the report
+    needs: the baseline (updated when a guard finds a better nominal optimum before any effect is added), the
+    first iteration's scores, every iteration's record and every refit."""
+
+    stage = "iteration"
+
+    def __init__(self, model: Model, judge: Judge, settings: DiscoverSettings, theta: np.ndarray,
+                 starts: Sequence[np.ndarray], free: Sequence[str], held: Sequence[str], pool: Sequence[Effect],
+                 split: int | None, say: Callable[[str], None], on_refit: Callable[[Refit], None] | None) -> None:
+        self.model, self.referee, self.s = model, judge, settings
+        self.theta, self.starts, self.free, self.held, self.pool, self.split = theta, starts, free, held, pool, split
+        self._say, self.on_refit = say, on_refit
+        self.baseline_fit: Fit | None = None
+        self.anchor = theta
+        self.noise0 = None
+        self.first_scores: list[CandidateScore] | None = None
+        self.iterations: list[dict] = []
+        self.all_refits: list[Refit] = []
+        self.catch_report: dict | None = None
+
+    @property
+    def has_validation(self) -> bool:
+        return self.referee.validation is not None
+
+    def say(self, msg: str) -> None:
+        self._say(msg)
+
+    def baseline(self) -> Fit:
+        self.model.noise = WHITE
+        self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s, self.say)
+        self.noise0 = fit_noise(self.model.residuals(self.baseline_fit.theta[None, :])[0], self.s.noise_max_order)
+        self.say(f"noise model of the nominal residual: {self.noise0.describe()}")
+        return self.baseline_fit
+
+    def remaining(self, added: Sequence[dict]) -> list[Effect]:
+        return [e for e in self.pool if e.name not in {a["name"] for a in added}]
+
+    def forward_step(self, current: Fit, added: Sequence[dict], iteration: int) -> Step:
+        n = self.model.n
+        step = _iteration(self.model, self.referee, current, self.anchor, self.free, self.remaining(added), self.s,
+                          iteration, self.held, self.say, self.on_refit)
+        self.all_refits.extend(step["refits"])
+        if self.first_scores is None:
+            self.first_scores = step["scores"]
+        base = step["base"]  # the current model, or a better optimum of it found by a guard re-polish
+        if step["better_null"] is not None and not added:  # a better nominal optimum: the error "before" is its
+            self.baseline_fit = base
+        self.iterations.append(step["record"])
+        chosen = step["chosen"]
+        if chosen is None:
+            return Step(base)
+        after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say)
+        item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
+                "delta_bic": chosen.delta_bic, "rmse_after_m": after.rmse(n), "params_at_acceptance": chosen.params,
+                "evidence": chosen.evidence, "indistinguishable_from": step["rivals"]}
+        self.say(f"added {chosen.name} {chosen.params}; rms {after.rmse(n) * 1e6:.4g} µm")
+        return Step(base, item, after)
+
+    def without(self, current: Fit, a: dict, added: Sequence[dict], rival: dict | None = None) -> Fit:
+        return _without(self.model, current, a["name"], added, self.held, self.s, rival)
+
+    def judge(self, small: Fit, large: Fit) -> Evidence:
+        return self.referee.judge_pair(small, large)
+
+    def residual(self, fit: Fit) -> np.ndarray:
+        return self.referee.residual(fit)
+
+    def n_free(self, fit: Fit) -> int:
+        return len(fit.free)
+
+    def summary(self, fit: Fit) -> dict:
+        return {"rmse_m": fit.rmse(self.model.n)}
+
+    def error_text(self, fit: Fit) -> str:
+        return f"rms {fit.rmse(self.model.n) * 1e6:.4g} µm"
+
+    def keep(self, a: dict, added: Sequence[dict]) -> bool:
+        return False  # no effect of the toggle library refines another
+
+    def structure(self, fit: Fit) -> tuple[bool, tuple]:
+        diag, r, states = residual_report(self.model, fit.theta, self.s, self.split)
+        return bool(diag.get("verdict", {}).get("structure_left", False)), (diag, r, states)
+
+    def structure_energy(self, fit: Fit, details: tuple | None = None) -> float:
+        if details is not None:
+            return structure_energy_of(self.model, details[1], details[2], self.s)
+        return residual_structure_energy(self.model, fit.theta, self.s)
+
+    def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict]
+                 ) -> tuple[list[dict], list[dict]]:
+        """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
+        makes unnecessary is compensating."""
+        states = details[2]
+        if not (self.s.catch_all and states):
+            return added, []
+
+        def without(fit: Fit, a: dict) -> Fit:
+            return _without(self.model, fit, a["name"], everyone, self.held, self.s)
+
+        added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
+                                                   self.say)
+        return added, more
+
+    def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
+        """The final model without the compensating effects: the baseline when none explains, else refitted."""
+        if not added:
+            return self.baseline_fit
+        names = [c["name"] for c in demoted]
+        return fit_free(self.model, _with(current.theta, {p.name: p.off for nm in names
+                                                          for p in EFFECTS_BY_NAME[nm].params}),
+                        tuple(nm for nm in current.free if not any(nm in EFFECTS_BY_NAME[d].names for d in names)),
+                        self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
+
+    def validation_residual(self, fit: Fit) -> np.ndarray:
+        return self.referee.validation.residuals(fit.theta[None, :])[0]
+
+
+def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], free: Sequence[str],
+              settings: DiscoverSettings, say: Callable[[str], None]) -> tuple[Fit, np.ndarray]:
+    """The nominal model polished on the whole record from every start; the best and its start."""
+    n = model.n
+    current, anchor, report = None, theta, []
+    anchors = [theta, *others]
+    anchors += [th for th in (revived(a, free) for a in list(anchors)) if th is not None]  # collapsed parameters
+    for k, th0 in enumerate(anchors):
+        if not np.all(np.isfinite(model.residuals(th0[None, :])[0])):
+            report.append({"start": k, "error": "cannot be simulated on this record"})
+            continue
+        say(f"baseline polish of {len(free)} parameters on {n} samples (start {k + 1} of {len(anchors)})")
+        fit = fit_free(model, th0, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+        report.append({"start": k, "rmse_m": fit.rmse(n), "nfev": fit.info["nfev"]})
+        say(f"  rms {fit.rmse(n) * 1e6:.4g} µm ({fit.info['nfev']} evaluations, {fit.info['seconds']:.1f} s)")
+        if current is None or fit.sse < current.sse:
+            current, anchor = fit, th0
+    if current is None:
+        raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
+    current.info["starts"] = report
+    return current, anchor
+
+
+def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, free: Sequence[str],
+               remaining: Sequence[Effect], settings: DiscoverSettings, it: int, held: Sequence[str],
+               say: Callable[[str], None], on_refit: Callable[[Refit], None] | None) -> dict:
+    """Scores, scouts and refits of one iteration; the candidate to add (or None)."""
+    n = model.n
+    noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
+    points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
+    # second linearisation point: the nominal fit as given, with the effects added so far — the polished fit may
+    # have bent the nominal parameters far towards the missing effect, where the local picture is distorted
+    alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
+    if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
+        second = assess(model, "nominal start", alt, current.free, remaining, settings, noise)
+        if second is not None:  # (None: the nominal start cannot be simulated with these effects)
+            points.append(second)
+    scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
+    for c in scores:
+        for pt in points[1:]:
+            c.profile_score_alt = pt.scores[c.name].profile_score
+    say("scores (profile | LM, prewhitened): " + ", ".join(
+        f"{c.name} {c.profile_score:.3g} | {c.score:.3g}" for c in sorted(scores, key=lambda c: -c.profile_score)))
+    screen = float(stats.chi2.isf(settings.screen_alpha, 1))
+    here = points[0].scores
+    if settings.scout_all:  # global screening: every candidate with a grid is scouted
+        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)]
+    else:
+        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
+                    and (max(here[c.name].profile_score, here[c.name].score) > screen
+                         or (c.name not in points[0].profiles
+                             and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
+    scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
+              for c in screened}
+    for c in scores:
+        c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
+    order = sorted(scouts.values(), key=lambda sc: sc.sse)
+    scores.sort(key=lambda c: (scouts[c.name].sse if c.name in scouts else np.inf, -c.profile_score))
+    say("scouts: " + (", ".join(f"{sc.name} {np.sqrt(sc.sse / n) * 1e6:.4g} µm" for sc in order) or "none"))
+    base = current
+    refits: list[Refit] = []
+    better_null: Fit | None = None
+    # the candidate the score test ranks first is refitted whatever its scout: a short polish of a threshold or
+    # delay effect may show little of what its converged refit explains, and the two rankings disagreeing is
+    # itself a reason to look
+    top_score = max((c for c in scores if c.name in scouts and np.isfinite(scouts[c.name].sse)),
+                    key=lambda c: max(c.profile_score, c.score), default=None)
+    for i, sc in enumerate(order):
+        best = min((rf.fit.rmse(n) ** 2 * n for rf in refits if rf.accepted), default=None)
+        # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
+        # (no effect is accepted while a candidate that explains more has not been refitted), and while a scout
+        # comes within reach of it (a rival the record may not tell apart from it); with none accepted yet, while
+        # a scout's short polish is significant as least squares (no effect is dismissed on its scout alone: a
+        # short polish may show little of what a converged refit explains)
+        if not np.isfinite(sc.sse):
+            break
+        if i >= settings.top_k and (top_score is None or sc.name != top_score.name):
+            if best is not None and sc.sse >= best + tie_band(best, n, settings.ambiguity_alpha):
+                continue
+            k_sc = len(freed_with(base.free, EFFECTS_BY_NAME[sc.name], held)) - len(base.free)
+            if best is None and not f_test(base.sse, sc.sse, k_sc, n, len(base.free) + k_sc)[1] < settings.alpha:
+                continue
+        eff = EFFECTS_BY_NAME[sc.name]
+        start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
+        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=start)
+        if rf.accepted:
+            null = guard_null(model, base, rf, eff, settings, judge)
+            if null is not None and null.sse < base.sse:
+                say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
+                    f"{null.rmse(n) * 1e6:.4g} µm")
+                base = better_null = null
+                for other in refits:  # earlier refits are judged against the better baseline too
+                    if other.accepted:
+                        other.judge(judge.judge_pair(base, other.fit), base.sse)
+                        if not other.accepted:
+                            other.reason = "against the re-polished nominal model: " + other.reason
+        ev = rf.evidence
+        say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
+            f"ΔBIC {rf.delta_bic:.4g}, out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
+            f"{ev.get('cv_sse_w_after', np.nan):.4g} → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
+            f"({rf.seconds:.1f} s)")
+        refits.append(rf)
+        if on_refit is not None:
+            on_refit(rf)
+    winners = [rf for rf in refits if rf.accepted]
+    chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
+    rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []
+    for rf in winners:
+        if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
+            rf.reason = f"supported, but {chosen.name} explains more (lower SSE); judged again next iteration"
+    if rivals:
+        say(f"  {chosen.name} and " + ", ".join(r["name"] for r in rivals) + " fit this record equally well "
+            "(Vuong " + ", ".join(f"z {r['vuong']['z']:.2f}" for r in rivals) + "): ambiguous")
+    record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
+              "noise_model_of_current_residual": noise.to_dict(), "points": [pt.label for pt in points],
+              "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
+              "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals}
+    return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
+            "base": base, "rivals": rivals}
+
+
+def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
+    """The other supported refits of the round the record cannot tell apart from ``chosen``
+    (:func:`.engine.indistinguishable`, on the residuals the judge already simulated); each such refit's reason
+    says so."""
+    if not settings.ambiguity_alpha > 0:
+        return []
+    others = [rf for rf in winners if rf is not chosen]
+    found = indistinguishable(judge.residual(chosen.fit), chosen.k, [(judge.residual(rf.fit), rf.k) for rf in others],
+                              settings.noise_max_order, settings.ambiguity_alpha)
+    out = []
+    for rf, v in zip(others, found):
+        rf.evidence["vuong_against_" + chosen.name] = v
+        if v["tied"]:
+            rf.reason = (f"fits as well as {chosen.name} (Vuong z {v['z']:.2f}, p {v['p_value']:.2g}): the record "
+                         "cannot tell them apart")
+            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(judge.model.n), "vuong": v,
+                        "F": rf.F, "p_value": rf.p_value, "delta_bic": rf.delta_bic, "evidence": rf.evidence})
+    return out
+
+
+def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: Sequence[str],
+                        settings: DiscoverSettings, say: Callable[[str], None]) -> Fit:
+    """The accepted refit polished in full, also from the nominal fit as given with the effects' values (the
+    polished baseline may sit in another valley); the better of the two."""
+    n = model.n
+    current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                       rounds=settings.rounds)
+    effect_names = [nm for nm in chosen.fit.free if nm not in free]
+    alt = fit_free(model, _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names}),
+                   chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+    if alt.sse < current.sse:
+        say(f"  second start (nominal fit + effects) reached {alt.rmse(n) * 1e6:.4g} µm "
+            f"instead of {current.rmse(n) * 1e6:.4g} µm")
+        current = alt
+    return current
+
+
+def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held: Sequence[str],
+             settings: DiscoverSettings, rival: dict | None = None) -> Fit:
+    """The current model refitted with effect ``name`` switched off (and the gauge parameter it alone freed held
+    again); with ``rival`` ({name, params}), that effect switched on in its place, started at its ``params``."""
+    eff = EFFECTS_BY_NAME[name]
+    others = {s for b in added if b["name"] != name for s in EFFECTS_BY_NAME[b["name"]].breaks}
+    rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
+    free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
+    start = _with(current.theta, _off_values(eff))
+    if rival is not None:
+        free = freed_with(free, EFFECTS_BY_NAME[rival["name"]], held)
+        start = _with(start, rival["params"])
+    return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
