@@ -30,26 +30,17 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from jobs.adversarial_set import (  # noqa: F401  (the set's names, also read from here by the tests)
+from jobs.adversarial_set import (
     CALIBRATED,
     DURATION,
     NAMES,
     ROOT,
-    SPECS,
-    _valid_truth,
-    base_record,
     calibrate,
     calibration_table,
     generate,
     select,
 )
-from jobs.adversarial_verdicts import (  # noqa: F401
-    accepted_effects,
-    result_row,
-    results_markdown,
-    summarise,
-    verdict,
-)
+from jobs.adversarial_verdicts import result_row, results_markdown, summarise
 
 
 def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, timeout: float, log=print) -> dict:

@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from jobs import adversarial_set as S
+from jobs import adversarial_verdicts as V
 from jobs import bench_adversarial as B
 from toggle_id.data import read_csv
 from toggle_id.effects import EFFECTS
@@ -16,22 +18,22 @@ from toggle_id.simulate import PRECISE, extend, simulate
 
 
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
-    cats = [s.category for s in B.SPECS]
-    assert len(B.SPECS) >= 18
+    cats = [s.category for s in S.SPECS]
+    assert len(S.SPECS) >= 18
     assert cats.count("library") == 12 and cats.count("pair") == 2 and cats.count("outside") == 4
-    assert {s.effects[0] for s in B.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
-    noise = {(s.noise_m, s.noise_ar, s.quantum_m) for s in B.SPECS if s.category == "noise"}
+    assert {s.effects[0] for s in S.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
+    noise = {(s.noise_m, s.noise_ar, s.quantum_m) for s in S.SPECS if s.category == "noise"}
     assert noise == {(1e-6, 0.0, 0.0), (1e-6, 0.5, 0.0), (1e-6, 0.9, 0.0), (0.0, 0.0, 1e-6)}
-    assert {s.outside for s in B.SPECS if s.category == "outside"} == {"bump", "drag"}
-    assert len(set(B.NAMES.values())) == len(B.SPECS) and B.NAMES["torque_saturation_simulation"] == "rec08"
-    assert {s.command for s in B.SPECS} == {"simulation", "experiment", "cycling"}
+    assert {s.outside for s in S.SPECS if s.category == "outside"} == {"bump", "drag"}
+    assert len(set(S.NAMES.values())) == len(S.SPECS) and S.NAMES["torque_saturation_simulation"] == "rec08"
+    assert {s.command for s in S.SPECS} == {"simulation", "experiment", "cycling"}
     # every calibrated magnitude is there, with a measured ratio near its target
-    for s in B.SPECS:
-        assert set(B.CALIBRATED.get(s.key, {})) == set(s.calibrate), s.key
-        for value, ratio in B.CALIBRATED.get(s.key, {}).values():
+    for s in S.SPECS:
+        assert set(S.CALIBRATED.get(s.key, {})) == set(s.calibrate), s.key
+        for value, ratio in S.CALIBRATED.get(s.key, {}).values():
             assert value > 0 and ratio == pytest.approx(s.target, rel=0.12), s.key
     # names are unique and say nothing about the content
-    names = list(B.NAMES.values())
+    names = list(S.NAMES.values())
     assert len(set(names)) == len(names) and all(n.startswith("rec") and n[3:].isdigit() for n in names)
     assert names != sorted(names)  # nor does the order
 
@@ -47,7 +49,7 @@ def test_generator_writes_the_records_and_the_manifest(tmp_path):
         theta = np.array([r["params"][n] for n in PARAM_NAMES])
         factors = np.abs(np.log(theta / ASSIGNED))
         assert 0.15 <= r["perturbation"]["sigma_log"] <= 0.40 and factors.max() > 0.05
-        base = B.base_record(r["command"]["sweep"], 1.0)  # the sweep in continuous time, as simulated
+        base = S.base_record(r["command"]["sweep"], 1.0)  # the sweep in continuous time, as simulated
         clean = simulate(extend(theta), base, PRECISE).x_B[0]  # the truth reproduces the record within its noise
         err = rec.x_B - clean
         if r["key"] == "noise_quantised":
@@ -67,12 +69,12 @@ def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp
     B.main(["--out", str(tmp_path), "--only", "torque_saturation_simulation,dead_time", "--duration", "0.5"])
     man = {r["key"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
     sat, dt = man["torque_saturation_simulation"], man["dead_time"]
-    assert sat["outside"]["saturating_torque_constant"]["i_sat"] == B.CALIBRATED[sat["key"]]["i_sat"][0]
+    assert sat["outside"]["saturating_torque_constant"]["i_sat"] == S.CALIBRATED[sat["key"]]["i_sat"][0]
     assert "outside_plant" in sat["simulator"] and sat["calibration"]["target_ratio"] == 3.0
     assert sat["effects"] == ["torque_constant_saturation"] and sat["category"] == "library"
     assert sat["effect_params"]["torque_constant_saturation"]["c_kt"] == pytest.approx(
-        B.CALIBRATED[sat["key"]]["i_sat"][0] ** -2, rel=1e-12)
-    assert dt["effect_params"]["dead_time"]["tau_d"] == B.CALIBRATED["dead_time"]["tau_d"][0]
+        S.CALIBRATED[sat["key"]]["i_sat"][0] ** -2, rel=1e-12)
+    assert dt["effect_params"]["dead_time"]["tau_d"] == S.CALIBRATED["dead_time"]["tau_d"][0]
     assert dt["jobs_simulate"].startswith("python -m jobs.simulate") and "effects.tau_d=" in dt["jobs_simulate"]
     for r in man.values():
         assert read_csv(tmp_path / r["file"]).n == 501
@@ -102,25 +104,25 @@ def test_rows_and_table_show_the_validation_prediction():
     report = {"effects_added": [], "rmse_before_m": 3e-6, "rmse_after_m": 3e-6, "unexplained": True,
               "validation_prediction": {"rmse_m": 3.4e-6, "structure_left": True,
                                         "text": "structure left: grows with model current i_q above 640 A"}}
-    row = B.result_row(_entry("outside"), report, 5.0, "r")
+    row = V.result_row(_entry("outside"), report, 5.0, "r")
     assert row["validation_rmse_um"] == pytest.approx(3.4) and row["validation_structure_left"] is True
-    md = B.results_markdown([row], B.summarise([row]))
+    md = V.results_markdown([row], V.summarise([row]))
     assert "validation record predicted (µm)" in md and "3.4 (structure left)" in md
     assert "its validation record: structure left: grows with model current" in md
-    plain = B.results_markdown([B.result_row(_entry("noise"), {"effects_added": []}, 1.0, "r")],
-                               B.summarise([]))
+    plain = V.results_markdown([V.result_row(_entry("noise"), {"effects_added": []}, 1.0, "r")],
+                               V.summarise([]))
     assert "validation record predicted" not in plain
 
 
 def test_a_truth_the_command_cannot_drive_is_redrawn():
     theta = ASSIGNED.copy()
-    assert B._valid_truth(theta, "cycling")
+    assert S._valid_truth(theta, "cycling")
     fast = theta.copy()
     fast[INDEX["K_i"]] *= 3.0  # opens beyond x_B = 0
-    assert not B._valid_truth(fast, "cycling")
+    assert not S._valid_truth(fast, "cycling")
     out = theta.copy()
     out[INDEX["K_l"]] = 1.2e8  # outside the feasible domain of docs/model.md §6
-    assert not B._valid_truth(out, "simulation")
+    assert not S._valid_truth(out, "simulation")
 
 
 def _entry(category, effects=(), name="rec99"):
@@ -143,7 +145,7 @@ def _entry(category, effects=(), name="rec99"):
 def test_verdicts(category, truth, added, unexplained, expected):
     report = {"effects_added": [{"name": n} for n in added], "unexplained": unexplained,
               "rmse_before_m": 2e-6, "rmse_after_m": 1e-6}
-    assert B.verdict(_entry(category, truth), report) == expected
+    assert V.verdict(_entry(category, truth), report) == expected
 
 
 @pytest.mark.parametrize("category,truth,added,group,expected", [
@@ -160,7 +162,7 @@ def test_verdicts(category, truth, added, unexplained, expected):
 def test_ambiguous_verdicts(category, truth, added, group, expected):
     report = {"effects_added": [{"name": n} for n in added], "unexplained": False,
               "ambiguous": [{"name": group[0], "indistinguishable_from": [{"name": g} for g in group[1:]]}]}
-    assert B.verdict(_entry(category, truth), report) == expected
+    assert V.verdict(_entry(category, truth), report) == expected
 
 
 def test_result_rows_read_the_new_keys_when_present_and_do_without_them():
@@ -168,20 +170,20 @@ def test_result_rows_read_the_new_keys_when_present_and_do_without_them():
               "compensating": [{"name": "constant_load_force"}], "rejected": ["backlash"],
               "noise_model": {"after": {"kind": "ar", "order": 1, "ar1_rho": 0.487}}, "unexplained": False,
               "localisation": {"structure_left": False}}
-    row = B.result_row(_entry("library", ["dead_time"]), report, 12.0, "/x/discovery.json")
+    row = V.result_row(_entry("library", ["dead_time"]), report, 12.0, "/x/discovery.json")
     assert row["accepted"] == ["dead_time"] and row["compensating"] == ["constant_load_force"]
     assert row["rejected"] == ["backlash"] and row["noise_model"] == "AR(1) ρ 0.49"
     assert row["structure_left"] is False
     assert row["before_sigma"] == pytest.approx(2.5) and row["verdict"] == "exact"
-    bare = B.result_row(_entry("noise"), {"effects_added": []}, 1.0, "r")
+    bare = V.result_row(_entry("noise"), {"effects_added": []}, 1.0, "r")
     assert bare["compensating"] == [] and bare["rmse_before_um"] is None and bare["verdict"] == "exact"
     assert bare["noise_model"] is None and bare["structure_left"] is None
-    assert B.accepted_effects({"accepted": ["dead_time"]}) == ["dead_time"]  # the list of names alone
+    assert V.accepted_effects({"accepted": ["dead_time"]}) == ["dead_time"]  # the list of names alone
     rows = [row, bare, {"record": "rec98", "category": "outside", "verdict": "error", "wall_s": 3.0, "error": "x"}]
-    s = B.summarise(rows)
+    s = V.summarise(rows)
     assert (s["exact_in_library"], s["in_library"], s["nothing_accepted_quiet"], s["quiet"], s["errors"]) == \
         (1, 1, 1, 1, 1)
-    md = B.results_markdown(rows, s)
+    md = V.results_markdown(rows, s)
     assert "Exact effect set on 1 of 1 in-library records (1 of them with the RMS after ≤ 1.5 σ); nothing accepted on 1 of 1" in md
 
 
@@ -208,7 +210,7 @@ def test_run_judges_one_record_with_the_discover_job(tmp_path):
     assert B.main(args) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     (row,) = res["rows"]
-    assert row["record"] == B.NAMES["noise_white"] and row["verdict"] == "exact" and row["accepted"] == []
+    assert row["record"] == S.NAMES["noise_white"] and row["verdict"] == "exact" and row["accepted"] == []
     assert row["rmse_after_um"] == pytest.approx(1.0, rel=0.15) and Path(row["report"]).is_file()
     assert "nothing accepted on 1 of 1" in (tmp_path / "results.md").read_text()
     wall = row["wall_s"]
