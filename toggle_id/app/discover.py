@@ -35,6 +35,10 @@ def discover_settings(cfg: Mapping) -> DiscoverSettings:
     if nominal not in ("ga", "base"):
         raise ConfigError(f"discover.nominal must be 'ga' (two-stage RGA + polish) or 'base' (polish from the "
                           f"assigned/base values), got {nominal!r}")
+    alternatives = node.get("alternatives", DiscoverJobSettings.alternatives)
+    if isinstance(alternatives, str) or not all(m in ("one_stage", "two_stage", "fast") for m in alternatives):
+        raise ConfigError(f"discover.alternatives must be a list of identification methods (one_stage, two_stage, "
+                          f"fast), got {alternatives!r}")
     if node.get("noise_std") is None:
         noise = (cfg.get("identifiability") or {}).get("noise_std_m")
         if noise is not None:
@@ -100,6 +104,22 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                      "seconds": nominal_result.seconds})
         nominal = nominal_result if nominal_result is not None else base_start
         starts = [base_start] if nominal_result is not None else []
+        label = method if nominal_result is not None else "base"
+
+        def alternative(alt_method: str):  # a further route's nominal fit: made only when the loop asks for it
+            def fit() -> IdentificationResult:
+                with tracker.run(f"nominal_{alt_method}", tags={"stage": "nominal", "route": alt_method},
+                                 nested=True):
+                    res = identify(record, method=alt_method, ga=ga, seed=int(cfg.get("seed", 0)),
+                                   make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
+                                   settings=tier, polish=polish_cfg, identifiability=False, fast=fast_settings(cfg),
+                                   progress=lambda total, desc: console.progress(total, desc, enabled=show))
+                    tracker.log_metrics({"fitness": res.fitness, "rmse_m": res.rmse_m, "seconds": res.seconds})
+                return res
+            return fit
+
+        alt_methods = (cfg.get("discover") or {}).get("alternatives", DiscoverJobSettings.alternatives)
+        alternatives = [(m, alternative(m)) for m in alt_methods if m != label]
 
         def on_refit(rf: Refit) -> None:
             with tracker.run(f"refit_{rf.iteration}_{rf.name}", tags={"effect": rf.name,
@@ -113,7 +133,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                      **{f"param.{k}": v for k, v in rf.params.items()}})
 
         res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, reference=base_start,
-                       validation=validation,
+                       validation=validation, label=label, alternatives=alternatives,
                        on_refit=on_refit,
                        progress=(lambda msg: print(msg, flush=True)) if show else None)
         curve.add("discovery", curve.simulations + res.n_simulations, rmse_m=res.rmse_after_m)

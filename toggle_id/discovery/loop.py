@@ -22,6 +22,7 @@ from .toggle_plant import TogglePlant
 from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
+from .routes import Route, choose, same_basin
 from .residual import prediction_report, residual_report
 from .noise import fit_noise
 from .validation import Judge
@@ -46,8 +47,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              free: Sequence[str] | None = None, fixed: Mapping[str, float] | None = None,
              starts: Sequence[np.ndarray | Mapping[str, float]] = (),
              reference: np.ndarray | Mapping[str, float] | None = None, validation: Record | None = None,
-             on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None
-             ) -> DiscoveryResult:
+             on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None,
+             label: str = "nominal", alternatives: Sequence[tuple[str, object]] = ()) -> DiscoveryResult:
     """Run the discovery loop on ``record`` (see the package docstring).
 
     nominal: the nominal fit (an :class:`IdentificationResult`, an extended/physical vector or a name → value
@@ -61,6 +62,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         mechanism, and with it the magnitude of force-type effects.
     validation: a second record of the same machine, never fitted: an effect must predict it better too.
     on_refit: called with every :class:`Refit` (e.g. to log an MLflow child run); progress: one-line messages.
+    label: where ``nominal`` came from (e.g. ``two_stage``); alternatives: further nominal fits, as (label, fit)
+        pairs — a fit as ``nominal``, or a callable without arguments that makes it (run only when needed) —
+        from which the loop runs again when ``settings.routes`` says so (:mod:`.routes`).
     """
     settings = (settings or DiscoverSettings()).validate()
     say = progress or (lambda msg: log.info(msg))
@@ -85,11 +89,41 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     split = split if 0 < split < record.n else None
     n = record.n
 
-    plant = TogglePlant(model, judge, settings, theta, [_with(_nominal_theta(st), fixed) for st in starts], free,
-                        held, pool, split, say, on_refit)
-    out = run_loop(plant, max_effects=settings.max_effects, backward=settings.backward,
-                   ambiguity_alpha=settings.ambiguity_alpha, explain_fraction=settings.explain_fraction,
-                   noise_max_order=settings.noise_max_order)
+    def plant_from(theta0: np.ndarray, others: Sequence[np.ndarray]) -> TogglePlant:
+        return TogglePlant(model, judge, settings, theta0, others, free, held, pool, split, say, on_refit)
+
+    def loop(p: TogglePlant):
+        return run_loop(p, max_effects=settings.max_effects, backward=settings.backward,
+                        ambiguity_alpha=settings.ambiguity_alpha, explain_fraction=settings.explain_fraction,
+                        noise_max_order=settings.noise_max_order)
+
+    first = plant_from(theta, [_with(_nominal_theta(st), fixed) for st in starts])
+    routes = [Route(label, first, loop(first), nominal)]
+    if alternatives and (settings.routes == "always" or (settings.routes == "unexplained"
+                                                         and routes[0].structure_left)):
+        for alt_label, alt in alternatives:
+            say(f"route {alt_label}: the loop again from the {alt_label} nominal fit"
+                + (" (structure is left after the first route)" if routes[0].structure_left else ""))
+            alt_nominal = alt() if callable(alt) else alt
+            route = Route(alt_label, plant_from(_with(_nominal_theta(alt_nominal), fixed), []), nominal=alt_nominal)
+            base = route.plant.baseline()
+            seen = next((r for r in routes if r.outcome is not None
+                         and same_basin(base, r.plant.baseline_fit, n, settings.route_rtol)), None)
+            if seen is not None:
+                route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) lies in the basin of route "
+                                 f"{seen.label} ({seen.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
+                say(f"route {alt_label} skipped: {route.skipped}")
+            else:
+                route.outcome = loop(route.plant)
+            routes.append(route)
+    pick, compared = choose(routes, lambda f: model.residuals(f.theta[None, :])[0], n, settings.noise_max_order,
+                            settings.ambiguity_alpha)
+    if len(routes) > 1:
+        say("routes: " + "; ".join(f"{r.label} " + ("skipped" if r.outcome is None else
+                                                   f"{r.reached.rmse(n) * 1e6:.4g} µm with "
+                                                   f"{[a['name'] for a in r.outcome.added] or 'nothing'}")
+                                   for r in routes) + f" → route {routes[pick].label} reported")
+    plant, out, nominal = routes[pick].plant, routes[pick].outcome, routes[pick].nominal
     baseline, current, added, compensating, eliminated = (plant.baseline_fit, out.final, out.added, out.compensating,
                                                           out.eliminated)
     diag_after, r_after, _ = out.structure
@@ -142,13 +176,17 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous, catch_report)
+    if pick != 0:
+        conclusion += (f" The loop from the {routes[0].label} nominal fit left structure; from the "
+                       f"{routes[pick].label} nominal fit it reached a better model (routes in the report).")
     extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after},
              "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,
              "noise_model": {"before": noise0.to_dict(), "after": noise_after.to_dict()},
              "localisation": diag_after.get("localisation"),
              "validation_record": validation.name if validation is not None else None, "catch_all": catch_report,
-             "validation_prediction": predicted}
+             "validation_prediction": predicted,
+             "routes": [r.to_dict(n, i == pick) for i, r in enumerate(routes)], "route_comparisons": compared}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
     return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,

@@ -64,6 +64,10 @@ class DiscoverSettings:
       from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
       started small can stop where nominal parameters absorb the effect (:func:`.refit.stronger_magnitudes`);
       empty: off.
+    - routes: when the loop runs again from the further nominal fits it is given (:mod:`.routes`): ``unexplained``
+      (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
+      ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
+      the same basin and is skipped.
     """
 
     top_k: int = 3
@@ -103,6 +107,8 @@ class DiscoverSettings:
     catch_all_keep: float = 0.1
     ambiguity_alpha: float = 0.05
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
+    routes: str = "unexplained"
+    route_rtol: float = 1e-3
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -155,6 +161,11 @@ class DiscoverSettings:
                 isinstance(f, (int, float)) and not isinstance(f, bool) and f >= 1 for f in factors):
             raise ConfigError(f"discover.stronger_starts must be a list of numbers ≥ 1, got {factors!r}")
         self.stronger_starts = tuple(float(f) for f in factors)
+        if self.routes not in ("unexplained", "always", "never"):
+            raise ConfigError(f"discover.routes must be 'unexplained', 'always' or 'never', got {self.routes!r}")
+        if not (isinstance(self.route_rtol, (int, float)) and not isinstance(self.route_rtol, bool)
+                and 0.0 <= float(self.route_rtol) < 1.0):
+            raise ConfigError(f"discover.route_rtol must lie in [0, 1), got {self.route_rtol!r}")
         for name in ("scout_all", "backward", "catch_all"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
@@ -177,7 +188,7 @@ class DiscoverSettings:
         """Settings from a config node; unknown keys are a ConfigError."""
         node = dict(node or {})
         known = {f for f in cls.__dataclass_fields__}
-        extra = sorted(set(node) - known - {"nominal", "base"})
+        extra = sorted(set(node) - known - {"nominal", "base", "alternatives"})
         if extra:
             raise ConfigError(f"discover: unknown setting(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
         kw = {k: v for k, v in node.items() if k in known}
@@ -196,3 +207,8 @@ class DiscoverJobSettings(DiscoverSettings):
     #: overrides of the assigned values: a start of the baseline (beside the GA's) and the reference of the
     #: reported parameters along the exact symmetries
     base: dict[str, float] = field(default_factory=dict)
+    #: identification methods whose nominal fits are further routes of the loop (:mod:`.routes`; fitted only when
+    #: ``routes`` asks for them; the job's own ``method`` is left out): on cycling records the GA's and the fast
+    #: fit's nominal optima can lie in different basins, and an effect refitted from one explains what it cannot
+    #: from the other
+    alternatives: tuple[str, ...] = ("fast",)

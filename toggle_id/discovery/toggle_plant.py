@@ -54,7 +54,10 @@ class TogglePlant:
         self._say(msg)
 
     def baseline(self) -> Fit:
+        """The nominal model polished from every start (once: a route's baseline is looked at before its loop)."""
         self.model.noise = WHITE
+        if self.baseline_fit is not None:
+            return self.baseline_fit
         self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s, self.say)
         self.noise0 = fit_noise(self.model.residuals(self.baseline_fit.theta[None, :])[0], self.s.noise_max_order)
         self.say(f"noise model of the nominal residual: {self.noise0.describe()}")

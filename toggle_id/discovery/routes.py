@@ -1,0 +1,102 @@
+"""Routes: the discovery loop from more than one nominal basin, and the choice between what they reach.
+
+Without the effect it lacks, the nominal model often has several nearly equal optima on a record, far apart in
+the parameters (measured on a cycling record with a 4.3-µm backlash: 2.028 µm polished from the true values,
+2.056 from the fast fit, 2.112 from the GA's, 2.12–2.13 from the assigned values). An effect refitted from one
+of them may explain the record; from another it stops in a valley where the nominal parameters have already
+absorbed part of it, and the loop then either adds a second, compensating effect or says "unexplained". Before
+the loop says that structure is left, it therefore runs again from the other nominal fits it was given
+(``alternatives``: e.g. the fast multistart fit beside the GA's), each a *route*; a route whose baseline lands in
+a basin already tried is skipped. Where they differ, the routes' best models are compared with Vuong's test
+(:func:`.stats.vuong`: non-nested fits of the same record, whitened by the best one's noise
+model, Schwarz-corrected for their numbers of parameters): a route another beats significantly is out; of the
+rest — fits the record cannot tell apart — the one that explains the record (no structure left) wins, then the
+one with fewer parameters.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .engine import Outcome
+from .model import Fit
+from .noise import fit_noise
+from .stats import vuong
+
+
+@dataclass
+class Route:
+    """One run of the loop: its label (where its nominal fit came from), the plant that ran it (its baseline,
+    iterations and refits), the outcome, the nominal fit it started from, or why it was not run."""
+
+    label: str
+    plant: Any
+    outcome: Outcome | None = None
+    nominal: Any = None
+    skipped: str | None = None
+
+    @property
+    def reached(self) -> Fit:
+        """The route's best model: with its compensating effects where it had to demote some."""
+        return self.outcome.with_compensating if self.outcome.with_compensating is not None else self.outcome.final
+
+    @property
+    def structure_left(self) -> bool:
+        return left_in(self.outcome)
+
+    def to_dict(self, n: int, chosen: bool) -> dict:
+        out: dict = {"label": self.label, "chosen": chosen, "skipped": self.skipped}
+        base = getattr(self.plant, "baseline_fit", None)
+        if base is not None:
+            out["baseline_rmse_m"] = base.rmse(n)
+        if self.outcome is not None:
+            out.update({"rmse_after_m": self.outcome.final.rmse(n), "rmse_reached_m": self.reached.rmse(n),
+                        "added": [a["name"] for a in self.outcome.added],
+                        "compensating": [c["name"] for c in self.outcome.compensating],
+                        "structure_left": self.structure_left})
+        return out
+
+
+def left_in(outcome: Outcome) -> bool:
+    """Whether the structure test flags the final model's residual (the toggle plant's details: (diag, r, x))."""
+    diag = outcome.structure[0] if isinstance(outcome.structure, tuple) else {}
+    return bool((diag or {}).get("verdict", {}).get("structure_left", False))
+
+
+def same_basin(a: Fit, b: Fit, n: int, rtol: float) -> bool:
+    """Two baselines in one basin: their RMS errors agree to ``rtol`` (relative)."""
+    ra, rb = a.rmse(n), b.rmse(n)
+    return abs(ra - rb) <= rtol * min(ra, rb)
+
+
+def choose(routes: Sequence[Route], residual: Callable[[Fit], np.ndarray], n: int, noise_max_order: int,
+           alpha: float) -> tuple[int, list[dict]]:
+    """The index of the route to report and the comparisons made (see the module docstring). ``residual(fit)``:
+    the raw residual of a fit on the record; ``alpha``: the level of Vuong's test (0: the lowest error wins).
+
+    Every pair of routes that ran is compared (Schwarz-corrected for their numbers of parameters, both residuals
+    whitened by the noise model of the lowest-error one); a route another beats significantly is out; of the
+    rest, the one that explains the record wins, then the one with fewer parameters, then the lower error."""
+    run = sorted((i for i, r in enumerate(routes) if r.outcome is not None), key=lambda i: routes[i].reached.rmse(n))
+    if len(run) == 1:
+        return run[0], []
+    if not alpha > 0:
+        return run[0], []
+    k = {i: len(routes[i].reached.free) for i in run}
+    r = {i: residual(routes[i].reached) for i in run}
+    noise = fit_noise(r[run[0]], noise_max_order)
+    beaten: set[int] = set()
+    compared = []
+    for x, i in enumerate(run):
+        for j in run[x + 1:]:
+            v = vuong(noise, r[i], r[j], k[i], k[j])
+            tied = bool(v["p_value"] >= alpha)
+            if not tied:
+                beaten.add(j if v["z"] > 0 else i)
+            compared.append({"a": routes[i].label, "b": routes[j].label, **v, "tied": tied})
+    left = [i for i in run if i not in beaten] or run[:1]
+    pick = min(left, key=lambda i: (routes[i].structure_left, k[i], routes[i].reached.rmse(n)))
+    return pick, compared
