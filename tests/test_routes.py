@@ -49,6 +49,9 @@ def test_of_two_routes_that_explain_the_record_equally_well_the_one_with_fewer_p
     fewer = _route("fast", NOISE + JITTER, 13, False, reg)
     pick, compared = _choose([more, fewer], reg)
     assert pick == 1 and compared[0]["z"] < 0  # the Schwarz correction: one parameter more buys nothing here
+    # tied, both explaining, as many parameters: the earlier route (the job's own nominal fit) is kept
+    first = _route("two_stage", NOISE + JITTER, 13, False, reg)
+    assert _choose([first, _route("fast", NOISE, 13, False, reg)], reg)[0] == 0
     # with the ambiguity test off the lowest error wins
     assert _choose([more, fewer], reg, alpha=0.0)[0] == 0
 

@@ -28,7 +28,11 @@ term and an :class:`~toggle_id.effects.Effect` entry.
    structure energy is listed as *compensating* (it lowers the error but does not explain it), not as added; so
    is one that a generic force on slider B, any function of its speed and position, makes unnecessary
    (:mod:`.catchall`: a stand-in for physics outside the library).
-7. *Report* (:mod:`.report`): parameters at the representative nearest the reference along the exact symmetries
+7. *Routes* (:mod:`.routes`): before saying structure is left, the loop runs again from the other nominal fits it
+   was given (the job gives the fast fit beside the GA's) — on a cycling record the nominal model has several
+   optima far apart, and an effect refitted from one explains what it cannot from another; the route whose model
+   the record supports is reported (Vuong's test; then explained, then fewer parameters).
+8. *Report* (:mod:`.report`): parameters at the representative nearest the reference along the exact symmetries
    (force-type magnitudes are determined only relative to the mechanism's scale), the three lists with their
    evidence, figures. The job ``python -m jobs.run +experiment=discover`` (nominal fit, this loop, MLflow,
    ``discovery.json``) is :func:`toggle_id.app.discover.run_discover`.

@@ -178,7 +178,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                              ambiguous, catch_report)
     if pick != 0:
         conclusion += (f" The loop from the {routes[0].label} nominal fit left structure; from the "
-                       f"{routes[pick].label} nominal fit it reached a better model (routes in the report).")
+                       f"{routes[pick].label} nominal fit it reached a better model (routes in the report)."
+                       if routes[0].structure_left else
+                       f" Of the loop's routes from several nominal fits, the one from the {routes[pick].label} "
+                       f"nominal fit is reported (routes in the report).")
     extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after},
              "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,

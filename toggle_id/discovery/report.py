@@ -209,6 +209,13 @@ def summary_text(res: DiscoveryResult) -> str:
                      + " — the record cannot tell them apart")
     for c in res.extra.get("compensating", []):
         lines.append(f"compensating {c['name']}: {c['reason']}")
+    routes = res.extra.get("routes") or []
+    for r in routes if len(routes) > 1 else []:
+        lines.append(f"route {r['label']}{' (reported)' if r['chosen'] else ''}: " + (
+            f"skipped, {r['skipped']}" if r.get("skipped") else
+            f"{r['baseline_rmse_m'] * 1e6:.4g} → {r['rmse_reached_m'] * 1e6:.4g} µm with "
+            f"{', '.join(r['added'] + r['compensating']) or 'no effect'}"
+            f"{'; structure left' if r['structure_left'] else ''}"))
     loc = res.diagnostics_after.get("localisation") or {}
     if loc.get("structure_left"):
         lines.append("where the residual concentrates: " + loc["text"])

@@ -11,7 +11,7 @@ a basin already tried is skipped. Where they differ, the routes' best models are
 (:func:`.stats.vuong`: non-nested fits of the same record, whitened by the best one's noise
 model, Schwarz-corrected for their numbers of parameters): a route another beats significantly is out; of the
 rest — fits the record cannot tell apart — the one that explains the record (no structure left) wins, then the
-one with fewer parameters.
+one with fewer parameters, then the earlier route (the job's own nominal fit first).
 """
 from __future__ import annotations
 
@@ -79,7 +79,8 @@ def choose(routes: Sequence[Route], residual: Callable[[Fit], np.ndarray], n: in
 
     Every pair of routes that ran is compared (Schwarz-corrected for their numbers of parameters, both residuals
     whitened by the noise model of the lowest-error one); a route another beats significantly is out; of the
-    rest, the one that explains the record wins, then the one with fewer parameters, then the lower error."""
+    rest (fits the record cannot tell apart, so their errors do not count), the one that explains the record
+    wins, then the one with fewer parameters, then the earlier route."""
     run = sorted((i for i, r in enumerate(routes) if r.outcome is not None), key=lambda i: routes[i].reached.rmse(n))
     if len(run) == 1:
         return run[0], []
@@ -98,5 +99,5 @@ def choose(routes: Sequence[Route], residual: Callable[[Fit], np.ndarray], n: in
                 beaten.add(j if v["z"] > 0 else i)
             compared.append({"a": routes[i].label, "b": routes[j].label, **v, "tied": tied})
     left = [i for i in run if i not in beaten] or run[:1]
-    pick = min(left, key=lambda i: (routes[i].structure_left, k[i], routes[i].reached.rmse(n)))
+    pick = min(left, key=lambda i: (routes[i].structure_left, k[i], i))
     return pick, compared
