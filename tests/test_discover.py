@@ -294,6 +294,7 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     assert [i.dataset.name for i in parent[0].inputs.dataset_inputs] == ["simulated_simulation"]
     assert d["model_uri"].removeprefix("models:/") in [o.model_id for o in parent[0].outputs.model_outputs]
     assert "sensor_offset" in parent[0].data.tags["mlflow.note.content"]
+    assert parent[0].data.tags["route"] == "base" and [r["label"] for r in d["routes"]] == ["base"]
     children = sorted(r.info.run_name for r in runs if r.data.tags.get("mlflow.parentRunId") == parent[0].info.run_id)
     assert "refit_1_sensor_offset" in children
     assert "figures" in [a.path for a in client.list_artifacts(parent[0].info.run_id)]

@@ -153,7 +153,8 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                              "ljung_box_p_before": res.diagnostics_before.get("whiteness", {}).get("p_value", np.nan),
                              "ljung_box_p_after": res.diagnostics_after.get("whiteness", {}).get("p_value", np.nan),
                              **{f"score.{c['name']}": c["score"] for c in res.candidates}})
-        tracker.set_tags({"effects_added": ",".join(a["name"] for a in res.effects_added) or "none"})
+        tracker.set_tags({"effects_added": ",".join(a["name"] for a in res.effects_added) or "none",
+                          "route": next((r["label"] for r in res.extra.get("routes", []) if r["chosen"]), label)})
         for path in write_figures(run_dir, record, res, settings):
             tracker.log_artifact(path, "figures")
         report["model_uri"], report["seconds_model_logging"] = mlflow_run.log_identified_model(

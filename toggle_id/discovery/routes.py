@@ -82,9 +82,7 @@ def choose(routes: Sequence[Route], residual: Callable[[Fit], np.ndarray], n: in
     rest (fits the record cannot tell apart, so their errors do not count), the one that explains the record
     wins, then the one with fewer parameters, then the earlier route."""
     run = sorted((i for i, r in enumerate(routes) if r.outcome is not None), key=lambda i: routes[i].reached.rmse(n))
-    if len(run) == 1:
-        return run[0], []
-    if not alpha > 0:
+    if len(run) == 1 or not alpha > 0:
         return run[0], []
     k = {i: len(routes[i].reached.free) for i in run}
     r = {i: residual(routes[i].reached) for i in run}
