@@ -90,36 +90,24 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         if validation is not None:
             datasets += mlflow_run.log_records(tracker, [validation], run_dir, "validation", enabled=log_datasets)
         curve = RmseCurve(record, on_point=mlflow_run.curve_logger(tracker, run.run_id), t0=t0)
-        nominal_result: IdentificationResult | None = None
-        if nominal_mode == "ga":
-            with tracker.run("nominal", tags={"stage": "nominal"}, nested=True):
-                nominal_result = identify(record, method=method, ga=ga, seed=int(cfg.get("seed", 0)),
-                                          make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
-                                          settings=tier, polish=polish_cfg, identifiability=False,
-                                          fast=fast_settings(cfg),
-                                          progress=lambda total, desc: console.progress(total, desc, enabled=show),
-                                          on_stage=lambda st: stage_child_run(tracker, st, truth),
-                                          curve=curve)
-                tracker.log_metrics({"fitness": nominal_result.fitness, "rmse_m": nominal_result.rmse_m,
-                                     "seconds": nominal_result.seconds})
+        def fit_nominal(fit_method: str, name: str, **extra) -> IdentificationResult:
+            """One nominal fit as its own MLflow child run (the job's own, or a further route's)."""
+            with tracker.run(name, tags={"stage": "nominal", "route": fit_method}, nested=True):
+                res = identify(record, method=fit_method, ga=ga, seed=int(cfg.get("seed", 0)),
+                               make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
+                               settings=tier, polish=polish_cfg, identifiability=False, fast=fast_settings(cfg),
+                               progress=lambda total, desc: console.progress(total, desc, enabled=show), **extra)
+                tracker.log_metrics({"fitness": res.fitness, "rmse_m": res.rmse_m, "seconds": res.seconds})
+            return res
+
+        nominal_result = fit_nominal(method, "nominal", on_stage=lambda st: stage_child_run(tracker, st, truth),
+                                     curve=curve) if nominal_mode == "ga" else None
         nominal = nominal_result if nominal_result is not None else base_start
         starts = [base_start] if nominal_result is not None else []
         label = method if nominal_result is not None else "base"
-
-        def alternative(alt_method: str):  # a further route's nominal fit: made only when the loop asks for it
-            def fit() -> IdentificationResult:
-                with tracker.run(f"nominal_{alt_method}", tags={"stage": "nominal", "route": alt_method},
-                                 nested=True):
-                    res = identify(record, method=alt_method, ga=ga, seed=int(cfg.get("seed", 0)),
-                                   make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
-                                   settings=tier, polish=polish_cfg, identifiability=False, fast=fast_settings(cfg),
-                                   progress=lambda total, desc: console.progress(total, desc, enabled=show))
-                    tracker.log_metrics({"fitness": res.fitness, "rmse_m": res.rmse_m, "seconds": res.seconds})
-                return res
-            return fit
-
+        # further routes' nominal fits (toggle_id/discovery/routes.py): made only when the loop asks for them
         alt_methods = (cfg.get("discover") or {}).get("alternatives", DiscoverJobSettings.alternatives)
-        alternatives = [(m, alternative(m)) for m in alt_methods if m != label]
+        alternatives = [(m, lambda m=m: fit_nominal(m, f"nominal_{m}")) for m in alt_methods if m != label]
 
         def on_refit(rf: Refit) -> None:
             with tracker.run(f"refit_{rf.iteration}_{rf.name}", tags={"effect": rf.name,

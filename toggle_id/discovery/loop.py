@@ -22,7 +22,7 @@ from .toggle_plant import TogglePlant
 from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
-from .routes import Route, choose, same_basin
+from .routes import Route, choose, route_line, same_basin
 from .residual import prediction_report, residual_report
 from .noise import fit_noise
 from .validation import Judge
@@ -116,13 +116,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
             else:
                 route.outcome = loop(route.plant)
             routes.append(route)
-    pick, compared = choose(routes, lambda f: model.residuals(f.theta[None, :])[0], n, settings.noise_max_order,
-                            settings.ambiguity_alpha)
-    if len(routes) > 1:
-        say("routes: " + "; ".join(f"{r.label} " + ("skipped" if r.outcome is None else
-                                                   f"{r.reached.rmse(n) * 1e6:.4g} µm with "
-                                                   f"{[a['name'] for a in r.outcome.added] or 'nothing'}")
-                                   for r in routes) + f" → route {routes[pick].label} reported")
+    pick, compared = choose(routes, judge.residual, n, settings.noise_max_order, settings.ambiguity_alpha)
+    route_report = [r.to_dict(n, i == pick) for i, r in enumerate(routes)]
+    for d in route_report if len(routes) > 1 else []:
+        say(route_line(d))
     plant, out, nominal = routes[pick].plant, routes[pick].outcome, routes[pick].nominal
     baseline, current, added, compensating, eliminated = (plant.baseline_fit, out.final, out.added, out.compensating,
                                                           out.eliminated)
@@ -189,7 +186,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              "localisation": diag_after.get("localisation"),
              "validation_record": validation.name if validation is not None else None, "catch_all": catch_report,
              "validation_prediction": predicted,
-             "routes": [r.to_dict(n, i == pick) for i, r in enumerate(routes)], "route_comparisons": compared}
+             "routes": route_report, "route_comparisons": compared}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
     return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,

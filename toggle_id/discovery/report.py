@@ -14,6 +14,7 @@ from ..record import Record
 from ..simulate import PRECISE
 from .model import Fit, Model
 from .refit import Refit
+from .routes import route_line
 from .settings import DiscoverSettings
 
 
@@ -210,12 +211,7 @@ def summary_text(res: DiscoveryResult) -> str:
     for c in res.extra.get("compensating", []):
         lines.append(f"compensating {c['name']}: {c['reason']}")
     routes = res.extra.get("routes") or []
-    for r in routes if len(routes) > 1 else []:
-        lines.append(f"route {r['label']}{' (reported)' if r['chosen'] else ''}: " + (
-            f"skipped, {r['skipped']}" if r.get("skipped") else
-            f"{r['baseline_rmse_m'] * 1e6:.4g} → {r['rmse_reached_m'] * 1e6:.4g} µm with "
-            f"{', '.join(r['added'] + r['compensating']) or 'no effect'}"
-            f"{'; structure left' if r['structure_left'] else ''}"))
+    lines += [route_line(r) for r in routes] if len(routes) > 1 else []
     loc = res.diagnostics_after.get("localisation") or {}
     if loc.get("structure_left"):
         lines.append("where the residual concentrates: " + loc["text"])

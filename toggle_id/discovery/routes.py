@@ -60,6 +60,14 @@ class Route:
         return out
 
 
+def route_line(d: dict) -> str:
+    """One line of text for a route's report entry (:meth:`Route.to_dict`)."""
+    return f"route {d['label']}{' (reported)' if d['chosen'] else ''}: " + (
+        f"skipped, {d['skipped']}" if d.get("skipped") else
+        f"{d['baseline_rmse_m'] * 1e6:.4g} → {d['rmse_reached_m'] * 1e6:.4g} µm with "
+        f"{', '.join(d['added'] + d['compensating']) or 'no effect'}{'; structure left' if d['structure_left'] else ''}")
+
+
 def left_in(outcome: Outcome) -> bool:
     """Whether the structure test flags the final model's residual (the toggle plant's details: (diag, r, x))."""
     diag = outcome.structure[0] if isinstance(outcome.structure, tuple) else {}
