@@ -17,6 +17,11 @@ event) per simulation on a few near-assigned individuals, at about the same accu
 off, the 5-s record, FAST tier, batched finite-difference Jacobian) with the BLAS pool as it is and with one BLAS
 thread, interleaved, and checks that both end at the same point.
 
+``--cold`` instead times the start of a local Ray evaluator on a cold numba cache (a fresh ``NUMBA_CACHE_DIR``
+in a fresh interpreter each time, nothing simulated before, as with a record read from a file): kernels compiled in the driver first (the default,
+``RayEvaluator(setup_here=True)``) against every worker compiling them side by side; seconds until the workers are
+ready and for their first evaluation, interleaved ``--repeat`` times (each run takes minutes).
+
 Timings on a shared machine are noisy: read medians, and compare figures taken in the same run.
 """
 from __future__ import annotations
@@ -154,16 +159,87 @@ def polish_rows(repeat: int, max_nfev: int = 30) -> list[dict]:
     return rows
 
 
+#: One cold start, run in a fresh interpreter: argv[1] "1"/"0" (setup_here), argv[2] workers; prints JSON.
+_COLD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import numpy as np
+from toggle_id.evaluators import RayEvaluator
+from toggle_id.params import ASSIGNED, PARAM_NAMES
+from toggle_id.problem import FitProblem
+from toggle_id.record import Record
+from toggle_id.simulate import FAST
+# a record as read from a file (nothing simulated before the evaluator starts; its values do not matter here)
+rec = Record.from_sweep("simulation")
+rec.x_B = np.full(rec.n, rec.x_B0)
+t_data = time.perf_counter() - t0
+problem = FitProblem(rec, tuple(PARAM_NAMES[:13]), ASSIGNED.copy(), (0, rec.n), FAST)
+n = int(sys.argv[2])
+t1 = time.perf_counter()
+ev = RayEvaluator(problem, n_workers=n, setup_here=sys.argv[1] == "1", ready_timeout_s=3600)
+t2 = time.perf_counter()
+ev.evaluate(np.tile(problem.x0(), (2 * n, 1)))
+t3 = time.perf_counter()
+ev.close()
+print(json.dumps({"data_s": t_data, "ready_s": t2 - t1, "first_evaluation_s": t3 - t2}))
+"""
+
+
+def cold_rows(repeat: int, workers: int = 2) -> list[dict]:
+    """Seconds to a ready local Ray evaluator and its first evaluation on a cold numba cache, with the kernels
+    compiled in the driver first and by every worker side by side; ``repeat`` interleaved runs (medians)."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    out: dict[bool, list[dict]] = {True: [], False: []}
+    for _ in range(repeat):
+        for here in (True, False):
+            with tempfile.TemporaryDirectory(prefix="toggle-id-cold-") as cache:
+                env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+                proc = subprocess.run([sys.executable, "-c", _COLD, "1" if here else "0", str(workers)], env=env,
+                                      capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"cold start failed: {proc.stderr.strip().splitlines()[-1:]}")
+            out[here].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    rows = []
+    for here, label in ((True, "driver compiles, workers load"), (False, "every worker compiles")):
+        runs = out[here]
+        ready = [r["ready_s"] for r in runs]
+        first = [r["first_evaluation_s"] for r in runs]
+        rows.append({"case": f"cold start, {label}", "n": len(runs), "median_s": float(np.median(ready)),
+                     "first_evaluation_s": float(np.median(first)),
+                     "ready_plus_first_s": float(np.median(np.add(ready, first))), "runs": runs})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=1000, help="individuals per population")
-    ap.add_argument("--repeat", type=int, default=5, help="timed repeats (median)")
+    ap.add_argument("--repeat", type=int, default=None, help="timed repeats (median; default 5, with --cold 1)")
     ap.add_argument("--n-scipy", type=int, default=3, help="individuals for the solve_ivp comparison (0: skip)")
     ap.add_argument("--json", type=str, default=None, help="also write the table as JSON")
     ap.add_argument("--quick", action="store_true", help="only the FAST near-assigned cases")
     ap.add_argument("--polish", action="store_true", help="time one least-squares polish with and without one "
                                                           "BLAS thread instead")
+    ap.add_argument("--cold", action="store_true", help="time a local Ray evaluator's start on a cold numba "
+                                                        "cache instead, on a record read as from a file")
+    ap.add_argument("--workers", type=int, default=2, help="Ray workers of --cold")
     args = ap.parse_args(argv)
+    if args.repeat is None:
+        args.repeat = 1 if args.cold else 5
+    if args.cold:
+        rows = cold_rows(args.repeat, args.workers)
+        print(f"{'case':44s} {'runs':>4s} {'ready s':>8s} {'1st eval s':>10s} {'total s':>8s}")
+        for r in rows:
+            print(f"{r['case']:44s} {r['n']:4d} {r['median_s']:8.1f} {r['first_evaluation_s']:10.1f} "
+                  f"{r['ready_plus_first_s']:8.1f}")
+        print(f"{args.workers} workers; medians; a fresh NUMBA_CACHE_DIR per run; other jobs on the machine count")
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as fh:
+                json.dump(rows, fh, indent=1)
+        return rows
     if args.polish:
         rows = polish_rows(args.repeat)
         print(f"{'case':32s} {'n':>3s} {'median s':>9s} {'CPU s':>7s} {'nfev':>5s}  SSE (m²)")

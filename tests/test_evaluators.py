@@ -122,6 +122,15 @@ def test_ray_matches_serial_bit_for_bit(ray_session, population, n_workers):
     assert ray.is_initialized()  # the evaluator did not start Ray, so it must not stop it
 
 
+@pytest.mark.parametrize("here", [True, False])
+def test_ray_sets_the_problem_up_in_the_driver_first_unless_told_not_to(ray_session, population, here):
+    """On a cold numba cache the workers then load what the driver compiled (``python -m jobs.bench --cold``)."""
+    problem = ToyProblem()
+    with RayEvaluator(problem, n_workers=1, setup_here=here) as ev:
+        assert problem.setup_calls == (1 if here else 0)
+        np.testing.assert_array_equal(ev.evaluate(population), ToyProblem().evaluate(population))
+
+
 def test_ray_replaces_actor_killed_between_evaluations(ray_session, population):
     expected = SerialEvaluator(ToyProblem()).evaluate(population)
     with RayEvaluator(ToyProblem(), n_workers=2) as ev:

@@ -253,6 +253,28 @@ def test_ar1_noise_has_its_lag_one_correlation_and_keeps_the_marginal_sigma(rho)
     assert np.std(starts) == pytest.approx(sigma, rel=0.06)
 
 
+def test_read_only_inputs_run_the_kernel_compiled_for_writeable_ones():
+    """Ray hands its workers read-only arrays (the record, the population, a restart state). They must run the
+    kernel specialisation compiled for writeable ones, with the same result: another signature would compile every
+    kernel again in each worker (minutes on a cold cache)."""
+    from toggle_id.kernels.driver import simulate_batch_serial
+
+    rec = Record.from_sweep("simulation", duration=0.2)
+    theta = np.repeat(ASSIGNED[None], 2, axis=0)
+    start = (0.05, np.array([0.0, 0.0, 0.0]), 0)
+    first = simulate(theta, rec, FAST)
+    restarted = simulate(theta, rec, FAST, start=(start[0], start[1].copy(), 0))
+    n_signatures = len(simulate_batch_serial.signatures)
+    frozen = replace(rec, t=rec.t.copy(), v_in=rec.v_in.copy(), sweep=None)
+    for arr in (frozen.t, frozen.v_in, theta, start[1]):
+        arr.setflags(write=False)
+    assert not frozen.t.flags.writeable and not theta.flags.writeable
+    np.testing.assert_array_equal(simulate(theta, replace(frozen, sweep=rec.sweep), FAST).x_B, first.x_B)
+    np.testing.assert_array_equal(simulate(theta, replace(frozen, sweep=rec.sweep), FAST, start=start).x_B,
+                                  restarted.x_B)
+    assert len(simulate_batch_serial.signatures) == n_signatures
+
+
 def test_quantisation_rounds_the_noisy_record_to_multiples_of_the_quantum():
     from toggle_id.app.records import build_record
 

@@ -354,6 +354,9 @@ class RayEvaluator(_EvaluatorBase):
         ready_timeout_s: seconds to wait for all actors to finish ``setup`` (s).
         init_kwargs: extra arguments for ``ray.init`` when this evaluator starts Ray.
         connect_timeout_s: seconds to find and check a cluster to join (s).
+        setup_here: set the problem up in this process first. On a cold numba cache the local workers then load
+            the kernels this process compiled, instead of each compiling them side by side
+            (``python -m jobs.bench --cold``); the driver needs them anyway for its own polishes.
 
     Fault tolerance: when an actor dies (``RayActorError`` and subclasses), it is replaced by a new actor and its
     chunk is evaluated again, so the result equals a fault-free run; ``stats["restarts"]`` counts replacements.
@@ -363,11 +366,14 @@ class RayEvaluator(_EvaluatorBase):
 
     def __init__(self, problem: Problem, n_workers: Optional[int] = None, address: Optional[str] = None,
                  max_restarts: int = 10, ready_timeout_s: float = 600.0,
-                 init_kwargs: Optional[Mapping[str, Any]] = None, connect_timeout_s: float = 10.0) -> None:
+                 init_kwargs: Optional[Mapping[str, Any]] = None, connect_timeout_s: float = 10.0,
+                 setup_here: bool = True) -> None:
         super().__init__()
         n_workers = _check_workers(n_workers)
         if isinstance(max_restarts, bool) or not isinstance(max_restarts, int) or max_restarts < 0:
             raise ConfigError(f"max_restarts must be a non-negative integer, got {max_restarts!r}")
+        if setup_here:  # see the class docstring
+            problem.setup()
         import ray
 
         self._ray = ray

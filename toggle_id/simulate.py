@@ -16,10 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import ConfigError
+from .kernels import kernel_array
 from .kernels import slots as K
 from .kernels.driver import simulate_batch_parallel, simulate_batch_serial
 from .kernels.geometry import build_table
-from .errors import ConfigError
 from .params import N_PARAMS
 from .plant import GEOMETRY, Geometry
 from .record import Record
@@ -206,7 +207,7 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     row gets a status.
     """
     global _SIMULATIONS
-    thetas = extend(theta)
+    thetas = kernel_array(extend(theta))
     P = thetas.shape[0]
     with _COUNT_LOCK:
         _SIMULATIONS += P
@@ -218,7 +219,8 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
         q0 = geometry.q_of_xB(record.x_B0)
         start = (float(record.t[0]), (q0, 0.0, 0.0), int(record.x_B0 >= geometry.x_B_L))
     t0, y0, contact0 = start
-    y0 = np.asarray(y0, dtype=float)
+    y0 = kernel_array(y0)
+    t, v_in = kernel_array(record.t), kernel_array(record.v_in)
     x = np.empty((P, record.n))
     i = np.empty((P, record.n))
     status = np.zeros(P, dtype=np.int8)
@@ -234,11 +236,11 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
         sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
         kern = simulate_batch_parallel if parallel else simulate_batch_serial
         tab, head = geometry_table(geometry)
-        kern(thetas, good, geo, tab, head, record.t, N, record.v_in, sweep, record.sweep is not None, float(t0), y0,
+        kern(thetas, good, geo, tab, head, t, N, v_in, sweep, record.sweep is not None, float(t0), y0,
              int(contact0), settings.as_array(), x, i, status, n_steps, events)
         redo = np.flatnonzero(status == STATUS_SOLVER_FAILURE)
         if redo.size and settings.fallback is not None:
             fell_back[redo] = True
-            kern(thetas, redo, geo, tab, head, record.t, N, record.v_in, sweep, record.sweep is not None, float(t0),
+            kern(thetas, redo, geo, tab, head, t, N, v_in, sweep, record.sweep is not None, float(t0),
                  y0, int(contact0), settings.fallback.as_array(), x, i, status, n_steps, events)
     return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events, fell_back=fell_back)

@@ -41,6 +41,7 @@ import numba
 import numpy as np
 
 from ..errors import ConfigError
+from ..kernels import kernel_array
 from .data import EmpsRecord
 
 
@@ -309,7 +310,7 @@ def simulate_emps(theta: np.ndarray | Mapping[str, float], record: EmpsRecord, *
     q = np.empty((p, n))
     nu = np.empty((p, n))
     status = np.zeros(p, dtype=np.int8)
-    simulate_kernel(th, record.qg, u_ext, init, record.dt, record.gtau, record.kp, record.kv, record.v_sat,
+    simulate_kernel(kernel_array(th), kernel_array(record.qg), u_ext, kernel_array(init), record.dt, record.gtau, record.kp, record.kv, record.v_sat,
                     float(eps), float(h_lambda), int(n_sub_min), int(n_sub_max), q, nu, status)
     return EmpsSimResult(q=q, nu=nu, status=status)
 

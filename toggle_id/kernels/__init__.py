@@ -24,6 +24,15 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+import numpy as np
+
+
+def kernel_array(a, dtype=np.float64) -> np.ndarray:
+    """``a`` as the one array type the kernels are compiled for: C-contiguous, writeable, ``dtype`` (copied only
+    when it is not). Ray hands its workers read-only arrays; numba types those as another signature and would
+    compile every kernel again in each worker (minutes on a cold cache)."""
+    return np.require(a, dtype=dtype, requirements=("C", "W"))
+
 
 def _drop_stale_caches(here: Path | None = None) -> None:
     """Numba's ``cache=True`` checks only the timestamp of the file that defines a function, but these kernels
