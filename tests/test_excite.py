@@ -9,15 +9,16 @@ checks of the issue on the 5-s record are marked slow.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from toggle_id.data import X_B_L, read_csv, write_csv
+from toggle_id.data import X_B_L, read_csv, read_input, write_csv
 from toggle_id.discovery.gauge import MECHANICAL
 from toggle_id.effects import ALL_INDEX
-from toggle_id.errors import ConfigError
+from toggle_id.errors import ConfigError, DataError
 from toggle_id.excite import (FAMILY_PARAMS, Candidate, ExciteSettings, Rival, Scorer, candidate_record,
                               clamp_check, input_signal, linear_separation, refit_separation, search, spectrum)
 from toggle_id.excite.rivals import FREE_B, effect_rival, specs_from_discovery
@@ -215,14 +216,9 @@ def test_an_input_csv_round_trips_through_jobs_simulate(tmp_path):
     assert np.max(np.abs(out.x_B - ref.x_B[0])) < 1e-12
 
 
-@pytest.mark.parametrize("kind, needle", [("over", "over the machine's limit"), ("nonuniform", "non-uniform"),
-                                          ("column", "missing required column 'v_in'"), ("missing", "not found")])
-def test_a_bad_input_file_is_one_line_and_a_non_zero_exit(tmp_path, kind, needle):
-    from conftest import run_job
-
+def _bad_input(path: Path, kind: str) -> None:
     t = np.arange(501) / 1000.0
     v = 0.1 * np.sin(2 * np.pi * t)
-    path = tmp_path / "in.csv"
     if kind == "over":
         _write_input(path, t, 4.0 * v)
     elif kind == "nonuniform":
@@ -231,9 +227,27 @@ def test_a_bad_input_file_is_one_line_and_a_non_zero_exit(tmp_path, kind, needle
         _write_input(path, t2, v)
     elif kind == "column":
         np.savetxt(path, np.c_[t, v], delimiter=",", header="t,u", comments="")
+
+
+@pytest.mark.parametrize("kind, needle", [("over", "over the machine's limit"), ("nonuniform", "non-uniform"),
+                                          ("column", "missing required column 'v_in'"), ("missing", "not found")])
+def test_a_bad_input_file_is_a_one_line_data_error(tmp_path, kind, needle):
+    path = tmp_path / "in.csv"
+    _bad_input(path, kind)
+    with pytest.raises(DataError, match=re.escape(needle)) as err:
+        read_input(path, rate_hz=1000.0, v_max=0.3, max_duration=60.0)
+    assert "\n" not in str(err.value)
+
+
+def test_the_simulate_job_refuses_a_bad_input_file_in_one_line_with_a_non_zero_exit(tmp_path):
+    """The command-line path of the cases above (one of them: the job wraps the same DataError)."""
+    from conftest import run_job
+
+    path = tmp_path / "in.csv"
+    _bad_input(path, "over")
     proc = run_job("jobs.simulate", "out=rec.csv", f"input.path={path}", cwd=tmp_path, timeout=120)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr[-2000:]
+    assert proc.returncode == 2 and len(lines) == 1 and "over the machine's limit" in lines[0], proc.stderr[-2000:]
     assert not (tmp_path / "rec.csv").exists()
 
 
