@@ -290,6 +290,20 @@ def test_unresponsive_server_gives_up_quickly(monkeypatch):
     assert "MLFLOW_HTTP_REQUEST_TIMEOUT" not in os.environ  # scoped to the call
 
 
+def test_a_file_store_uri_says_how_to_fix_it_in_one_warning(tmp_path, monkeypatch):
+    """MLflow 3 refuses ``file:`` stores; the warning names the two ways out instead of a truncated message."""
+    monkeypatch.delenv("MLFLOW_ALLOW_FILE_STORE", raising=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        tr = Tracker(f"file://{tmp_path / 'mlruns'}", "e")
+        _exercise(tr)
+    if tr.ok:
+        pytest.skip("this MLflow still accepts file stores")
+    ours = [str(w.message) for w in caught if issubclass(w.category, TrackingWarning)]
+    assert len(ours) == 1, ours
+    assert "sqlite:////" in ours[0] and "MLFLOW_ALLOW_FILE_STORE=true" in ours[0] and "…" not in ours[0]
+
+
 def test_disabled_tracker_is_a_no_op():
     tr = Tracker("sqlite:////nonexistent/dir/never.db", "e", enabled=False)
     with warnings.catch_warnings():

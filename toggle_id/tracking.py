@@ -210,7 +210,10 @@ class Tracker(ArtifactLogging):
     def _fail(self, op: str, items: int, exc: BaseException) -> None:
         """Disable tracking after a store failure, with exactly one warning."""
         message = " ".join(f"{type(exc).__name__}: {exc}".split())
-        if len(message) > 300:
+        if "filesystem tracking backend" in message:  # MLflow ≥ 3.x refuses file:// stores; say the fix in full
+            message = ("MLflow refuses a plain file store: give a database URI such as sqlite:////ABS/PATH/mlflow.db "
+                       "(tracking.uri=null is the project's own store) or set MLFLOW_ALLOW_FILE_STORE=true")
+        elif len(message) > 300:
             message = message[:299] + "…"
         self.error = f"{op}: {message}"
         if op == "connect":
