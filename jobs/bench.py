@@ -18,9 +18,10 @@ off, the 5-s record, FAST tier, batched finite-difference Jacobian) with the BLA
 thread, interleaved, and checks that both end at the same point.
 
 ``--cold`` instead times the start of a local Ray evaluator on a cold numba cache (a fresh ``NUMBA_CACHE_DIR``
-in a fresh interpreter each time, nothing simulated before, as with a record read from a file): kernels compiled in the driver first (the default,
-``RayEvaluator(setup_here=True)``) against every worker compiling them side by side; seconds until the workers are
-ready and for their first evaluation, interleaved ``--repeat`` times (each run takes minutes).
+in a fresh interpreter each time, nothing simulated before, as with a record read from a file): kernels compiled
+in the driver first (the default, ``RayEvaluator(setup_here=True)``) against every worker compiling them side by
+side; seconds until the workers are ready and for their first evaluation, interleaved ``--repeat`` times (each
+run takes minutes).
 
 Timings on a shared machine are noisy: read medians, and compare figures taken in the same run.
 """

@@ -310,8 +310,9 @@ def simulate_emps(theta: np.ndarray | Mapping[str, float], record: EmpsRecord, *
     q = np.empty((p, n))
     nu = np.empty((p, n))
     status = np.zeros(p, dtype=np.int8)
-    simulate_kernel(kernel_array(th), kernel_array(record.qg), u_ext, kernel_array(init), record.dt, record.gtau, record.kp, record.kv, record.v_sat,
-                    float(eps), float(h_lambda), int(n_sub_min), int(n_sub_max), q, nu, status)
+    simulate_kernel(kernel_array(th), kernel_array(record.qg), u_ext, kernel_array(init), record.dt, record.gtau,
+                    record.kp, record.kv, record.v_sat, float(eps), float(h_lambda), int(n_sub_min), int(n_sub_max),
+                    q, nu, status)
     return EmpsSimResult(q=q, nu=nu, status=status)
 
 
