@@ -118,8 +118,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
             routes.append(route)
     pick, compared = choose(routes, judge.residual, n, settings.noise_max_order, settings.ambiguity_alpha)
     route_report = [r.to_dict(n, i == pick) for i, r in enumerate(routes)]
-    for d in route_report if len(routes) > 1 else []:
-        say(route_line(d))
+    if len(routes) > 1:
+        for d in route_report:
+            say(route_line(d))
     plant, out, nominal = routes[pick].plant, routes[pick].outcome, routes[pick].nominal
     baseline, current, added, compensating, eliminated = (plant.baseline_fit, out.final, out.added, out.compensating,
                                                           out.eliminated)

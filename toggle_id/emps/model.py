@@ -275,7 +275,8 @@ def initial_state(qm: np.ndarray, dt: float) -> np.ndarray:
 
 
 def as_theta_batch(theta: np.ndarray | Mapping[str, float]) -> np.ndarray:
-    """θ as a C-contiguous float (P, 8) array; a dict or a single vector gives P = 1. Raises ConfigError on shape."""
+    """θ as the kernel's (P, 8) array (:func:`~toggle_id.kernels.kernel_array`); a dict or a single vector gives
+    P = 1. Raises ConfigError on shape."""
     if isinstance(theta, Mapping):
         theta = theta_from_dict(theta)
     arr = np.asarray(theta, dtype=float)
@@ -283,7 +284,7 @@ def as_theta_batch(theta: np.ndarray | Mapping[str, float]) -> np.ndarray:
         arr = arr[None, :]
     if arr.ndim != 2 or arr.shape[1] != N_PARAMS:
         raise ConfigError(f"EMPS θ must have shape (P, {N_PARAMS}) in the order {list(PARAM_NAMES)}, got {arr.shape}")
-    return np.ascontiguousarray(arr)
+    return kernel_array(arr)
 
 
 def simulate_emps(theta: np.ndarray | Mapping[str, float], record: EmpsRecord, *, eps: float = 1e-4,
@@ -310,7 +311,7 @@ def simulate_emps(theta: np.ndarray | Mapping[str, float], record: EmpsRecord, *
     q = np.empty((p, n))
     nu = np.empty((p, n))
     status = np.zeros(p, dtype=np.int8)
-    simulate_kernel(kernel_array(th), kernel_array(record.qg), u_ext, kernel_array(init), record.dt, record.gtau,
+    simulate_kernel(th, kernel_array(record.qg), u_ext, kernel_array(init), record.dt, record.gtau,
                     record.kp, record.kv, record.v_sat, float(eps), float(h_lambda), int(n_sub_min), int(n_sub_max),
                     q, nu, status)
     return EmpsSimResult(q=q, nu=nu, status=status)
