@@ -71,6 +71,45 @@ def with_backlash(theta: np.ndarray, b_l: float) -> np.ndarray:
     return out
 
 
+def cpu_times() -> list[int] | None:
+    """The machine's CPU time counters since boot (the ``cpu`` line of ``/proc/stat``: user, nice, system, idle,
+    iowait, irq, softirq, steal, ...), or None where there is no such file."""
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            return [int(v) for v in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+
+
+def steal_share(before: list[int] | None, after: list[int] | None) -> float:
+    """The share of the machine's CPU time between two :func:`cpu_times` readings that the hypervisor gave to
+    others (steal); NaN where unknown. A virtual machine's 2 cores at 25 % steal run like 1.5 cores."""
+    if not before or not after or len(before) < 8 or len(after) < 8:
+        return float("nan")
+    delta = [a - b for a, b in zip(after[:8], before[:8])]
+    total = sum(delta)
+    return delta[7] / total if total > 0 else float("nan")
+
+
+def serial_rate(n: int = 200) -> float:
+    """Full 5-s FAST simulations per second on one core (near the assigned values; kernels already loaded): the
+    machine's speed as this project sees it, for reading any wall-clock figure beside it."""
+    rec = Record.from_sweep("simulation")
+    near = near_assigned(n)
+    simulate(near[:2], rec, FAST)
+    t0 = time.perf_counter()
+    simulate(near, rec, FAST)
+    return n / (time.perf_counter() - t0)
+
+
+def machine_line(before: list[int] | None, n: int = 200) -> str:
+    """One line on the machine's speed: :func:`serial_rate` and the CPU steal since ``before``."""
+    rate = serial_rate(n)
+    steal = steal_share(before, cpu_times())
+    return (f"machine: {rate:.0f} FAST 5-s simulations/s on one core (README figures: 1400-1770/s); CPU steal "
+            f"{'unknown' if steal != steal else f'{100 * steal:.0f} %'} during the run")
+
+
 def timed(fn: Callable[[], SimResult], repeat: int) -> tuple[float, list[float], SimResult, float]:
     """Median wall time (s) of ``repeat`` calls, all wall times, the last result, and the median CPU time of this
     process (s, summed over its threads: less sensitive than wall time to other jobs on the machine)."""
@@ -250,6 +289,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 json.dump(rows, fh, indent=1)
         return rows
 
+    before = cpu_times()
     rec = Record.from_sweep("simulation")
     near = near_assigned(args.n)
     dom = uniform_domain(args.n)
@@ -320,6 +360,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         cps = r.get("sims_per_cpu_s", float("nan"))
         print(f"{r['case']:52s} {r['n']:5d} {r['median_s']:9.4f} {r['sims_per_s']:9.1f} {cps:10.1f}  {'; '.join(notes)}")
     print("wall-clock figures depend on other jobs on the machine; sims/CPU-s is per core (this process's CPU time)")
+    steal = steal_share(before, cpu_times())
+    print(f"CPU steal during the run: {'unknown' if steal != steal else f'{100 * steal:.0f} %'} (time the "
+          "hypervisor gave to other machines)")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(rows, fh, indent=1)

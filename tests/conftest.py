@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import shutil
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -126,7 +127,7 @@ TWO_STAGE_QUICK = ["ga=small", "ga.population=16", "ga.generations=3", "evaluato
 
 
 @pytest.fixture(scope="session")
-def two_stage_job(tmp_path_factory):
+def two_stage_job(tmp_path_factory, mlflow_template):
     """One tiny two-stage job, run as a user runs it (``python -m jobs.run +experiment=two_stage``, TWO_STAGE_QUICK)
     on a scratch MLflow store, and what it left: ``tmp`` (its run directory is ``tmp/run``), ``uri``, ``proc``,
     ``result`` (result.json), ``client`` and its parent ``run``. Shared by the tests of the job's report, figures
@@ -135,7 +136,7 @@ def two_stage_job(tmp_path_factory):
     from types import SimpleNamespace
 
     tmp = tmp_path_factory.mktemp("two_stage")
-    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    uri = scratch_store(tmp, mlflow_template)
     proc = run_job("jobs.run", "+experiment=two_stage", f"hydra.run.dir={tmp / 'run'}", *TWO_STAGE_QUICK, cwd=tmp,
                    env={"MLFLOW_TRACKING_URI": uri})
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -161,10 +162,28 @@ def ray_session():
         ray.shutdown()
 
 
+@pytest.fixture(scope="session")
+def mlflow_template(tmp_path_factory) -> Path:
+    """An empty MLflow store with its tables made (MLflow creates and migrates a new SQLite store's schema on first
+    use: seconds in every job). Tests copy it; a user's first run, and tests that ask for no store, still make it."""
+    from mlflow import MlflowClient
+
+    path = tmp_path_factory.mktemp("mlflow_template") / "mlflow.db"
+    MlflowClient(f"sqlite:///{path}").search_experiments()
+    return path
+
+
+def scratch_store(directory: Path, template: Path) -> str:
+    """A scratch MLflow store in ``directory`` (a copy of the session's empty store) and its absolute URI."""
+    directory.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(template, directory / "mlflow.db")
+    return f"sqlite:///{directory / 'mlflow.db'}"
+
+
 @pytest.fixture
-def job_env(tmp_path: Path) -> dict:
+def job_env(tmp_path: Path, mlflow_template: Path) -> dict:
     """Environment that points MLflow at a scratch store (absolute URI) for jobs run in a test."""
-    return {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+    return {"MLFLOW_TRACKING_URI": scratch_store(tmp_path, mlflow_template)}
 
 
 def wait_until_dead(actor, timeout: float = 60.0) -> None:
@@ -200,3 +219,25 @@ def _emps_files():
 EMPS_FILES, EMPS_MISSING = _emps_files()
 #: Tests on the real EMPS records: skipped, with the job's one-line reason, only when the records are absent.
 needs_records = pytest.mark.skipif(EMPS_FILES is None, reason=EMPS_MISSING or "")
+
+
+# ------------------------------------------------------------------------------------------ the machine
+_CPU_AT_START: list[int] | None = None
+
+
+def pytest_sessionstart(session):
+    global _CPU_AT_START
+    from jobs.bench import cpu_times
+
+    _CPU_AT_START = cpu_times()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """The suite's wall time means little without the machine's speed: print it (one core's simulation rate and
+    the CPU steal of the run) after a run that got as far as its tests."""
+    if not terminalreporter.stats.get("passed"):
+        return
+    from jobs.bench import machine_line
+
+    terminalreporter.write_line(machine_line(_CPU_AT_START))
+

@@ -322,15 +322,16 @@ def test_discover_job_runs_the_fast_fit_as_a_second_route_when_asked(tmp_path, j
 
 
 @pytest.mark.integration
-def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, job_env):
-    from conftest import run_job
+def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, capsys):
+    """The benchmark's command line, in this process (the job it times is the one the test above runs as a user
+    would): one run, its line and the median printed, the rows written."""
+    from jobs.bench_discover import main
 
-    proc = run_job("jobs.bench_discover", "--json", str(tmp_path / "bench.json"), "evaluator=serial",
-                   "data.duration=0.5", "data.effects.tau_c=0.0", "data.effects.x_off=5e-5", "discover.nominal=base",
-                   "discover.max_effects=1", "discover.candidates=[sensor_offset]", cwd=tmp_path, env=job_env,
-                   timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "median wall" in proc.stdout
+    main(["--json", str(tmp_path / "bench.json"), "evaluator=serial", "data.duration=0.5", "data.effects.tau_c=0.0",
+          "data.effects.x_off=5e-5", "discover.nominal=base", "discover.max_effects=1",
+          "discover.candidates=[sensor_offset]"])
+    out = capsys.readouterr().out
+    assert "run 0:" in out and "median wall" in out
     rows = json.loads((tmp_path / "bench.json").read_text())
     assert len(rows) == 1 and rows[0]["effects_added"] == ["sensor_offset"] and rows[0]["wall_s"] > 0
     assert rows[0]["rmse_after_um"] < 1.1 and rows[0]["rmse_before_um"] > 5.0

@@ -52,10 +52,10 @@ def sim_files(tmp_path_factory) -> dict:
 
 
 @pytest.mark.integration
-def test_job_on_simulated_records_end_to_end(sim_files, tmp_path):
+def test_job_on_simulated_records_end_to_end(sim_files, tmp_path, job_env):
     """The whole job (loop, reference fit, identifiability, figures, MLflow) on 4 s of a simulated record, then the
     prediction of a simulated record with pulses at the controller output."""
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = job_env["MLFLOW_TRACKING_URI"]
     run = tmp_path / "run"
     proc = run_job("jobs.run", "+experiment=emps", f"emps.path={sim_files['est']}",
                    f"validation.path={sim_files['val']}", f"hydra.run.dir={run}", cwd=tmp_path,

@@ -357,3 +357,15 @@ def test_simulate_job_writes_a_cycling_record_and_rejects_bad_noise_in_one_line(
     lines = [ln for ln in bad.stderr.splitlines() if ln.strip()]
     assert bad.returncode == 2 and len(lines) == 1 and "noise_ar" in lines[0], bad.stderr
     assert not (tmp_path / "d.csv").exists()
+
+
+def test_the_machine_line_reads_steal_from_the_cpu_counters():
+    """The suite's and the benchmark's machine line: steal is the 8th counter's share of the first eight."""
+    from jobs.bench import machine_line, steal_share
+
+    before = [100, 0, 50, 800, 0, 0, 0, 50, 0, 0]
+    after = [400, 0, 150, 900, 0, 0, 0, 150, 0, 0]  # +300 user, +100 system, +100 idle, +100 steal
+    assert steal_share(before, after) == pytest.approx(100 / 600)
+    assert np.isnan(steal_share(None, after)) and np.isnan(steal_share(before[:5], after))
+    line = machine_line(None, n=8)
+    assert line.startswith("machine: ") and "steal unknown" in line
