@@ -147,3 +147,37 @@ def test_figures_render(tmp_path):
                                               split_time=0.36), tmp_path / "c.png")]
     for p in paths:
         assert (tmp_path / p.split("/")[-1]).stat().st_size > 10_000
+
+
+def test_glitches_are_jumps_no_mechanism_makes_not_noise_counts_or_structure():
+    """A sample that jumps away from its neighbours is a glitch of the measurement;
+    Gaussian, coloured and quantised noise, a steep smooth residual (a missing effect), the ringing of a contact
+    and the kink of an impact at another time than the model's are not."""
+    from scipy.signal import lfilter
+
+    from toggle_id.residuals import glitch_report, glitches
+
+    rng = np.random.default_rng(3)
+    n = 5001
+    t = np.arange(n) / 1000.0
+    smooth = 50e-6 * np.sin(2 * np.pi * 8 * t)  # 2.5 µm per sample at its steepest
+    clean = {"white": 1e-6 * rng.standard_normal(n),
+             "ar1_0.9": lfilter([1.0], [1.0, -0.9], np.sqrt(1 - 0.81) * 1e-6 * rng.standard_normal(n)),
+             "smooth_plus_noise": smooth + 1e-6 * rng.standard_normal(n),
+             "contact_ringing": 30e-6 * np.exp(-np.clip(t - 0.7, 0, None) / 0.02) * np.sin(2 * np.pi * 180 * t)
+             * (t >= 0.7) + 1e-6 * rng.standard_normal(n),
+             "encoder_counts": np.round((5e-3 * np.sin(2 * np.pi * 1.3 * t)) / 1e-6) * 1e-6
+             - 5e-3 * np.sin(2 * np.pi * 1.3 * t)}
+    for name, r in clean.items():
+        assert not glitches(r).any(), name
+    bad = smooth + 1e-6 * rng.standard_normal(n)
+    where = [100, 2000, 3000, 4500]
+    bad[where] += np.array([30, -30, 25, -40]) * 1e-6
+    bad[[1000, 1001]] += 30e-6  # two in a row: not alone, not flagged
+    mask = glitches(bad)
+    assert np.flatnonzero(mask).tolist() == where
+    assert not glitches(bad, k=0).any()
+    kink = np.where(t < 1.0, 0.4 * (t - 1.0), 0.0) - np.where(t < 1.0003, 0.4 * (t - 1.0003), 0.0)
+    assert not glitches(kink + 1e-6 * rng.standard_normal(n)).any()  # two impacts 0.3 ms apart: not a glitch
+    rep = glitch_report(t, bad, mask, 8.0)
+    assert rep["count"] == 4 and rep["times_s"][0] == pytest.approx(0.1) and rep["residual_m"][-1] < -30e-6

@@ -174,6 +174,12 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous, catch_report)
+    glitches = judge.glitches or []
+    left_out = [g for g in glitches if g["count"]]
+    if left_out:
+        conclusion += " " + "; ".join(f"{g['count']} sample(s) of {g['record']} jump away from their neighbours as no "
+                                      "mechanism can (glitches of the measurement): left out of every fit and test"
+                                      for g in left_out) + " (times in the report)."
     if pick != 0:
         conclusion += (f" The loop from the {routes[0].label} nominal fit left structure; from the "
                        f"{routes[pick].label} nominal fit it reached a better model (routes in the report)."
@@ -187,7 +193,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              "localisation": diag_after.get("localisation"),
              "validation_record": validation.name if validation is not None else None, "catch_all": catch_report,
              "validation_prediction": predicted,
-             "routes": route_report, "route_comparisons": compared}
+             "routes": route_report, "route_comparisons": compared, "glitches": glitches}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
     return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,

@@ -59,6 +59,9 @@ class Model:
         self.noise = WHITE_ASSUMED
         #: effect sets (:func:`effects_on`) whose simulations go straight to the fallback
         self.stiff: set[bytes] = set()
+        #: samples the model takes as measured (bool (N,); None: none): glitches of the measurement
+        #: (:func:`toggle_id.residuals.glitches`), which then weigh in no residual, sensitivity or test
+        self.excluded: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -80,7 +83,10 @@ class Model:
         if settings is tier and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(thetas):
             self.stiff.add(effects_on(thetas[0]))
         x = res.x_B
-        x[res.status != STATUS_OK] = np.nan
+        ok = res.status == STATUS_OK
+        x[~ok] = np.nan
+        if self.excluded is not None:
+            x[np.ix_(ok, self.excluded)] = self.record.x_B[self.excluded]
         return x
 
     def residuals(self, thetas: np.ndarray, tier: SolverSettings | None = None) -> np.ndarray:

@@ -210,6 +210,11 @@ def summary_text(res: DiscoveryResult) -> str:
                      + " — the record cannot tell them apart")
     for c in res.extra.get("compensating", []):
         lines.append(f"compensating {c['name']}: {c['reason']}")
+    for g in res.extra.get("glitches") or []:
+        if g["count"]:
+            lines.append(f"glitches left out ({g['record']}): {g['count']} sample(s) at t = "
+                         + ", ".join(f"{t:.3f}" for t in g["times_s"][:12]) + (" …" if g["count"] > 12 else "")
+                         + f" s ({g['k_robust_sigma']:g} robust σ away from their neighbours)")
     routes = res.extra.get("routes") or []
     lines += [route_line(r) for r in routes] if len(routes) > 1 else []
     loc = res.diagnostics_after.get("localisation") or {}

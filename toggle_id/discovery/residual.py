@@ -18,6 +18,8 @@ def _residual(model: Model, theta: np.ndarray) -> tuple[np.ndarray, dict | None,
     x, i_q, status = model.response(theta)
     rec = model.record
     r = rec.x_B - x
+    if model.excluded is not None:
+        r[model.excluded] = 0.0
     if status != STATUS_OK or not np.all(np.isfinite(r)):
         return r, None, status
     return r, R.plant_states(rec.t, x, i_q, x_off=float(theta[ALL_INDEX["x_off"]])), status
@@ -85,3 +87,20 @@ def residual_structure_energy(model: Model, theta: np.ndarray, settings: Discove
     """:func:`structure_energy_of` the residual of ``theta``."""
     r, states, _ = _residual(model, theta)
     return structure_energy_of(model, r, states, settings)
+
+
+def leave_out_glitches(model: Model, theta: np.ndarray, k: float) -> dict | None:
+    """Find the glitches of the measurement in the residual of ``theta`` (:func:`toggle_id.residuals.glitches` at
+    ``k``) and leave them out of every later residual of ``model`` (:attr:`Model.excluded`). Returns their report
+    ({count, times_s, residual_m, ...}), or None when ``k`` is 0 or ``theta`` cannot be simulated."""
+    if not k > 0:
+        return None
+    model.excluded = None
+    r, states, _ = _residual(model, theta)
+    if states is None:
+        return None
+    mask = R.glitches(r, k)
+    if mask.any():
+        model.excluded = mask
+    return {"record": model.record.name, **R.glitch_report(model.record.t, r, mask, k)}
+

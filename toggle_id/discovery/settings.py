@@ -68,6 +68,9 @@ class DiscoverSettings:
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
       the same basin and is skipped.
+    - glitch_k: samples of the nominal residual that jump away from their neighbours by more than this many robust
+      standard deviations are glitches of the measurement (:func:`toggle_id.residuals.glitches`), reported and
+      left out of every fit and test (the model takes them as measured); 0: none looked for.
     """
 
     top_k: int = 3
@@ -109,6 +112,7 @@ class DiscoverSettings:
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
     routes: str = "unexplained"
     route_rtol: float = 1e-3
+    glitch_k: float = 8.0
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -141,6 +145,8 @@ class DiscoverSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0.0 < float(v) < 1.0):
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
+        if isinstance(self.glitch_k, bool) or not isinstance(self.glitch_k, (int, float)) or not self.glitch_k >= 0:
+            raise ConfigError(f"discover.glitch_k must be a number ≥ 0 (0: off), got {self.glitch_k!r}")
         if self.fd_tier not in FD_TIERS:
             raise ConfigError(f"discover.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
         if not isinstance(self.noise_max_order, int) or isinstance(self.noise_max_order, bool) or \

@@ -59,6 +59,21 @@ class TogglePlant:
         if self.baseline_fit is not None:
             return self.baseline_fit
         self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s, self.say)
+        if self.s.glitch_k > 0 and self.referee.glitches is None and self.referee.leave_out_glitches(
+                self.baseline_fit.theta):
+            # looked for in the residual of a fitted model (a far nominal start leaves residuals of millimetres
+            # whose few sharp samples can look alone), once for every route; the baseline fitted again without them
+            for g in self.referee.glitches:
+                if g["count"]:
+                    self.say(f"{g['count']} glitch(es) of the measurement in {g['record']} (a sample alone up to "
+                             f"{max(abs(v) for v in g['residual_m']) * 1e6:.3g} µm off its neighbours' path), "
+                             "left out of every fit and test: t = " + ", ".join(f"{t:.3f}" for t in g["times_s"][:8])
+                             + (" …" if g["count"] > 8 else "") + " s")
+            starts = self.baseline_fit.info.get("starts")
+            self.baseline_fit = fit_free(self.model, self.baseline_fit.theta, self.baseline_fit.free,
+                                         self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
+            self.baseline_fit.info["starts"] = starts
+            self.say(f"  baseline without them: rms {self.baseline_fit.rmse(self.model.n) * 1e6:.4g} µm")
         self.noise0 = fit_noise(self.model.residuals(self.baseline_fit.theta[None, :])[0], self.s.noise_max_order)
         self.say(f"noise model of the nominal residual: {self.noise0.describe()}")
         return self.baseline_fit

@@ -23,6 +23,7 @@ from ..record import Record
 from ..effects import ALL_INDEX
 from .model import Fit, Model, _with, fit_free, sensitivities
 from .noise import NoiseModel, fit_noise
+from .residual import leave_out_glitches
 from .settings import DiscoverSettings
 from .stats import block_cv, compare
 
@@ -75,6 +76,19 @@ class Judge:
         self.validation = Model(validation, model.settings, model.parallel) if validation is not None else None
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
         self._val: dict[bytes, float] = {}
+        #: the glitches of the measurement left out of both records (:func:`.residual.leave_out_glitches`; None:
+        #: not looked for yet)
+        self.glitches: list[dict] | None = None
+
+    def leave_out_glitches(self, theta: np.ndarray) -> bool:
+        """Look once for glitches of the measurement in the residuals of ``theta`` on the record and the validation
+        record and leave them out of every later residual (:attr:`glitches`); the cached residuals are dropped.
+        True when any was found."""
+        models = [m for m in (self.model, self.validation) if m is not None]
+        self.glitches = [g for m in models for g in [leave_out_glitches(m, theta, self.s.glitch_k)] if g is not None]
+        self._cache.clear()
+        self._val.clear()
+        return any(g["count"] for g in self.glitches)
 
     def _key(self, fit: Fit) -> bytes:
         return fit.theta.tobytes() + ",".join(fit.free).encode()
