@@ -135,7 +135,7 @@ def test_no_effect_no_false_positive():
     json.dumps(d)
 
 
-def test_glitches_of_the_measurement_are_named_and_left_out():
+def test_glitches_of_the_measurement_are_named_and_left_out(tmp_path, monkeypatch):
     """Three encoder glitches of 40 σ on a record with a sensor offset: found at their samples, left out of every
     fit and test (with them in, the error after could not fall below ≈ 2.4 σ on these 1001 samples), named in the
     report and its conclusion; the offset is found as without them."""
@@ -152,6 +152,13 @@ def test_glitches_of_the_measurement_are_named_and_left_out():
     assert res.rmse_after_m < 1.1 * NOISE
     assert "3 sample(s) of test jump away from their neighbours" in res.conclusion
     assert "glitches left out (test): 3 sample(s) at t = 0.150, 0.480, 0.820 s" in summary_text(res)
+    from toggle_id import figures
+    from toggle_id.discovery.report import write_figures
+
+    drawn = []  # the job's figures, not rendered here (tests/test_residuals.py renders each kind)
+    monkeypatch.setattr(figures, "save", lambda fig, path, **kw: (figures.close(fig), drawn.append(Path(path).name)))
+    write_figures(tmp_path, rec, res, D.DiscoverSettings(**FAST))
+    assert "glitches.png" in drawn
     clean = D.discover(make_record({})[0], nominal=start, settings=D.DiscoverSettings(
         candidates=("sensor_offset",), **{**FAST, "max_effects": 0}))
     assert [x["count"] for x in clean.to_dict()["glitches"]] == [0] and "glitch" not in clean.conclusion

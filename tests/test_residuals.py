@@ -144,14 +144,14 @@ def test_figures_render(tmp_path):
     paths = [figures.save(R.diagnostics_figure(rec.t, r), tmp_path / "d.png"),
              figures.save(R.states_figure(r, states, rec.v_in), tmp_path / "s.png"),
              figures.save(R.comparison_figure(rec.t, {"before": r, "after": _white(1)}, noise_std=1e-6,
-                                              split_time=0.36), tmp_path / "c.png")]
+                                              split_time=0.36), tmp_path / "c.png"),
+             figures.save(R.glitches_figure(rec.t, r, [40, 2000]), tmp_path / "g.png")]
     for p in paths:
         assert (tmp_path / p.split("/")[-1]).stat().st_size > 10_000
 
 
 def test_glitches_are_jumps_no_mechanism_makes_not_noise_counts_or_structure():
-    """A sample that jumps away from its neighbours is a glitch of the measurement;
-    Gaussian, coloured and quantised noise, a steep smooth residual (a missing effect), the ringing of a contact
+    """A sample that jumps away from its neighbours is a glitch of the measurement; Gaussian, coloured and quantised noise, a steep smooth residual (a missing effect), the ringing of a contact
     and the kink of an impact at another time than the model's are not."""
     from scipy.signal import lfilter
 

@@ -337,6 +337,31 @@ def diagnostics_figure(t: Sequence[float], r: Sequence[float], *, acf_lags: int 
                                         title=title)
 
 
+def glitches_figure(t: Sequence[float], r: Sequence[float], indices: Sequence[int], *,
+                    title: str | None = None) -> Figure:
+    """The residual with its glitches (:func:`glitches`) circled: the whole record, and ±15 samples around the
+    largest."""
+    t, r = _vector(t, "t"), _vector(r, "residual")
+    idx = np.asarray(indices, dtype=int)
+    fig = Figure(figsize=(10.0, 5.6), dpi=110, layout="constrained")
+    whole, zoom = fig.subplots(2, 1)
+    for ax, sl in ((whole, slice(None)),
+                   (zoom, slice(max(int(idx[np.argmax(np.abs(r[idx]))]) - 15, 0), None) if idx.size else slice(None))):
+        tt, rr = t[sl], r[sl]
+        if ax is zoom and idx.size:
+            tt, rr = tt[:31], rr[:31]
+        ax.plot(tt, rr * 1e6, lw=0.7, marker="." if ax is zoom else None, color="tab:blue")
+        shown = idx[(t[idx] >= tt[0]) & (t[idx] <= tt[-1])] if idx.size else idx
+        ax.plot(t[shown], r[shown] * 1e6, "o", mfc="none", mec="tab:red", ms=9, label="glitch (left out)")
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("residual [µm]")
+        ax.grid(True, alpha=0.3)
+    whole.legend(loc="upper right", fontsize="small")
+    whole.set_title(title or f"{idx.size} glitch(es) of the measurement", fontsize="medium")
+    zoom.set_title("around the largest", fontsize="small")
+    return fig
+
+
 def states_figure(r: Sequence[float], states: Mapping[str, Sequence[float]], u: Sequence[float] | None = None, *,
                   dt: float = 1e-3, ccf_lags: int = 200, alpha: float = ALPHA,
                   title: str | None = "Residual against the states and the input") -> Figure:

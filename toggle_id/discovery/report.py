@@ -151,6 +151,13 @@ def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings:
         fig = localisation_figure(loc, r, signals_of(record.t, record.v_in, states),
                                   title=f"Where the residual concentrates ({label}): {loc['text']}")
         out.append(figures.save(fig, run_dir / f"localisation_{label}.png"))
+    for g in res.extra.get("glitches") or []:
+        if g["count"] and g["record"] == record.name:
+            x, _, _ = model.response(res.baseline.theta)  # this model leaves nothing out: the raw residual
+            fig = R.glitches_figure(record.t, record.x_B - x, g["indices"],
+                                    title=f"{g['count']} glitch(es) of the measurement in {record.name}, left out "
+                                          "of every fit and test")
+            out.append(figures.save(fig, run_dir / "glitches.png"))
     catch = res.extra.get("catch_all")
     if catch and catch.get("supported"):
         from .catchall import figure as catch_figure
