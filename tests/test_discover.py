@@ -369,10 +369,11 @@ def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, capsys)
 
 @pytest.mark.integration
 def test_discover_job_rejects_a_bad_setting_in_one_line(tmp_path, job_env):
-    from conftest import run_job
+    """Through the job's own command-line path, in this process (the end-to-end case above runs as a user would)."""
+    from conftest import run_in_process
 
-    proc = run_job("jobs.run", "+experiment=discover", f"hydra.run.dir={tmp_path / 'run'}",
-                   "discover.candidates=[warp_drive]", cwd=tmp_path, env=job_env, timeout=120)
+    proc = run_in_process("jobs.run", "+experiment=discover", f"hydra.run.dir={tmp_path / 'run'}",
+                          "discover.candidates=[warp_drive]", cwd=tmp_path, env=job_env)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode != 0 and len(lines) == 1 and "warp_drive" in lines[0]
     assert not (tmp_path / "run" / "discovery.json").exists()

@@ -78,10 +78,11 @@ def test_fast_job_end_to_end(tmp_path, job_env):
 
 
 def test_fast_job_rejects_a_bad_setting(tmp_path, job_env):
-    from conftest import run_job
+    """Through the job's own command-line path, in this process (its end-to-end case above runs as a user would)."""
+    from conftest import run_in_process
 
-    proc = run_job("jobs.run", "+experiment=fast", f"hydra.run.dir={tmp_path / 'run'}", "fast.keep=2",
-                   cwd=tmp_path, env=job_env, timeout=120)
+    proc = run_in_process("jobs.run", "+experiment=fast", f"hydra.run.dir={tmp_path / 'run'}", "fast.keep=2",
+                          cwd=tmp_path, env=job_env)
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert proc.returncode != 0 and len(lines) == 1 and "fast.keep" in lines[0]
 
