@@ -319,6 +319,7 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     assert "data.effects.x_off=5e-5" in parent[0].info.run_name
     # comparing: the result in µm, the shared curve ending at it, the record as a dataset, the model
     assert parent[0].data.metrics["rmse_um"] == pytest.approx(1e6 * d["rmse_after_m"])
+    assert parent[0].data.metrics["n_glitches"] == 0 and d["glitches"][0]["count"] == 0
     curve = client.get_metric_history(parent[0].info.run_id, "best_rmse_um")
     assert curve and max(curve, key=lambda m: m.step).value == pytest.approx(1e6 * d["rmse_after_m"])
     assert [i.dataset.name for i in parent[0].inputs.dataset_inputs] == ["simulated_simulation"]

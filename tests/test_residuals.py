@@ -177,6 +177,12 @@ def test_glitches_are_jumps_no_mechanism_makes_not_noise_counts_or_structure():
     mask = glitches(bad)
     assert np.flatnonzero(mask).tolist() == where
     assert not glitches(bad, k=0).any()
+    from toggle_id.residuals import near_changes
+
+    contact = (t >= 2.0).astype(float)  # a clamp entry between samples 1999 and 2000: an impact may jump there
+    protect = near_changes(contact, np.zeros(n))
+    assert np.flatnonzero(protect).tolist() == list(range(1995, 2005))
+    assert np.flatnonzero(glitches(bad, protect=protect)).tolist() == [100, 3000, 4500]
     kink = np.where(t < 1.0, 0.4 * (t - 1.0), 0.0) - np.where(t < 1.0003, 0.4 * (t - 1.0003), 0.0)
     assert not glitches(kink + 1e-6 * rng.standard_normal(n)).any()  # two impacts 0.3 ms apart: not a glitch
     rep = glitch_report(t, bad, mask, 8.0)

@@ -282,7 +282,7 @@ def diagnose(t: Sequence[float], r: Sequence[float], u: Sequence[float] | None =
     return out
 
 
-def glitches(r: Sequence[float], k: float = 8.0) -> np.ndarray:
+def glitches(r: Sequence[float], k: float = 8.0, protect: np.ndarray | None = None) -> np.ndarray:
     """Samples of the residual ``r`` that are glitches of the measurement, not of the model (bool mask).
 
     An encoder or transmission error puts one sample off the path and the next back on it. Each sample is
@@ -294,7 +294,9 @@ def glitches(r: Sequence[float], k: float = 8.0) -> np.ndarray:
     the mechanism is never alone: a kink (an impact at another time than the model's) is predicted by the straight
     line on one side, and the ringing of the clamp's contact moves many samples in a row. Gaussian noise flags
     no sample of a 5000-sample record at k = 8 (chance about 1e-11); a glitch must exceed about 10 σ; two or more
-    bad samples in a row are not flagged. The first and last two samples never are. ``k`` ≤ 0: none."""
+    bad samples in a row are not flagged. The first and last two samples never are, nor those of ``protect``
+    (bool mask: where the mechanism itself may jump — an impact between two samples, at another time in the model
+    than in the record, leaves one sample off the path). ``k`` ≤ 0: none."""
     r = _vector(r, "residual")
     out = np.zeros(r.shape, dtype=bool)
     if not k > 0 or r.size < 10 or not np.all(np.isfinite(r)):
@@ -308,6 +310,19 @@ def glitches(r: Sequence[float], k: float = 8.0) -> np.ndarray:
     padded = np.pad(dev, 2)
     neighbours = np.max(np.stack([padded[j:j + dev.size] for j in (0, 1, 3, 4)]), axis=0)
     out[2:-2] = (dev > k * scale) & (neighbours < 0.5 * k * scale)
+    if protect is not None:
+        out &= ~np.asarray(protect, dtype=bool)
+    return out
+
+
+def near_changes(*indicators: np.ndarray, width: int = 5) -> np.ndarray:
+    """Samples within ``width`` of a change of any of the 0/1 ``indicators`` (e.g. the contact of the model and
+    of the record): where :func:`glitches` must not look."""
+    n = indicators[0].size
+    out = np.zeros(n, dtype=bool)
+    for ind in indicators:
+        for i in np.flatnonzero(np.diff(np.asarray(ind, dtype=float)) != 0):
+            out[max(i - width + 1, 0):i + width + 1] = True
     return out
 
 

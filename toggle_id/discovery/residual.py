@@ -6,6 +6,7 @@ import numpy as np
 
 from .. import residuals as R
 from ..effects import ALL_INDEX
+from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
 from .localise import locate, signals_of, structure_energy
 from .model import Model
@@ -91,7 +92,8 @@ def residual_structure_energy(model: Model, theta: np.ndarray, settings: Discove
 
 def leave_out_glitches(model: Model, theta: np.ndarray, k: float) -> dict | None:
     """Find the glitches of the measurement in the residual of ``theta`` (:func:`toggle_id.residuals.glitches` at
-    ``k``) and leave them out of every later residual of ``model`` (:attr:`Model.excluded`). Returns their report
+    ``k``; not within 5 samples of a clamp entry or exit of the model or of the record, where the impact itself
+    can leave one sample off the path) and leave them out of every later residual of ``model`` (:attr:`Model.excluded`). Returns their report
     ({count, times_s, residual_m, ...}), or None when ``k`` is 0 or ``theta`` cannot be simulated."""
     if not k > 0:
         return None
@@ -99,7 +101,8 @@ def leave_out_glitches(model: Model, theta: np.ndarray, k: float) -> dict | None
     r, states, _ = _residual(model, theta)
     if states is None:
         return None
-    mask = R.glitches(r, k)
+    measured_contact = model.record.x_B >= GEOMETRY.x_B_L
+    mask = R.glitches(r, k, protect=R.near_changes(states["contact"], measured_contact))
     if mask.any():
         model.excluded = mask
     return {"record": model.record.name, **R.glitch_report(model.record.t, r, mask, k)}
