@@ -93,8 +93,9 @@ def residual_structure_energy(model: Model, theta: np.ndarray, settings: Discove
 def leave_out_glitches(model: Model, theta: np.ndarray, k: float) -> dict | None:
     """Find the glitches of the measurement in the residual of ``theta`` (:func:`toggle_id.residuals.glitches` at
     ``k``; not within 5 samples of a clamp entry or exit of the model or of the record, where the impact itself
-    can leave one sample off the path) and leave them out of every later residual of ``model`` (:attr:`Model.excluded`). Returns their report
-    ({count, times_s, residual_m, ...}), or None when ``k`` is 0 or ``theta`` cannot be simulated."""
+    can leave one sample off the path) and leave them out of every later residual of ``model``
+    (:attr:`Model.excluded`). Returns their report ({count, times_s, residual_m, ...}), or None when ``k`` is 0 or
+    ``theta`` cannot be simulated."""
     if not k > 0:
         return None
     model.excluded = None
@@ -106,4 +107,3 @@ def leave_out_glitches(model: Model, theta: np.ndarray, k: float) -> dict | None
     if mask.any():
         model.excluded = mask
     return {"record": model.record.name, **R.glitch_report(model.record.t, r, mask, k)}
-

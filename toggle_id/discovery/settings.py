@@ -68,7 +68,7 @@ class DiscoverSettings:
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
       the same basin and is skipped.
-    - glitch_k: samples of the nominal residual that jump away from their neighbours by more than this many robust
+    - glitch_k: samples of the baseline's residual that jump away from their neighbours by more than this many robust
       standard deviations are glitches of the measurement (:func:`toggle_id.residuals.glitches`), reported and
       left out of every fit and test (the model takes them as measured); 0: none looked for.
     """
