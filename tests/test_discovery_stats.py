@@ -207,3 +207,19 @@ def test_vuong_charges_the_extra_parameters_of_the_larger_model():
     rng = np.random.default_rng(3)
     b = a + 0.01 * rng.standard_normal(N)
     assert vuong(fit_noise(a, 0), a, b, 3, 1)["z"] < vuong(fit_noise(a, 0), a, b, 1, 1)["z"]
+
+
+def test_a_drift_is_told_from_coloured_noise_by_a_trend_under_the_detrended_noise_model():
+    """A 4-µm linear drift over 5 s is a trend (a noise model fitted with the trend in would absorb it); white and
+    AR(0.9) noise without one are not, at the test's level (these draws)."""
+    from scipy.signal import lfilter
+
+    from toggle_id.discovery.residual import drift_test
+
+    rng = np.random.default_rng(0)
+    t = np.arange(5001) / 1000.0
+    drifting = drift_test(t, 1e-6 * rng.standard_normal(t.size) + 4e-6 * t / 5.0, 8, 0.01)
+    assert drifting["drifts"] and drifting["drift_m"] == pytest.approx(4e-6, rel=0.1) and drifting["z"] > 20
+    for rho in (0.0, 0.9):
+        e = lfilter([1.0], [1.0, -rho], np.sqrt(1 - rho * rho) * 1e-6 * rng.standard_normal(t.size))
+        assert not drift_test(t, e, 8, 0.01)["drifts"], rho

@@ -174,6 +174,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous, catch_report)
+    drift = diag_after.get("drift") or {}
+    if drift.get("drifts"):
+        conclusion += (f" The residual drifts by {drift['drift_m'] * 1e6:.3g} µm over the record (a linear trend "
+                       f"against time, z {drift['z']:.1f}, under the AR model of the detrended residual; report-only): "
+                       "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
     glitches = judge.glitches or []
     left_out = [g for g in glitches if g["count"]]
     if left_out:

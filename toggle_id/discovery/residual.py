@@ -3,6 +3,7 @@ record the model was not fitted on. Each simulates the model once and reads the 
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
 
 from .. import residuals as R
 from ..effects import ALL_INDEX
@@ -57,9 +58,33 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
                                              n_fitted=noise.order)
     loc = _locate(model, r, states, settings)
     d["localisation"] = loc
+    d["drift"] = drift_test(rec.t, r, settings.noise_max_order, settings.alpha_diag)
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
+
+
+def drift_test(t: np.ndarray, r: np.ndarray, max_order: int, alpha: float) -> dict:
+    """A linear trend of the residual against time, tested under an AR model of the *detrended* residual
+    (generalised least squares: the trend and the intercept regressed on the whitened residual; the noise model
+    fitted to a residual that still held the trend would absorb it as a slow AR mode, and a test prewhitened by
+    that model sees nothing). Report-only: a sensor drift or a slow thermal effect is no effect of the library.
+    Returns {slope_m_per_s, drift_m (over the record), z, p_value, drifts (p < ``alpha``), noise_model}."""
+    t = np.asarray(t, float)
+    r = np.asarray(r, float)
+    X = np.column_stack([np.ones_like(t), t - t.mean()])
+    beta, *_ = np.linalg.lstsq(X, r, rcond=None)
+    noise = fit_noise(r - X @ beta, max_order)
+    p = noise.order
+    Xw, rw = noise.whiten_columns(X)[p:], noise.whiten(r)[p:]
+    beta, *_ = np.linalg.lstsq(Xw, rw, rcond=None)
+    e = rw - Xw @ beta
+    dof = max(len(rw) - 2, 1)
+    cov = np.linalg.inv(Xw.T @ Xw) * float(e @ e) / dof
+    z = float(beta[1] / np.sqrt(cov[1, 1])) if cov[1, 1] > 0 else 0.0
+    pval = float(2.0 * stats.norm.sf(abs(z)))
+    return {"slope_m_per_s": float(beta[1]), "drift_m": float(beta[1] * (t[-1] - t[0])), "z": z, "p_value": pval,
+            "drifts": bool(pval < alpha), "noise_model": noise.to_dict()}
 
 
 def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings) -> dict:
