@@ -102,12 +102,16 @@ def serial_rate(n: int = 200) -> float:
     return n / (time.perf_counter() - t0)
 
 
+def steal_text(before: list[int] | None) -> str:
+    """The CPU steal since ``before`` (a :func:`cpu_times` reading) in words."""
+    steal = steal_share(before, cpu_times())
+    return "unknown" if np.isnan(steal) else f"{100 * steal:.0f} %"
+
+
 def machine_line(before: list[int] | None, n: int = 200) -> str:
     """One line on the machine's speed: :func:`serial_rate` and the CPU steal since ``before``."""
-    rate = serial_rate(n)
-    steal = steal_share(before, cpu_times())
-    return (f"machine: {rate:.0f} FAST 5-s simulations/s on one core (README figures: 1400-1770/s); CPU steal "
-            f"{'unknown' if steal != steal else f'{100 * steal:.0f} %'} during the run")
+    return (f"machine: {serial_rate(n):.0f} FAST 5-s simulations/s on one core (README figures: 1400-1770/s); "
+            f"CPU steal {steal_text(before)} during the run")
 
 
 def timed(fn: Callable[[], SimResult], repeat: int) -> tuple[float, list[float], SimResult, float]:
@@ -360,9 +364,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         cps = r.get("sims_per_cpu_s", float("nan"))
         print(f"{r['case']:52s} {r['n']:5d} {r['median_s']:9.4f} {r['sims_per_s']:9.1f} {cps:10.1f}  {'; '.join(notes)}")
     print("wall-clock figures depend on other jobs on the machine; sims/CPU-s is per core (this process's CPU time)")
-    steal = steal_share(before, cpu_times())
-    print(f"CPU steal during the run: {'unknown' if steal != steal else f'{100 * steal:.0f} %'} (time the "
-          "hypervisor gave to other machines)")
+    print(f"CPU steal during the run: {steal_text(before)} (time the hypervisor gave to other machines)")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(rows, fh, indent=1)

@@ -240,4 +240,3 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     from jobs.bench import machine_line
 
     terminalreporter.write_line(machine_line(_CPU_AT_START))
-

@@ -336,6 +336,12 @@ def glitch_report(t: Sequence[float], r: Sequence[float], mask: np.ndarray, k: f
                     "than k robust σ, its neighbours from theirs by less than k/2"}
 
 
+def glitch_text(report: dict, most: int = 8) -> str:
+    """``N sample(s) at t = …, … s`` of a :func:`glitch_report` (the first ``most`` times)."""
+    times = ", ".join(f"{t:.3f}" for t in report["times_s"][:most]) + (" …" if report["count"] > most else "")
+    return f"{report['count']} sample(s) at t = {times} s"
+
+
 # ---------------------------------------------------------------------------------------------- figures
 def diagnostics_figure(t: Sequence[float], r: Sequence[float], *, acf_lags: int = 100, alpha: float = ALPHA,
                        title: str | None = "Residual diagnostics") -> Figure:

@@ -128,14 +128,22 @@ def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings:
     out = []
     split = record.clamp_index(GEOMETRY.x_B_L)
     t_split = float(record.t[split]) if 0 < split < record.n else None
-    model = Model(record, PRECISE, settings.parallel)
+    model = Model(record, PRECISE, settings.parallel)  # leaves nothing out: its residuals are the raw ones
+    responses: dict[int, tuple[np.ndarray, dict]] = {}
+
+    def response(fit: Fit) -> tuple[np.ndarray, dict]:
+        """x_B of ``fit`` and its plant states, simulated once per fit."""
+        if id(fit) not in responses:
+            x, i_q, _ = model.response(fit.theta)
+            responses[id(fit)] = x, R.plant_states(record.t, x, i_q, x_off=float(fit.theta[ALL_INDEX["x_off"]]))
+        return responses[id(fit)]
+
     for label, fit, r in (("before", res.baseline, res.residual_before), ("after", res.final, res.residual_after)):
         if not np.all(np.isfinite(r)):
             continue
         fig = R.diagnostics_figure(record.t, r, alpha=settings.alpha_diag, title=f"Residual diagnostics ({label})")
         out.append(figures.save(fig, run_dir / f"residual_{label}.png"))
-        x, i_q, _ = model.response(fit.theta)
-        states = R.plant_states(record.t, x, i_q, x_off=float(fit.theta[ALL_INDEX["x_off"]]))
+        states = response(fit)[1]
         fig = R.states_figure(r, states, record.v_in, dt=record.dt, alpha=settings.alpha_diag,
                               title=f"Residual against the states and the input ({label})")
         out.append(figures.save(fig, run_dir / f"residual_states_{label}.png"))
@@ -146,15 +154,12 @@ def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings:
         loc = diag.get("localisation")
         if not loc or not np.all(np.isfinite(r)):
             continue
-        x, i_q, _ = model.response(fit.theta)
-        states = R.plant_states(record.t, x, i_q, x_off=float(fit.theta[ALL_INDEX["x_off"]]))
-        fig = localisation_figure(loc, r, signals_of(record.t, record.v_in, states),
+        fig = localisation_figure(loc, r, signals_of(record.t, record.v_in, response(fit)[1]),
                                   title=f"Where the residual concentrates ({label}): {loc['text']}")
         out.append(figures.save(fig, run_dir / f"localisation_{label}.png"))
     for g in res.extra.get("glitches") or []:
         if g["count"] and g["record"] == record.name:
-            x, _, _ = model.response(res.baseline.theta)  # this model leaves nothing out: the raw residual
-            fig = R.glitches_figure(record.t, record.x_B - x, g["indices"],
+            fig = R.glitches_figure(record.t, record.x_B - response(res.baseline)[0], g["indices"],
                                     title=f"{g['count']} glitch(es) of the measurement in {record.name}, left out "
                                           "of every fit and test")
             out.append(figures.save(fig, run_dir / "glitches.png"))
@@ -219,9 +224,8 @@ def summary_text(res: DiscoveryResult) -> str:
         lines.append(f"compensating {c['name']}: {c['reason']}")
     for g in res.extra.get("glitches") or []:
         if g["count"]:
-            lines.append(f"glitches left out ({g['record']}): {g['count']} sample(s) at t = "
-                         + ", ".join(f"{t:.3f}" for t in g["times_s"][:12]) + (" …" if g["count"] > 12 else "")
-                         + f" s ({g['k_robust_sigma']:g} robust σ away from their neighbours)")
+            lines.append(f"glitches left out ({g['record']}): {R.glitch_text(g, 12)} ({g['k_robust_sigma']:g} "
+                         "robust σ away from their neighbours)")
     routes = res.extra.get("routes") or []
     lines += [route_line(r) for r in routes] if len(routes) > 1 else []
     loc = res.diagnostics_after.get("localisation") or {}

@@ -10,6 +10,7 @@ from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
+from ..residuals import glitch_text
 from .catchall import catch_all
 from .engine import Step, indistinguishable, tie_band
 from .gauge import GAUGE_HELD, freed_with
@@ -65,10 +66,9 @@ class TogglePlant:
             # whose few sharp samples can look alone), once for every route; the baseline fitted again without them
             for g in self.referee.glitches:
                 if g["count"]:
-                    self.say(f"{g['count']} glitch(es) of the measurement in {g['record']} (a sample alone up to "
-                             f"{max(abs(v) for v in g['residual_m']) * 1e6:.3g} µm off its neighbours' path), "
-                             "left out of every fit and test: t = " + ", ".join(f"{t:.3f}" for t in g["times_s"][:8])
-                             + (" …" if g["count"] > 8 else "") + " s")
+                    self.say(f"glitches of the measurement in {g['record']} (each alone, up to "
+                             f"{max(abs(v) for v in g['residual_m']) * 1e6:.3g} µm off its neighbours' path), left "
+                             f"out of every fit and test: {glitch_text(g)}")
             starts = self.baseline_fit.info.get("starts")
             self.baseline_fit = fit_free(self.model, self.baseline_fit.theta, self.baseline_fit.free,
                                          self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
