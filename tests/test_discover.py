@@ -131,6 +131,7 @@ def test_no_effect_no_false_positive():
     assert not res.unexplained and "no effect of the library is supported" in res.conclusion
     d = res.to_dict()
     assert d["residual_tests_after"]["whiteness"]["p_value"] > 0.01
+    assert d["residual_tests_after"]["lines"]["lines"] == [] and "line at" not in res.conclusion
     assert {c["name"] for c in d["candidates"]} == {e.name for e in EFFECTS}
     json.dumps(d)
 
@@ -162,6 +163,23 @@ def test_glitches_of_the_measurement_are_named_and_left_out(tmp_path, monkeypatc
     clean = D.discover(make_record({})[0], nominal=start, settings=D.DiscoverSettings(
         candidates=("sensor_offset",), **{**FAST, "max_effects": 0}))
     assert [x["count"] for x in clean.to_dict()["glitches"]] == [0] and "glitch" not in clean.conclusion
+
+
+def test_a_tone_in_the_noise_is_named_as_a_line_not_taken_for_an_effect():
+    """Mains-like interference on the sensor: a 200-Hz tone of 1.5 σ on a record with no effect. No effect (the
+    periodic cogging torque offered) is accepted; the conclusion names the line, its frequency within one Welch
+    bin (7.8 Hz on 1001 samples) and its amplitude (without the tone: test_no_effect_no_false_positive)."""
+    from toggle_id.discovery.report import summary_text
+
+    rec, truth, start = make_record({})
+    rec.x_B = rec.x_B + 1.5 * NOISE * np.sin(2 * np.pi * 200.0 * rec.t + 0.3)
+    res = D.discover(rec, nominal=start, settings=D.DiscoverSettings(
+        candidates=("cogging_torque", "sensor_offset"), **FAST))
+    assert res.effects_added == [] and not res.unexplained
+    lines = res.to_dict()["residual_tests_after"]["lines"]["lines"]
+    assert len(lines) == 1 and abs(lines[0]["frequency_hz"] - 200.0) < 7.9
+    assert lines[0]["amplitude_m"] == pytest.approx(1.5 * NOISE, rel=0.15)
+    assert "The noise carries a line at" in res.conclusion and "lines in the final residual" in summary_text(res)
 
 
 def test_a_validation_record_the_model_cannot_predict_leaves_it_unexplained():
@@ -320,6 +338,7 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     # comparing: the result in µm, the shared curve ending at it, the record as a dataset, the model
     assert parent[0].data.metrics["rmse_um"] == pytest.approx(1e6 * d["rmse_after_m"])
     assert parent[0].data.metrics["n_glitches"] == 0 and d["glitches"][0]["count"] == 0
+    assert parent[0].data.metrics["n_noise_lines"] == 0
     curve = client.get_metric_history(parent[0].info.run_id, "best_rmse_um")
     assert curve and max(curve, key=lambda m: m.step).value == pytest.approx(1e6 * d["rmse_after_m"])
     assert [i.dataset.name for i in parent[0].inputs.dataset_inputs] == ["simulated_simulation"]

@@ -179,6 +179,13 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += (f" The residual drifts by {drift['drift_m'] * 1e6:.3g} µm over the record (a linear trend "
                        f"against time, z {drift['z']:.1f}, under the AR model of the detrended residual; report-only): "
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
+    lines = (diag_after.get("lines") or {}).get("lines") or []
+    if lines and not unexplained:
+        tones = ", ".join(f"a line at {ln['frequency_hz']:.4g} Hz ({ln['amplitude_m'] * 1e6:.3g} µm amplitude)"
+                          for ln in lines[:3])
+        conclusion += (f" The noise carries {tones}"
+                       " that the states and the input do not explain (report-only): a disturbance at a fixed "
+                       "frequency — mains interference on the sensor (50/60 Hz), a resonance of its mounting?")
     glitches = judge.glitches or []
     left_out = [g for g in glitches if g["count"]]
     if left_out:

@@ -59,6 +59,7 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     loc = _locate(model, r, states, settings)
     d["localisation"] = loc
     d["drift"] = drift_test(rec.t, r, settings.noise_max_order, settings.alpha_diag)
+    d["lines"] = spectral_lines(r, 1.0 / float(np.median(np.diff(rec.t))), settings.alpha_diag)
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
@@ -85,6 +86,54 @@ def drift_test(t: np.ndarray, r: np.ndarray, max_order: int, alpha: float) -> di
     pval = float(2.0 * stats.norm.sf(abs(z)))
     return {"slope_m_per_s": float(beta[1]), "drift_m": float(beta[1] * (t[-1] - t[0])), "z": z, "p_value": pval,
             "drifts": bool(pval < alpha), "noise_model": noise.to_dict()}
+
+
+def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12, guard: int = 2,
+                   nperseg: int | None = None) -> dict:
+    """Narrow lines in the residual's spectrum — a disturbance at a fixed frequency (mains interference on the
+    sensor, a structural resonance) rather than broadband noise. Report-only.
+
+    Each bin of the Welch spectrum (:func:`toggle_id.residuals.spectrum`: Hann, 50 % overlap, K segments, so each
+    estimate has ν ≈ 2K/(1 + 2·0.167²·(1 − 1/K)) degrees of freedom) is compared with its local floor, the mean of
+    the ``half_window`` bins either side beyond ``guard`` bins (a tone leaks into the Hann window's main lobe):
+    under a smooth noise spectrum the ratio is close to F(ν, ν·M/4)-distributed (M floor bins, counted as M/4
+    independent ones: neighbouring Hann bins are correlated, and so are overlapping segments; measured on 200 draws
+    each of white, AR(1) ρ 0.5/0.9/0.99 noise and a 1-µm quantisation: 0–1 draws with a line at 1 %). A bin is a line when its p-value is below ``alpha`` / the
+    number of bins tested; only bins with a whole window either side are tested (a steep low-frequency spectrum
+    would otherwise fake a line at its edge). Adjacent line bins are one line; its amplitude is √(2·P), P the
+    excess power over the floor summed over the main lobe (±``guard`` bins). Returns {lines: [{frequency_hz,
+    amplitude_m, ratio, p_value}], tested_bins, dof, alpha}, the lines strongest first."""
+    f, p = R.spectrum(r, fs, nperseg)
+    n, seg = len(r), 2 * (len(f) - 1)
+    k_seg = max(1, (n - seg) // (seg // 2) + 1)
+    nu = 2.0 * k_seg / (1.0 + 2.0 * 0.167 ** 2 * (1.0 - 1.0 / k_seg))
+    df = float(f[1] - f[0]) if len(f) > 1 else 0.0
+    idx = np.arange(half_window + guard + 1, len(f) - half_window - guard - 1)
+    out = {"lines": [], "tested_bins": int(idx.size), "dof": nu, "alpha": alpha}
+    if idx.size == 0:
+        return out
+    side = np.arange(guard + 1, guard + 1 + half_window)
+    floor = np.array([np.mean(np.concatenate([p[k - side], p[k + side]])) for k in idx])
+    ratio = p[idx] / np.maximum(floor, np.finfo(float).tiny)
+    pval = stats.f.sf(ratio, nu, nu * half_window / 2)  # 2·half_window floor bins, as M/4 independent
+    hit = pval < alpha / idx.size
+    lines, k = [], 0
+    while k < idx.size:
+        if not hit[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < idx.size and hit[j + 1]:
+            j += 1
+        top = k + int(np.argmax(ratio[k:j + 1]))
+        b = idx[top]
+        lobe = slice(b - guard, b + guard + 1)
+        excess = float(np.sum(np.maximum(p[lobe] - floor[top], 0.0)) * df)
+        lines.append({"frequency_hz": float(f[b]), "amplitude_m": float(np.sqrt(2.0 * excess)),
+                      "ratio": float(ratio[top]), "p_value": float(pval[top])})
+        k = j + 1
+    out["lines"] = sorted(lines, key=lambda d: -d["ratio"])
+    return out
 
 
 def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings) -> dict:
