@@ -221,6 +221,19 @@ EMPS_FILES, EMPS_MISSING = _emps_files()
 needs_records = pytest.mark.skipif(EMPS_FILES is None, reason=EMPS_MISSING or "")
 
 
+# ------------------------------------------------------------------------------------------ parallel runs
+#: Session fixtures that cost seconds to build: under pytest-xdist (the default: ``-n auto`` in pyproject.toml) the
+#: tests that share one run on one worker (``--dist loadgroup``), so each is built once, not once per worker.
+SHARED_FIXTURES = ("two_stage_job", "ray_session")
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        shared = [name for name in SHARED_FIXTURES if name in getattr(item, "fixturenames", ())]
+        if shared:
+            item.add_marker(pytest.mark.xdist_group(shared[0]))
+
+
 # ------------------------------------------------------------------------------------------ the machine
 _CPU_AT_START: list[int] | None = None
 
