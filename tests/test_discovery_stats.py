@@ -228,7 +228,8 @@ def test_a_drift_is_told_from_coloured_noise_by_a_trend_under_the_detrended_nois
 def test_a_line_in_the_noise_is_named_with_its_frequency_and_amplitude_and_coloured_noise_makes_none():
     """A 50-Hz tone of 0.3 σ on white noise is a line at 49.8 Hz (the bin's centre) of 0.3 µm; the strongest
     bin of white, AR(1) ρ 0.9 and 0.99 noise and of a quantisation error is not one (these draws); a tone of
-    1.5 σ on AR(1) noise is still found (the amplitude within 20 % at 0.3 σ, 15 % at 1.5 σ), and the steep low end of an AR spectrum is never tested."""
+    1.5 σ on AR(1) noise is still found (the amplitude within 20 % at 0.3 σ, 15 % at 1.5 σ), and the steep low
+    end of an AR spectrum is never tested."""
     from scipy.signal import lfilter
 
     from toggle_id.discovery.residual import spectral_lines
@@ -243,7 +244,8 @@ def test_a_line_in_the_noise_is_named_with_its_frequency_and_amplitude_and_colou
         e = lfilter([1.0], [1.0, -rho], np.sqrt(1 - rho * rho) * 1e-6 * rng.standard_normal(t.size))
         assert spectral_lines(e, 1000.0, 0.01)["lines"] == [], rho
         hum = spectral_lines(e + 1.5 * tone, 1000.0, 0.01)["lines"]
-        assert hum and abs(hum[0]["frequency_hz"] - 50.0) < 1.0 and hum[0]["amplitude_m"] == pytest.approx(1.5e-6, rel=0.15)
+        assert hum and abs(hum[0]["frequency_hz"] - 50.0) < 1.0
+        assert hum[0]["amplitude_m"] == pytest.approx(1.5e-6, rel=0.15)
     slow = 3e-6 * np.sin(2 * np.pi * 1.3 * t)
     assert spectral_lines(np.round((slow + 0.3e-6 * rng.standard_normal(t.size)) * 1e6) / 1e6 - slow, 1000.0,
                           0.01)["lines"] == []
