@@ -100,9 +100,9 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
     independent ones: neighbouring Hann bins are correlated, and so are overlapping segments; measured on 200 draws
     each of white, AR(1) ρ 0.5/0.9/0.99 noise and a 1-µm quantisation: 0–1 draws with a line at 1 %). A bin is a
     line when its p-value is below ``alpha`` / the number of bins tested; only bins with a whole window either side
-    are tested (a steep low-frequency spectrum would otherwise fake a line at its edge). Adjacent line bins are one line; its amplitude is √(2·P), P the
-    excess power over the floor summed over the main lobe (±``guard`` bins). Returns {lines: [{frequency_hz,
-    amplitude_m, ratio, p_value}], tested_bins, dof, alpha}, the lines strongest first."""
+    are tested (a steep low-frequency spectrum would otherwise fake a line at its edge). Adjacent line bins are one
+    line; its amplitude is √(2·P), P the excess power over the floor summed over the main lobe (±``guard`` bins).
+    Returns {lines: [{frequency_hz, amplitude_m, ratio, p_value}], tested_bins, dof, alpha}, strongest first."""
     f, p = R.spectrum(r, fs, nperseg)
     n, seg = len(r), 2 * (len(f) - 1)
     k_seg = max(1, (n - seg) // (seg // 2) + 1)
