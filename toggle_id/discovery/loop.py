@@ -23,7 +23,7 @@ from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
 from .routes import Route, choose, route_line, same_basin
-from .residual import prediction_report, residual_report
+from .residual import line_text, noise_lines, prediction_report, residual_report
 from .noise import fit_noise
 from .validation import Judge
 
@@ -179,11 +179,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += (f" The residual drifts by {drift['drift_m'] * 1e6:.3g} µm over the record (a linear trend "
                        f"against time, z {drift['z']:.1f}, under the AR model of the detrended residual; report-only): "
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
-    lines = (diag_after.get("lines") or {}).get("lines") or []
+    lines = noise_lines(diag_after)
     if lines and not unexplained:
-        tones = ", ".join(f"a line at {ln['frequency_hz']:.4g} Hz ({ln['amplitude_m'] * 1e6:.3g} µm amplitude)"
-                          for ln in lines[:3])
-        conclusion += (f" The noise carries {tones}"
+        conclusion += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +
                        " that the states and the input do not explain (report-only): a disturbance at a fixed "
                        "frequency — mains interference on the sensor (50/60 Hz), a resonance of its mounting?")
     glitches = judge.glitches or []

@@ -14,6 +14,7 @@ from ..record import Record
 from ..simulate import PRECISE
 from .model import Fit, Model
 from .refit import Refit
+from .residual import line_text, noise_lines
 from .routes import route_line
 from .settings import DiscoverSettings
 
@@ -226,11 +227,10 @@ def summary_text(res: DiscoveryResult) -> str:
         if g["count"]:
             lines.append(f"glitches left out ({g['record']}): {R.glitch_text(g, 12)} ({g['k_robust_sigma']:g} "
                          "robust σ away from their neighbours)")
-    tones = (res.diagnostics_after.get("lines") or {}).get("lines") or []
+    tones = noise_lines(res.diagnostics_after)
     if tones:
         lines.append("lines in the final residual's spectrum: " + ", ".join(
-            f"{ln['frequency_hz']:.4g} Hz ({ln['amplitude_m'] * 1e6:.3g} µm, {ln['ratio']:.3g}× the local floor)"
-            for ln in tones))
+            f"{line_text(ln)}, {ln['ratio']:.3g}× the local floor" for ln in tones))
     routes = res.extra.get("routes") or []
     lines += [route_line(r) for r in routes] if len(routes) > 1 else []
     loc = res.diagnostics_after.get("localisation") or {}

@@ -59,7 +59,7 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     loc = _locate(model, r, states, settings)
     d["localisation"] = loc
     d["drift"] = drift_test(rec.t, r, settings.noise_max_order, settings.alpha_diag)
-    d["lines"] = spectral_lines(r, 1.0 / float(np.median(np.diff(rec.t))), settings.alpha_diag)
+    d["lines"] = spectral_lines(r, 1.0 / rec.dt, settings.alpha_diag)
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
@@ -134,6 +134,16 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
         k = j + 1
     out["lines"] = sorted(lines, key=lambda d: -d["ratio"])
     return out
+
+
+def noise_lines(diagnostics: dict) -> list[dict]:
+    """The lines of :func:`spectral_lines` in a :func:`residual_report` (none when it has no such test)."""
+    return (diagnostics.get("lines") or {}).get("lines") or []
+
+
+def line_text(line: dict) -> str:
+    """``49.8 Hz (1.5 µm amplitude)`` of one line of :func:`spectral_lines`."""
+    return f"{line['frequency_hz']:.4g} Hz ({line['amplitude_m'] * 1e6:.3g} µm amplitude)"
 
 
 def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings) -> dict:
