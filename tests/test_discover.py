@@ -493,6 +493,24 @@ def test_coloured_or_quantised_noise_is_not_an_effect(rho, quantum, sigma):
 
 
 @pytest.mark.slow
+def test_noise_loud_at_speed_is_not_an_effect_and_is_named():
+    """Noise whose σ grows with slider B's speed (0.3 + |ẋ_B|/mean|ẋ_B|, rms 1 µm): before the robust tests a
+    backlash and a cogging torque passed the F-test (p 3e-8, 1e-18) on such a record; now nothing is accepted, no
+    structure is left, and the report says where the noise is loud."""
+    rec, start = _noise_record(sigma=0.0)
+    v = np.gradient(rec.x_B, rec.t)
+    level = 0.3 + np.abs(v) / np.abs(v).mean()
+    rec.x_B = rec.x_B + NOISE * level / np.sqrt(np.mean(level ** 2)) * np.random.default_rng(12).standard_normal(rec.n)
+    res = D.discover(rec, nominal=start, settings=D.DiscoverSettings())
+    d = res.to_dict()
+    print(f"\n[noise] loud at speed: added {d['accepted']}, compensating {[c['name'] for c in d['compensating']]}, "
+          f"{res.seconds:.0f} s")
+    assert res.effects_added == [] and not res.unexplained
+    assert res.diagnostics_after["noise_level"]["strongest"] == "speed" and "noisier in motion" in res.conclusion
+    assert not res.diagnostics_after["lines"]["lines"] and not any(g["count"] for g in res.extra.get("glitches") or [])
+
+
+@pytest.mark.slow
 def test_an_effect_outside_the_library_is_unexplained_and_localised():
     """A friction bump on the slider's stroke (independent scipy plant, tests/outside_plant.py): no library effect
     may be accepted; the residual's structure is placed on the slider's position."""

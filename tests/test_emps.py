@@ -390,8 +390,9 @@ def test_judge_effect_is_noise_aware():
     corr = new_params_corr(small, large)
     assert 0 < corr < 1
     ev = judge_effect(small, large, alpha=0.01, max_corr=0.5 * corr)
-    assert not ev.passed and ev.checks == {"f_test": True, "bic": True, "cross_validation": True,
-                                           "identifiable": False}
+    assert not ev.passed and ev.checks == {"f_test": True, "robust_f_test": True, "bic": True,
+                                           "cross_validation": True, "identifiable": False}
+    assert 1.0 <= ev.hc_ratio < 1.5 and ev.F_robust == pytest.approx(ev.F / ev.hc_ratio)
     assert ev.reason == "a new parameter is not identifiable (|correlation| > max_corr)"
     white = judge_effect(small, large, noise_max_order=0)
     assert white.noise.white and white.F > ev.F

@@ -63,10 +63,10 @@ def _check_lists(rep: dict) -> dict:
             if ev is None:  # never refitted: an effect it refines is not in the model
                 assert key == "rejected" and "never refitted" in item["reason"]
                 continue
-            assert set(ev["checks"]) == {"f_test", "bic", "cross_validation", "identifiable"}
+            assert set(ev["checks"]) == {"f_test", "robust_f_test", "bic", "cross_validation", "identifiable"}
             assert {"noise_model", "F", "p_value", "delta_bic", "sse_w_before", "sse_w_after", "cv_sse_w_before",
                     "cv_sse_w_after", "passed", "reason"} <= set(ev)
-            significant = ev["checks"]["f_test"] and ev["checks"]["bic"]
+            significant = ev["checks"]["f_test"] and ev["checks"]["robust_f_test"] and ev["checks"]["bic"]
             if key == "effects_added":
                 assert ev["passed"] and all(ev["checks"].values()) and ev["p_value"] < rep["alpha"]
                 assert ev["delta_bic"] < 0 and ev["cv_sse_w_after"] < ev["cv_sse_w_before"]
@@ -106,8 +106,8 @@ def test_an_effect_that_is_not_identifiable_is_compensating_never_added():
     assert rep["effects_added"] == [] and rep["free"] == ["M", "Fv"]
     (comp,) = rep["compensating"]
     assert comp["name"] == "coulomb_friction" and "not identifiable" in comp["reason"]
-    assert comp["evidence"]["checks"] == {"f_test": True, "bic": True, "cross_validation": True,
-                                          "identifiable": False}
+    assert comp["evidence"]["checks"] == {"f_test": True, "robust_f_test": True, "bic": True,
+                                          "cross_validation": True, "identifiable": False}
     (rej,) = rep["rejected"]
     assert rej["name"] == "stribeck_friction" and rej["evidence"] is None and "coulomb_friction" in rej["reason"]
     assert rep["structure_left"] and set(rep["localisation"]["significant"]) & {"q_dir", "qdot"}

@@ -151,7 +151,8 @@ def test_figures_render(tmp_path):
 
 
 def test_glitches_are_jumps_no_mechanism_makes_not_noise_counts_or_structure():
-    """A sample that jumps away from its neighbours is a glitch of the measurement; Gaussian, coloured and quantised noise, a steep smooth residual (a missing effect), the ringing of a contact
+    """A sample that jumps away from its neighbours is a glitch of the measurement; Gaussian, coloured, quantised
+    noise and noise that is loud at speed, a steep smooth residual (a missing effect), the ringing of a contact
     and the kink of an impact at another time than the model's are not."""
     from scipy.signal import lfilter
 
@@ -161,13 +162,17 @@ def test_glitches_are_jumps_no_mechanism_makes_not_noise_counts_or_structure():
     n = 5001
     t = np.arange(n) / 1000.0
     smooth = 50e-6 * np.sin(2 * np.pi * 8 * t)  # 2.5 µm per sample at its steepest
+    speed = np.abs(np.sin(0.5 * t + 3.95 * t ** 2)) * t / t[-1]  # the paper's sweep, 0.5 → 40 rad/s, growing
+    level = (0.1 + speed ** 2) / np.sqrt(np.mean((0.1 + speed ** 2) ** 2))  # 0.1–3× its rms, loud at speed
+    loud = 1e-6 * level * rng.standard_normal(n)
     clean = {"white": 1e-6 * rng.standard_normal(n),
              "ar1_0.9": lfilter([1.0], [1.0, -0.9], np.sqrt(1 - 0.81) * 1e-6 * rng.standard_normal(n)),
              "smooth_plus_noise": smooth + 1e-6 * rng.standard_normal(n),
              "contact_ringing": 30e-6 * np.exp(-np.clip(t - 0.7, 0, None) / 0.02) * np.sin(2 * np.pi * 180 * t)
              * (t >= 0.7) + 1e-6 * rng.standard_normal(n),
              "encoder_counts": np.round((5e-3 * np.sin(2 * np.pi * 1.3 * t)) / 1e-6) * 1e-6
-             - 5e-3 * np.sin(2 * np.pi * 1.3 * t)}
+             - 5e-3 * np.sin(2 * np.pi * 1.3 * t),
+             "loud_at_speed": loud}
     for name, r in clean.items():
         assert not glitches(r).any(), name
     bad = smooth + 1e-6 * rng.standard_normal(n)
@@ -177,6 +182,10 @@ def test_glitches_are_jumps_no_mechanism_makes_not_noise_counts_or_structure():
     mask = glitches(bad)
     assert np.flatnonzero(mask).tolist() == where
     assert not glitches(bad, k=0).any()
+    quiet = int(np.argmin(level[4000:4500])) + 4000
+    spiked = loud.copy()
+    spiked[quiet] += 20e-6  # a glitch where the loud noise is quiet is still one
+    assert quiet in np.flatnonzero(glitches(spiked)).tolist()
     from toggle_id.residuals import near_changes
 
     contact = (t >= 2.0).astype(float)  # a clamp entry between samples 1999 and 2000: an impact may jump there

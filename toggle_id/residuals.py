@@ -282,6 +282,12 @@ def diagnose(t: Sequence[float], r: Sequence[float], u: Sequence[float] | None =
     return out
 
 
+#: How far on either side :func:`glitches` looks for the noise's local level (±8 ms at 1 kHz: a quarter period
+#: of the paper's fastest sweep, 40 Hz). White noise reaches twice its level over those 12 samples with chance
+#: about 1e-5, so a glitch in it is judged as before.
+LOCAL = 8
+
+
 def glitches(r: Sequence[float], k: float = 8.0, protect: np.ndarray | None = None) -> np.ndarray:
     """Samples of the residual ``r`` that are glitches of the measurement, not of the model (bool mask).
 
@@ -289,8 +295,9 @@ def glitches(r: Sequence[float], k: float = 8.0, protect: np.ndarray | None = No
     predicted from its two neighbours on either side by four straight lines (the two interpolations and the two
     extrapolations); a sample is a glitch when it departs from *every* prediction by more than ``k`` robust
     standard deviations of the plain interpolation's departure (median absolute deviation scaled to σ for
-    Gaussian noise, floored at half the standard deviation: an encoder's counts alone leave most departures at 0)
-    while its four neighbours depart from theirs by less than half that — it is alone. What the model leaves of
+    Gaussian noise, floored at half the standard deviation: an encoder's counts alone leave most departures at 0;
+    where the noise is more than twice as loud as that, its local level, :data:`LOCAL`: noise whose level grows
+    with speed is not a string of glitches) while its four neighbours depart from theirs by less than half that — it is alone. What the model leaves of
     the mechanism is never alone: a kink (an impact at another time than the model's) is predicted by the straight
     line on one side, and the ringing of the clamp's contact moves many samples in a row. Gaussian noise flags
     no sample of a 5000-sample record at k = 8 (chance about 1e-11); a glitch must exceed about 10 σ; two or more
@@ -306,6 +313,13 @@ def glitches(r: Sequence[float], k: float = 8.0, protect: np.ndarray | None = No
     scale = max(float(stats.median_abs_deviation(diff[0], scale="normal")), 0.5 * float(np.std(diff[0])))
     if not scale > 0:
         return out
+    # the noise's own level where it is more than twice as loud as on the whole (an encoder that vibrates at
+    # speed): the rms departure of the samples 3 to LOCAL away on either side (a glitch moves only its own
+    # departure and its two neighbours'; white noise's 2·(LOCAL − 2) departures stay below twice their σ)
+    ring = np.r_[np.ones(LOCAL - 2), np.zeros(5), np.ones(LOCAL - 2)]
+    local = np.sqrt(np.convolve(diff[0] ** 2, ring, mode="same") / np.convolve(np.ones(diff.shape[1]),
+                                                                               ring, mode="same"))
+    scale = np.where(local > 2.0 * scale, local, scale)
     dev = np.min(np.abs(diff), axis=0)
     padded = np.pad(dev, 2)
     neighbours = np.max(np.stack([padded[j:j + dev.size] for j in (0, 1, 3, 4)]), axis=0)

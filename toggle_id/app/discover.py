@@ -17,7 +17,7 @@ from ..data import read_csv
 from ..discovery import discover
 from ..discovery.refit import Refit
 from ..discovery.report import summary_text, write_figures
-from ..discovery.residual import noise_lines
+from ..discovery.residual import level_varies, noise_lines
 from ..discovery.settings import DiscoverJobSettings, DiscoverSettings
 from ..effects import ALL_INDEX, ALL_NAMES
 from ..errors import ConfigError, DataError
@@ -141,6 +141,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                              "n_effects_added": len(res.effects_added), "wall_seconds": wall,
                              "n_glitches": sum(g["count"] for g in res.extra.get("glitches") or []),
                              "n_noise_lines": len(noise_lines(res.diagnostics_after)),
+                             "noise_level_varies": float(bool(level_varies(res.diagnostics_after))),
                              "ljung_box_p_before": res.diagnostics_before.get("whiteness", {}).get("p_value", np.nan),
                              "ljung_box_p_after": res.diagnostics_after.get("whiteness", {}).get("p_value", np.nan),
                              **{f"score.{c['name']}": c["score"] for c in res.candidates}})

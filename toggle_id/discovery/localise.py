@@ -15,6 +15,7 @@ import textwrap
 from collections.abc import Mapping
 
 import numpy as np
+from scipy import stats
 
 from .noise import NoiseModel
 from .stats import lagged_basis, piecewise_basis, structure_test
@@ -108,20 +109,21 @@ def structure_energy(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: 
 
 
 def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
-           alpha: float = 0.01, lags: int = 50, lag_step: int = 5) -> dict:
-    """Structure test and localisation of the residual ``r`` (see the module docstring).
+           alpha: float = 0.01, lags: int = 50, lag_step: int = 5, J: np.ndarray | None = None) -> dict:
+    """Structure test and localisation of the residual ``r`` (see the module docstring; ``J``: the fit's
+    sensitivities, for the robust statistic of :func:`.stats.structure_test`).
 
     Returns {structure_left, alpha, families: {name: {p_value, statistic, dof, share, centres, levels,
     where, text}}, strongest, text}. ``structure_left`` when a tested family's p-value is below
     alpha / (number of tested families).
     """
     bases, centres, edges_of = family_bases(signals, bins, lags, lag_step)
-    res = structure_test(noise, r, bases)
+    res = structure_test(noise, r, bases, J=J)
     tested = [k for k in TESTED if k in res]
     level = alpha / max(len(tested), 1)
     families = {}
     for name, d in res.items():
-        fam = {k: d[k] for k in ("statistic", "dof", "p_value", "share")}
+        fam = {k: d[k] for k in ("statistic", "statistic_classical", "statistic_robust", "dof", "p_value", "share")}
         fam["tested"] = name in tested
         fam["significant"] = bool(name in tested and d["p_value"] < level)
         if name in centres:
@@ -140,6 +142,63 @@ def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.nda
         text = "structure left: " + "; ".join(parts[:3])
     return {"structure_left": strongest is not None, "alpha": alpha, "level_per_family": level, "bins": bins,
             "families": families, "strongest": strongest, "significant": sig, "text": text}
+
+
+#: Families of :func:`noise_level`: key → (label, scale, unit) of the signal whose bins the noise's level is read on.
+LEVEL_FAMILIES = {"speed": ("slider B speed", 1e3, "mm/s"), "x_B": ("slider B position", 1e3, "mm"),
+                  "current": ("|model current|", 1.0, "A"), "t": ("time", 1.0, "s")}
+
+
+def noise_level(noise: NoiseModel, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
+                alpha: float = 0.01) -> dict:
+    """Does the noise's level vary along the record, and with what? Report-only.
+
+    The squared prewhitened residual is regressed on the bins of slider B's speed, its position, the model
+    current's magnitude and time, one family at a time; n·R² is χ²(bins − 1) when the level is the same
+    everywhere (Koenker's studentised Breusch–Pagan test, which does not assume Gaussian noise: quantised or
+    heavy-tailed noise keeps its level). A family whose p-value is below ``alpha`` / the number of families
+    says where the noise is loud and where quiet, σ per bin in the residual's units. The discovery tests allow for
+    such noise (:func:`.stats.robust_f`, the robust structure statistic); this only tells the user — an encoder
+    or a mounting that is noisier at speed. Returns {varies, families: {name: {statistic, dof, p_value, edges,
+    sigma_m}}, strongest, text}."""
+    e = noise.whiten(np.asarray(r, float))[noise.order:]
+    e2 = e * e
+    to_residual = np.sqrt(noise.variance_ratio) if not noise.white else 1.0
+    cand = {"speed": np.abs(signals["xdot_B"]) if "xdot_B" in signals else None, "x_B": signals.get("x_B"),
+            "current": np.abs(signals["i_q"]) if "i_q" in signals else None, "t": signals.get("t")}
+    families = {}
+    for name, v in cand.items():
+        if v is None:
+            continue
+        B, edges = piecewise_basis(np.asarray(v, float)[noise.order:], bins)
+        if B.shape[1] < 2 or not np.all(np.isfinite(e2)):
+            continue
+        coef = np.linalg.lstsq(B, e2, rcond=1e-10)[0]
+        dev = e2 - e2.mean()
+        tss = float(dev @ dev)
+        ess = float(np.sum((B @ coef - e2.mean()) ** 2))
+        stat = e2.size * ess / tss if tss > 0 else 0.0
+        dof = B.shape[1] - 1
+        families[name] = {"statistic": stat, "dof": dof, "p_value": float(stats.chi2.sf(stat, dof)),
+                          "edges": edges.tolist(), "sigma_m": (np.sqrt(np.maximum(coef, 0.0)) * to_residual).tolist()}
+    level = alpha / max(len(families), 1)
+    sig = sorted((k for k, f in families.items() if f["p_value"] < level), key=lambda k: families[k]["p_value"])
+    out = {"varies": bool(sig), "alpha": alpha, "families": families, "strongest": sig[0] if sig else None,
+           "text": "the noise's level is the same along the record"}
+    if sig:
+        f = families[sig[0]]
+        label, scale, unit = LEVEL_FAMILIES[sig[0]]
+        sd, edges = np.asarray(f["sigma_m"]), np.asarray(f["edges"]) * scale
+        lo, hi = int(np.argmin(sd)), int(np.argmax(sd))
+        tiny = 1e-3 * float(edges[-1] - edges[0])
+
+        def span(j: int) -> str:
+            a, b = (0.0 if abs(x) < tiny else float(x) for x in edges[j:j + 2])
+            return f"{a:.3g}–{b:.3g} {unit}"
+
+        out["text"] = (f"the noise's level varies with {label}: σ ≈ {sd[hi] * 1e6:.3g} µm at {span(hi)}, "
+                       f"{sd[lo] * 1e6:.3g} µm at {span(lo)}")
+    return out
 
 
 def figure(locate_result: dict, r: np.ndarray, signals: Mapping[str, np.ndarray], title: str = ""):

@@ -23,7 +23,7 @@ from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
 from .routes import Route, choose, route_line, same_basin
-from .residual import line_text, noise_lines, prediction_report, residual_report
+from .residual import level_varies, line_text, noise_lines, prediction_report, residual_report
 from .noise import fit_noise
 from .validation import Judge
 
@@ -148,7 +148,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     # reported as ambiguous (the final model keeps the better-fitting one, for prediction)
     ambiguous = [a for a in added if a.get("indistinguishable_from")]
     added = [a for a in added if not a.get("indistinguishable_from")]
-    diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split)
+    diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split,
+                                               judge.residual_and_jacobian(baseline)[1])
     accepted_names = {a["name"] for a in added}
     ambiguous_names = {nm for a in ambiguous for nm in [a["name"]] + [r["name"] for r in a["indistinguishable_from"]]}
     cands = []
@@ -184,6 +185,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +
                        " that the states and the input do not explain (report-only): a disturbance at a fixed "
                        "frequency — mains interference on the sensor (50/60 Hz), a resonance of its mounting?")
+    loud = level_varies(diag_after)
+    if loud and not unexplained:
+        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests and the "
+                       "structure test allow for it): an encoder or a mounting that is noisier in motion?")
     glitches = judge.glitches or []
     left_out = [g for g in glitches if g["count"]]
     if left_out:

@@ -48,8 +48,10 @@ class Refit:
 
     @property
     def lowers_error(self) -> bool:
-        """Significant in sample (F-test and BIC), whatever the out-of-sample checks say."""
-        return bool(self.evidence.get("checks", {}).get("f_test")) and bool(self.evidence.get("checks", {}).get("bic"))
+        """Significant in sample (F-test, its heteroscedasticity-robust twin where it was run, and BIC), whatever
+        the out-of-sample checks say."""
+        checks = self.evidence.get("checks", {})
+        return bool(checks.get("f_test")) and bool(checks.get("robust_f_test", True)) and bool(checks.get("bic"))
 
     def to_dict(self, n: int) -> dict:
         return {"name": self.name, "iteration": self.iteration, "params": self.params, "std_errors": self.std_errors,

@@ -3,13 +3,13 @@ record the model was not fitted on. Each simulates the model once and reads the 
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+from scipy import signal, stats
 
 from .. import residuals as R
 from ..effects import ALL_INDEX
 from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
-from .localise import locate, signals_of, structure_energy
+from .localise import locate, noise_level, signals_of, structure_energy
 from .model import Model
 from .noise import fit_noise
 from .settings import DiscoverSettings
@@ -32,19 +32,22 @@ def _signals(model: Model, states: dict) -> dict:
     return signals_of(rec.t, rec.v_in, states)
 
 
-def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings) -> dict:
+def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings, J: np.ndarray | None = None
+            ) -> dict:
     return locate(None, r, _signals(model, states), bins=settings.structure_bins, alpha=settings.alpha_diag,
-                  lags=settings.ccf_lags, lag_step=settings.ccf_step)
+                  lags=settings.ccf_lags, lag_step=settings.ccf_step, J=J)
 
 
-def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None
-                    ) -> tuple[dict, np.ndarray, dict]:
+def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None,
+                    J: np.ndarray | None = None) -> tuple[dict, np.ndarray, dict]:
     """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals.
 
     Besides the classical tests of :func:`toggle_id.residuals.diagnose` (which assume white noise), the dict
     holds the AR noise model of the residual (``noise_model``), the Ljung–Box test of the prewhitened residual
     (``whiteness_prewhitened``) and the noise-aware structure test with its localisation (``localisation``,
-    :func:`.localise.locate`); ``verdict.structure_left`` is the latter's."""
+    :func:`.localise.locate`, robust to a varying noise level given the fit's sensitivities ``J``), and report-only
+    looks at a drift, lines in the spectrum and a noise level that varies
+    (``drift``, ``lines``, ``noise_level``); ``verdict.structure_left`` is the structure test's."""
     r, states, status = _residual(model, theta)
     if states is None:
         return {"error": f"the model cannot be simulated on this record (status {status})"}, r, {}
@@ -56,10 +59,12 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     d["noise_model"] = noise.to_dict()
     d["whiteness_prewhitened"] = R.ljung_box(noise.whiten(r)[noise.order:], settings.acf_lags, settings.alpha_diag,
                                              n_fitted=noise.order)
-    loc = _locate(model, r, states, settings)
+    loc = _locate(model, r, states, settings, J)
     d["localisation"] = loc
     d["drift"] = drift_test(rec.t, r, settings.noise_max_order, settings.alpha_diag)
     d["lines"] = spectral_lines(r, 1.0 / rec.dt, settings.alpha_diag)
+    d["noise_level"] = noise_level(noise, r, _signals(model, states), bins=settings.structure_bins,
+                                   alpha=settings.alpha_diag)
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
@@ -94,7 +99,8 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
     sensor, a structural resonance) rather than broadband noise. Report-only.
 
     Each bin of the Welch spectrum (:func:`toggle_id.residuals.spectrum`: Hann, 50 % overlap, K segments, so each
-    estimate has ν ≈ 2K/(1 + 2·0.167²·(1 − 1/K)) degrees of freedom) is compared with its local floor, the mean
+    estimate has ν ≈ 2K/(1 + 2·0.167²·(1 − 1/K)) degrees of freedom; for the test each segment's periodogram is
+    divided by its own mean level first, so that noise louder in some segments does not fake lines) is compared with its local floor, the mean
     of the ``half_window`` bins either side beyond ``guard`` bins (a tone leaks into the Hann window's main lobe):
     under a smooth noise spectrum the ratio is close to F(ν, ν·M/4)-distributed (M floor bins, counted as M/4
     independent ones: neighbouring Hann bins are correlated, and so are overlapping segments; measured on 200 draws
@@ -106,6 +112,13 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
     f, p = R.spectrum(r, fs, nperseg)
     n, seg = len(r), 2 * (len(f) - 1)
     k_seg = max(1, (n - seg) // (seg // 2) + 1)
+    # the test reads each segment's periodogram relative to that segment's own level: noise that is louder in
+    # some segments (at speed) would otherwise let a few segments make the average and fake lines (measured on a
+    # record whose noise σ grows with speed: two lines at 140 and 210 Hz); the amplitudes come from ``p``
+    _, _, seg_p = signal.spectrogram(np.asarray(r, float) - float(np.mean(r)), fs=fs, window="hann", nperseg=seg,
+                                     noverlap=seg // 2, detrend="constant")
+    level = np.mean(seg_p, axis=0, keepdims=True)
+    q = np.mean(seg_p / np.where(level > 0, level, 1.0), axis=1) if seg_p.size else p
     nu = 2.0 * k_seg / (1.0 + 2.0 * 0.167 ** 2 * (1.0 - 1.0 / k_seg))
     df = float(f[1] - f[0]) if len(f) > 1 else 0.0
     idx = np.arange(half_window + guard + 1, len(f) - half_window - guard - 1)
@@ -114,7 +127,8 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
         return out
     side = np.arange(guard + 1, guard + 1 + half_window)
     floor = np.array([np.mean(np.concatenate([p[k - side], p[k + side]])) for k in idx])
-    ratio = p[idx] / np.maximum(floor, np.finfo(float).tiny)
+    floor_q = np.array([np.mean(np.concatenate([q[k - side], q[k + side]])) for k in idx])
+    ratio = q[idx] / np.maximum(floor_q, np.finfo(float).tiny)
     pval = stats.f.sf(ratio, nu, nu * half_window / 2)  # 2·half_window floor bins, as M/4 independent
     hit = pval < alpha / idx.size
     lines, k = [], 0
@@ -139,6 +153,13 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
 def noise_lines(diagnostics: dict) -> list[dict]:
     """The lines of :func:`spectral_lines` in a :func:`residual_report` (none when it has no such test)."""
     return (diagnostics.get("lines") or {}).get("lines") or []
+
+
+def level_varies(diagnostics: dict) -> str | None:
+    """The text of :func:`.localise.noise_level` in a :func:`residual_report` when the noise's level varies (None
+    when it does not, or was not tested)."""
+    lv = diagnostics.get("noise_level") or {}
+    return lv.get("text") if lv.get("varies") else None
 
 
 def line_text(line: dict) -> str:

@@ -124,7 +124,8 @@ class TogglePlant:
         return False  # no effect of the toggle library refines another
 
     def structure(self, fit: Fit) -> tuple[bool, tuple]:
-        diag, r, states = residual_report(self.model, fit.theta, self.s, self.split)
+        diag, r, states = residual_report(self.model, fit.theta, self.s, self.split,
+                                          self.referee.residual_and_jacobian(fit)[1])
         return bool(diag.get("verdict", {}).get("structure_left", False)), (diag, r, states)
 
     def structure_energy(self, fit: Fit, details: tuple | None = None) -> float:
@@ -258,8 +259,10 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                         if not other.accepted:
                             other.reason = "against the re-polished nominal model: " + other.reason
         ev = rf.evidence
-        say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, p {rf.p_value:.3g}, "
-            f"ΔBIC {rf.delta_bic:.4g}, out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
+        hc = ev.get("hc_ratio", 1.0) or 1.0
+        robust = f" (robust p {ev.get('p_value_robust', np.nan):.3g}, ×{hc:.3g})" if hc > 1.2 else ""
+        say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, "
+            f"p {rf.p_value:.3g}{robust}, ΔBIC {rf.delta_bic:.4g}, out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
             f"{ev.get('cv_sse_w_after', np.nan):.4g} → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
             f"({rf.seconds:.1f} s)")
         refits.append(rf)

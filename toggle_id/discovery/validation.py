@@ -1,4 +1,5 @@
-"""Whether a refitted effect is supported: in sample (prewhitened F-test and BIC), out of sample (time-block
+"""Whether a refitted effect is supported: in sample (prewhitened F-test, its heteroscedasticity-robust
+twin and BIC), out of sample (time-block
 cross-validation, and a second record when the user gives one), and after the others (backward elimination).
 
 The loop fits by ordinary least squares. A comparison (:meth:`Judge.judge_pair`) takes its noise model from
@@ -25,7 +26,7 @@ from .model import Fit, Model, _with, fit_free, sensitivities
 from .noise import NoiseModel, fit_noise
 from .residual import leave_out_glitches
 from .settings import DiscoverSettings
-from .stats import block_cv, compare
+from .stats import block_cv, compare, robust_f
 
 
 @dataclass
@@ -42,6 +43,11 @@ class Evidence:
     sse1_w: float
     validation0: float | None = None
     validation1: float | None = None
+    #: the F statistic corrected for a noise level that varies along the record and its p-value; ``hc_ratio``
+    #: is the factor it was divided by (:func:`.stats.robust_f`; 1: the noise's level does not matter here)
+    F_robust: float = float("nan")
+    p_robust: float = float("nan")
+    hc_ratio: float = 1.0
     checks: dict = field(default_factory=dict)
 
     @property
@@ -51,8 +57,11 @@ class Evidence:
     @property
     def reason(self) -> str:
         if self.passed:
-            return "significant in sample (prewhitened F-test and BIC) and better out of sample"
-        names = {"f_test": "F-test not significant", "bic": "BIC does not improve",
+            return "significant in sample (prewhitened F-test, robust to the noise level, and BIC) and better out of sample"
+        names = {"f_test": "F-test not significant",
+                 "robust_f_test": "not significant once the noise's level is let vary along the record "
+                                  "(heteroscedasticity-robust F-test)",
+                 "bic": "BIC does not improve",
                  "cross_validation": "no better out of sample (time-block cross-validation)",
                  "validation_record": "does not predict the validation record better",
                  "identifiable": "a new parameter is not identifiable (|correlation| > max_corr)"}
@@ -60,7 +69,8 @@ class Evidence:
 
     def to_dict(self) -> dict:
         return {"noise_model": self.noise.to_dict(), "F": self.F, "p_value": self.p_value,
-                "delta_bic": self.delta_bic, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
+                "delta_bic": self.delta_bic, "F_robust": self.F_robust, "p_value_robust": self.p_robust,
+                "hc_ratio": self.hc_ratio, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
                 "cv_sse_w_before": self.cv0, "cv_sse_w_after": self.cv1,
                 "validation_sse_before_m2": self.validation0, "validation_sse_after_m2": self.validation1,
                 "checks": dict(self.checks), "passed": self.passed, "reason": self.reason}
@@ -153,8 +163,12 @@ class Judge:
         c = compare(noise, r0, r1, k, len(large.free))
         cv0 = block_cv(noise, r0, J0, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
         cv1 = block_cv(noise, r1, J1, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
-        ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], cv0, cv1, c["sse0_w"], c["sse1_w"])
-        ev.checks = {"f_test": c["p_value"] < self.s.alpha, "bic": c["delta_bic"] < 0, "cross_validation": cv1 < cv0}
+        new = [j for j, nm in enumerate(large.free) if nm not in set(small.free)]
+        rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1)
+        ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], cv0, cv1, c["sse0_w"], c["sse1_w"],
+                      F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"])
+        ev.checks = {"f_test": c["p_value"] < self.s.alpha, "robust_f_test": rob["p_value"] < self.s.alpha,
+                     "bic": c["delta_bic"] < 0, "cross_validation": cv1 < cv0}
         if self.validation is not None:
             ev.validation0, ev.validation1 = self.validation_sse(small), self.validation_sse(large)
             ev.checks["validation_record"] = bool(ev.validation1 < ev.validation0)

@@ -19,7 +19,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from ..discovery.noise import NoiseModel, fit_noise
-from ..discovery.stats import block_cv, compare
+from ..discovery.stats import block_cv, compare, robust_f
 from ..discovery.validation import Evidence, in_sample_summary
 from ..errors import ConfigError
 from .data import EmpsRecord
@@ -233,7 +233,8 @@ def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01,
     is cross-validated over time blocks of ``cv_block`` samples dealt to ``cv_folds`` folds with its own Jacobian
     (:func:`~toggle_id.discovery.stats.block_cv`). Unlike ``Judge.judge_pair`` the two output-error fits are not
     refitted under a coloured noise model first (each costs a closed-loop fit); they are compared as fitted.
-    ``Evidence.checks``: ``f_test`` (p < ``alpha``), ``bic`` (ΔBIC < 0), ``cross_validation`` (the cross-validated
+    ``Evidence.checks``: ``f_test`` (p < ``alpha``), ``robust_f_test`` (the same for the F statistic corrected
+    for a noise level that varies, :func:`~toggle_id.discovery.stats.robust_f`), ``bic`` (ΔBIC < 0), ``cross_validation`` (the cross-validated
     whitened SSE drops) and ``identifiable`` (each new parameter's |correlation| with the others ≤ ``max_corr``,
     :func:`new_params_corr`); ``Evidence.passed`` when all hold, ``Evidence.reason`` says which fail.
     """
@@ -244,22 +245,24 @@ def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01,
     if r0 is None or r1 is None or not (np.all(np.isfinite(r0)) and np.all(np.isfinite(r1))):
         inf = float("inf")
         ev = Evidence(NoiseModel(note="a residual is missing or not finite"), 0.0, 1.0, inf, inf, inf, inf, inf)
-        ev.checks = {"f_test": False, "bic": False, "cross_validation": False, "identifiable": identifiable}
+        ev.checks = {"f_test": False, "robust_f_test": False, "bic": False, "cross_validation": False,
+                     "identifiable": identifiable}
         return ev
     noise = fit_noise(r1, noise_max_order)
     c = compare(noise, r0, r1, k, k1)
     cv0 = float(block_cv(noise, r0, small.jacobian, cv_block, cv_folds)["cv_sse_w"])
     cv1 = float(block_cv(noise, r1, large.jacobian, cv_block, cv_folds)["cv_sse_w"])
+    rob = robust_f(float(c["F"]), noise, r1, large.jacobian, list(range(k0, k1)), change=r0 - r1)
     ev = Evidence(noise, float(c["F"]), float(c["p_value"]), float(c["delta_bic"]), cv0, cv1, float(c["sse0_w"]),
-                  float(c["sse1_w"]))
-    ev.checks = {"f_test": bool(ev.p_value < alpha), "bic": bool(ev.delta_bic < 0),
-                 "cross_validation": bool(cv1 < cv0), "identifiable": identifiable}
+                  float(c["sse1_w"]), F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"])
+    ev.checks = {"f_test": bool(ev.p_value < alpha), "robust_f_test": bool(ev.p_robust < alpha),
+                 "bic": bool(ev.delta_bic < 0), "cross_validation": bool(cv1 < cv0), "identifiable": identifiable}
     return ev
 
 
 def significant_in_sample(ev: Evidence) -> bool:
-    """The prewhitened F-test and BIC both favour the larger model."""
-    return bool(ev.checks.get("f_test") and ev.checks.get("bic"))
+    """The prewhitened F-test, its heteroscedasticity-robust twin and BIC all favour the larger model."""
+    return bool(ev.checks.get("f_test") and ev.checks.get("robust_f_test", True) and ev.checks.get("bic"))
 
 
 def evidence_entry(ev: Evidence, n: int, corr: float, cv_block: int, cv_folds: int) -> dict:
