@@ -131,7 +131,8 @@ def test_robust_f_keeps_its_level_under_heteroscedastic_noise_and_its_power_unde
     for seed in range(200):
         X0, z, e = heteroscedastic_case(seed)
         X = np.column_stack([X0, z])
-        for y, real in ((e, False), (np.random.default_rng(1000 + seed).standard_normal(N) + 0.045 * z / z.std(), True)):
+        effect = np.random.default_rng(1000 + seed).standard_normal(N) + 0.045 * z / z.std()
+        for y, real in ((e, False), (effect, True)):
             r0 = y - X0 @ np.linalg.lstsq(X0, y, rcond=None)[0]
             r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
             res = compare(NoiseModel(), r0, r1, 1, 4)

@@ -291,14 +291,14 @@ LOCAL = 8
 def glitches(r: Sequence[float], k: float = 8.0, protect: np.ndarray | None = None) -> np.ndarray:
     """Samples of the residual ``r`` that are glitches of the measurement, not of the model (bool mask).
 
-    An encoder or transmission error puts one sample off the path and the next back on it. Each sample is
-    predicted from its two neighbours on either side by four straight lines (the two interpolations and the two
-    extrapolations); a sample is a glitch when it departs from *every* prediction by more than ``k`` robust
-    standard deviations of the plain interpolation's departure (median absolute deviation scaled to σ for
-    Gaussian noise, floored at half the standard deviation: an encoder's counts alone leave most departures at 0;
-    where the noise is more than twice as loud as that, its local level, :data:`LOCAL`: noise whose level grows
-    with speed is not a string of glitches) while its four neighbours depart from theirs by less than half that — it is alone. What the model leaves of
-    the mechanism is never alone: a kink (an impact at another time than the model's) is predicted by the straight
+    An encoder or transmission error puts one sample off the path and the next back on it. Each sample is predicted
+    from its two neighbours on either side by four straight lines (the two interpolations and the two
+    extrapolations); a sample is a glitch when it departs from *every* prediction by more than ``k`` robust standard
+    deviations of the plain interpolation's departure (median absolute deviation scaled to σ for Gaussian noise,
+    floored at half the standard deviation: an encoder's counts alone leave most departures at 0; where the noise is
+    more than twice as loud as that, its local level, :data:`LOCAL`: noise whose level grows with speed is not a
+    string of glitches) while its four neighbours depart from theirs by less than half that — it is alone. What
+    the model leaves of the mechanism is never alone: a kink (an impact at another time than the model's) is predicted by the straight
     line on one side, and the ringing of the clamp's contact moves many samples in a row. Gaussian noise flags
     no sample of a 5000-sample record at k = 8 (chance about 1e-11); a glitch must exceed about 10 σ; two or more
     bad samples in a row are not flagged. The first and last two samples never are, nor those of ``protect``

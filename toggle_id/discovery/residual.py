@@ -100,14 +100,15 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
 
     Each bin of the Welch spectrum (:func:`toggle_id.residuals.spectrum`: Hann, 50 % overlap, K segments, so each
     estimate has ν ≈ 2K/(1 + 2·0.167²·(1 − 1/K)) degrees of freedom; for the test each segment's periodogram is
-    divided by its own mean level first, so that noise louder in some segments does not fake lines) is compared with its local floor, the mean
-    of the ``half_window`` bins either side beyond ``guard`` bins (a tone leaks into the Hann window's main lobe):
-    under a smooth noise spectrum the ratio is close to F(ν, ν·M/4)-distributed (M floor bins, counted as M/4
-    independent ones: neighbouring Hann bins are correlated, and so are overlapping segments; measured on 200 draws
-    each of white, AR(1) ρ 0.5/0.9/0.99 noise and a 1-µm quantisation: 0–1 draws with a line at 1 %). A bin is a
-    line when its p-value is below ``alpha`` / the number of bins tested; only bins with a whole window either side
-    are tested (a steep low-frequency spectrum would otherwise fake a line at its edge). Adjacent line bins are one
-    line; its amplitude is √(2·P), P the excess power over the floor summed over the main lobe (±``guard`` bins).
+    divided by its own mean level first, so that noise louder in some segments does not fake lines) is compared with
+    its local floor, the mean of the ``half_window`` bins either side beyond ``guard`` bins (a tone leaks into the
+    Hann window's main lobe): under a smooth noise spectrum the ratio is close to F(ν, ν·M/4)-distributed (M floor
+    bins, counted as M/4 independent ones: neighbouring Hann bins are correlated, and so are overlapping segments;
+    measured on 200 draws each of white, AR(1) ρ 0.5/0.9/0.99 noise and a 1-µm quantisation: 0–1 draws with a line
+    at 1 %). A bin is a line when its p-value is below ``alpha`` / the number of bins tested; only bins with a whole
+    window either side are tested (a steep low-frequency spectrum would otherwise fake a line at its edge). Adjacent
+    line bins are one line; its amplitude is √(2·P), P the excess power over the floor summed over the main lobe
+    (±``guard`` bins), from the plain Welch spectrum.
     Returns {lines: [{frequency_hz, amplitude_m, ratio, p_value}], tested_bins, dof, alpha}, strongest first."""
     f, p = R.spectrum(r, fs, nperseg)
     n, seg = len(r), 2 * (len(f) - 1)

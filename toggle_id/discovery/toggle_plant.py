@@ -262,7 +262,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         hc = ev.get("hc_ratio", 1.0) or 1.0
         robust = f" (robust p {ev.get('p_value_robust', np.nan):.3g}, ×{hc:.3g})" if hc > 1.2 else ""
         say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, "
-            f"p {rf.p_value:.3g}{robust}, ΔBIC {rf.delta_bic:.4g}, out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
+            f"p {rf.p_value:.3g}{robust}, ΔBIC {rf.delta_bic:.4g}, "
+            f"out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
             f"{ev.get('cv_sse_w_after', np.nan):.4g} → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
             f"({rf.seconds:.1f} s)")
         refits.append(rf)

@@ -1,6 +1,6 @@
-"""Whether a refitted effect is supported: in sample (prewhitened F-test, its heteroscedasticity-robust
-twin and BIC), out of sample (time-block
-cross-validation, and a second record when the user gives one), and after the others (backward elimination).
+"""Whether a refitted effect is supported: in sample (prewhitened F-test, its heteroscedasticity-robust twin and
+BIC), out of sample (time-block cross-validation, and a second record when the user gives one), and after the others
+(backward elimination).
 
 The loop fits by ordinary least squares. A comparison (:meth:`Judge.judge_pair`) takes its noise model from
 the residual of the *larger* model: when the effect is real that residual is the noise; when it is not, the two
@@ -57,7 +57,8 @@ class Evidence:
     @property
     def reason(self) -> str:
         if self.passed:
-            return "significant in sample (prewhitened F-test, robust to the noise level, and BIC) and better out of sample"
+            return ("significant in sample (prewhitened F-test, robust to the noise level, and BIC) and better out "
+                    "of sample")
         names = {"f_test": "F-test not significant",
                  "robust_f_test": "not significant once the noise's level is let vary along the record "
                                   "(heteroscedasticity-robust F-test)",

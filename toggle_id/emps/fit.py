@@ -233,10 +233,11 @@ def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01,
     is cross-validated over time blocks of ``cv_block`` samples dealt to ``cv_folds`` folds with its own Jacobian
     (:func:`~toggle_id.discovery.stats.block_cv`). Unlike ``Judge.judge_pair`` the two output-error fits are not
     refitted under a coloured noise model first (each costs a closed-loop fit); they are compared as fitted.
-    ``Evidence.checks``: ``f_test`` (p < ``alpha``), ``robust_f_test`` (the same for the F statistic corrected
-    for a noise level that varies, :func:`~toggle_id.discovery.stats.robust_f`), ``bic`` (ΔBIC < 0), ``cross_validation`` (the cross-validated
-    whitened SSE drops) and ``identifiable`` (each new parameter's |correlation| with the others ≤ ``max_corr``,
-    :func:`new_params_corr`); ``Evidence.passed`` when all hold, ``Evidence.reason`` says which fail.
+    ``Evidence.checks``: ``f_test`` (p < ``alpha``), ``robust_f_test`` (the same for the F statistic corrected for a
+    noise level that varies, :func:`~toggle_id.discovery.stats.robust_f`), ``bic`` (ΔBIC < 0), ``cross_validation``
+    (the cross-validated whitened SSE drops) and ``identifiable`` (each new parameter's |correlation| with the
+    others ≤ ``max_corr``, :func:`new_params_corr`); ``Evidence.passed`` when all hold, ``Evidence.reason`` says
+    which fail.
     """
     k0, k1 = len(small.free), len(large.free)
     k = max(k1 - k0, 1)

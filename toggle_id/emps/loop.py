@@ -162,7 +162,7 @@ def three_lists(names: Sequence[str], tried: Sequence[dict], evidence: Mapping[i
                               f"emps.max_effects = {max_effects} was reached")
             rejected.append(item)
         elif significant_in_sample(ev):
-            item["reason"] = "significant in sample (prewhitened F-test and BIC), but " + ev.reason
+            item["reason"] = "significant in sample (prewhitened F-test, its robust twin and BIC), but " + ev.reason
             compensating.append(item)
         else:
             rejected.append(item)
