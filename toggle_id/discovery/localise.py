@@ -144,33 +144,38 @@ def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.nda
             "families": families, "strongest": strongest, "significant": sig, "text": text}
 
 
-#: Families of :func:`noise_level`: key → (label, scale, unit) of the signal whose bins the noise's level is read on.
-LEVEL_FAMILIES = {"speed": ("slider B speed", 1e3, "mm/s"), "x_B": ("slider B position", 1e3, "mm"),
-                  "current": ("|model current|", 1.0, "A"), "t": ("time", 1.0, "s")}
+#: Families of :func:`noise_level`: key → (signal, taken as a magnitude, label, display scale, display unit).
+#: Those whose signal a trajectory has are tested (the toggle plant's first four, the EMPS axis's next three).
+LEVEL_FAMILIES = {"speed": ("xdot_B", True, "slider B speed", 1e3, "mm/s"),
+                  "x_B": ("x_B", False, "slider B position", 1e3, "mm"),
+                  "current": ("i_q", True, "|model current|", 1.0, "A"),
+                  "load_speed": ("qdot", True, "load speed", 1e3, "mm/s"),
+                  "q": ("q", False, "load position", 1e3, "mm"),
+                  "force": ("force", True, "|drive force|", 1.0, "N"),
+                  "t": ("t", False, "time", 1.0, "s")}
 
 
 def noise_level(noise: NoiseModel, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
                 alpha: float = 0.01) -> dict:
     """Does the noise's level vary along the record, and with what? Report-only.
 
-    The squared prewhitened residual is regressed on the bins of slider B's speed, its position, the model
-    current's magnitude and time, one family at a time; n·R² is χ²(bins − 1) when the level is the same
-    everywhere (Koenker's studentised Breusch–Pagan test, which does not assume Gaussian noise: quantised or
-    heavy-tailed noise keeps its level). A family whose p-value is below ``alpha`` / the number of families
-    says where the noise is loud and where quiet, σ per bin in the residual's units. The discovery tests allow for
-    such noise (:func:`.stats.robust_f`, the robust structure statistic); this only tells the user — an encoder
-    or a mounting that is noisier at speed. Returns {varies, families: {name: {statistic, dof, p_value, edges,
-    sigma_m}}, strongest, text}."""
+    The squared prewhitened residual is regressed on the bins of each family of :data:`LEVEL_FAMILIES` the
+    ``signals`` hold (speed, position, force or current magnitude, time), one at a time; n·R² is χ²(bins − 1) when
+    the level is the same everywhere (Koenker's studentised Breusch–Pagan test, which does not assume Gaussian
+    noise: quantised or heavy-tailed noise keeps its level). A family whose p-value is below ``alpha`` / the number
+    of families says where the noise is loud and where quiet, σ per bin in the residual's units. The discovery
+    tests allow for such noise (:func:`.stats.robust_f`, the robust structure statistic); this only tells the
+    user — an encoder or a mounting that is noisier at speed. Returns {varies, families: {name: {statistic, dof,
+    p_value, edges, sigma_m}}, strongest, text}."""
     e = noise.whiten(np.asarray(r, float))[noise.order:]
     e2 = e * e
     to_residual = np.sqrt(noise.variance_ratio) if not noise.white else 1.0
-    cand = {"speed": np.abs(signals["xdot_B"]) if "xdot_B" in signals else None, "x_B": signals.get("x_B"),
-            "current": np.abs(signals["i_q"]) if "i_q" in signals else None, "t": signals.get("t")}
     families = {}
-    for name, v in cand.items():
-        if v is None:
+    for name, (key, magnitude, *_) in LEVEL_FAMILIES.items():
+        if key not in signals:
             continue
-        B, edges = piecewise_basis(np.asarray(v, float)[noise.order:], bins)
+        v = np.asarray(signals[key], float)
+        B, edges = piecewise_basis((np.abs(v) if magnitude else v)[noise.order:], bins)
         if B.shape[1] < 2 or not np.all(np.isfinite(e2)):
             continue
         coef = np.linalg.lstsq(B, e2, rcond=1e-10)[0]
@@ -187,7 +192,7 @@ def noise_level(noise: NoiseModel, r: np.ndarray, signals: Mapping[str, np.ndarr
            "text": "the noise's level is the same along the record"}
     if sig:
         f = families[sig[0]]
-        label, scale, unit = LEVEL_FAMILIES[sig[0]]
+        _, _, label, scale, unit = LEVEL_FAMILIES[sig[0]]
         sd, edges = np.asarray(f["sigma_m"]), np.asarray(f["edges"]) * scale
         lo, hi = int(np.argmin(sd)), int(np.argmax(sd))
         tiny = 1e-3 * float(edges[-1] - edges[0])

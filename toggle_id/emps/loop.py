@@ -32,7 +32,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..discovery.engine import Step, indistinguishable, run_loop
-from ..discovery.localise import locate, structure_energy
+from ..discovery.localise import locate, noise_level, structure_energy
 from ..discovery.noise import fit_noise, whitened_sse
 from ..discovery.validation import Evidence
 from ..errors import ConfigError, DataError
@@ -122,13 +122,17 @@ def localise(record: EmpsRecord, theta: np.ndarray, sim_options: Mapping | None 
     with no fixed noise model (each family judged under the AR noise model of its own alternative) on the signals of
     :func:`localisation_signals`; position, position signed by the direction of motion and velocity enter the
     verdict (Bonferroni over the three), drive force, controller output and time are shown (in a closed loop the
-    controller output carries the position error itself). Returns locate's dict (``structure_left``, ``families``, ``significant``,
-    ``strongest``, ``text``); ``{"error": ...}`` when the model cannot be simulated on the record."""
+    controller output carries the position error itself). Returns locate's dict (``structure_left``, ``families``,
+    ``significant``, ``strongest``, ``text``) with ``noise_level`` (report-only,
+    :func:`toggle_id.discovery.localise.noise_level`); ``{"error": ...}`` when the model cannot be simulated on the
+    record."""
     r, signals = localisation_signals(record, theta, sim_options)
     if not (np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())):
         return {"error": "the final model cannot be simulated on the record", "structure_left": None,
                 "text": "no localisation: the final model cannot be simulated on the record"}
-    return locate(None, r, signals, bins=int(bins), alpha=float(alpha))
+    out = locate(None, r, signals, bins=int(bins), alpha=float(alpha))
+    out["noise_level"] = noise_level(fit_noise(r), r, signals, bins=int(bins), alpha=float(alpha))
+    return out
 
 
 def three_lists(names: Sequence[str], tried: Sequence[dict], evidence: Mapping[int, Evidence],

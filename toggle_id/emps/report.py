@@ -174,6 +174,9 @@ def verdict_lines(report: Mapping) -> list[str]:
         lines.append(f"no structure left in the final position residual ({level}): the whitened residual is not "
                      "predicted by position (also signed by the direction of motion) or velocity")
     lines.append(f"  p-values: {ps}")
+    level_test = loc.get("noise_level") or {}
+    if level_test.get("varies"):
+        lines.append(f"noise level of the final position residual (report-only): {level_test['text']}")
     return lines
 
 
