@@ -33,6 +33,13 @@ Criteria (let J = U S Vᵀ, singular values s_1 ≥ … ≥ s_n, right singular 
   most ``ci_halfwidth_limit`` (a parameter with a component c along a practical null direction j gets at least
   ``|c| · q · sigma / s_j``, so it is flagged exactly when that component matters). Non-identifiable
   parameters get ``std_errors``/``ci95`` None.
+- *noise whose level varies* (``robust=True``): the covariance above takes the noise's variance as one number.
+  When it varies along the record (an encoder noisier at speed) and a parameter's sensitivity concentrates where
+  it is loud, that variance is far too small. With ``robust`` the HC3 sandwich (MacKinnon & White 1985),
+  ``C_HC = V_r S_r⁻¹ (U_rᵀ diag(e_i²/(1−h_i)²) U_r) S_r⁻¹ V_rᵀ`` (h_i the leverages), is computed beside it, and
+  every variance (per parameter and along each singular direction) is the larger of the two — never narrower
+  than the classical interval, so under one variance it changes nothing but the sandwich's own scatter (a few
+  per cent). ``hc_ratio`` reports C_HC,ii / C_ii per parameter.
 - *intervals*: computed in u and mapped back: ``theta · exp(±q · std_u)`` for log parameters (positive,
   asymmetric), ``theta ± q · s · std_u`` otherwise. Standard errors in physical units by the delta method,
   ``std_theta ≈ theta · std_u`` (log) or ``s · std_u``.
@@ -144,6 +151,8 @@ class IdentifiabilityReport:
     noise_std: sigma (None if m ≤ p_eff and no noise_var); dof; quantile q. cov_u (n, n): covariance in u
     (None without sigma). std_u (n,): sqrt(C_ii) (NaN where unknown). leakage (n,): norm along the numerical
     null space. std_errors / ci95: physical, None when not identifiable. identifiable: per parameter.
+    robust: whether the HC3 sandwich was taken (``analyze(robust=True)`` with a noise level); then std_u holds
+    the larger of the two variances, hc_ratio (n,) C_HC,ii / C_ii and cov_u_robust (n, n) the sandwich.
     """
 
     param_order: list[str]
@@ -171,6 +180,9 @@ class IdentifiabilityReport:
     identifiable: np.ndarray
     std_errors: list[float | None]
     ci95: list[tuple[float, float] | None]
+    robust: bool = False
+    hc_ratio: np.ndarray | None = None
+    cov_u_robust: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary: plain floats/lists/dicts, NaN and ±inf → None."""
@@ -199,6 +211,9 @@ class IdentifiabilityReport:
             "ci95": {n: (None if c is None else [_num(c[0]), _num(c[1])]) for n, c in zip(names, self.ci95)},
             "identifiable": {n: bool(b) for n, b in zip(names, self.identifiable)},
             "cov_log": None if self.cov_u is None else [[_num(v) for v in row] for row in self.cov_u],
+            "covariance": "classical and HC3 sandwich, the larger variance" if self.robust else "classical",
+            "hc_ratio": None if not self.robust or self.hc_ratio is None
+            else {n: _num(v) for n, v in zip(names, self.hc_ratio)},
         }
 
 
@@ -234,8 +249,8 @@ def _combination(direction: np.ndarray, names: Sequence[str], log_mask: np.ndarr
 def analyze(jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], x: Sequence[float], *,
             n_params_fitted: int | None = None, rank_rtol: float | None = None, noise_var: float | None = None,
             alpha: float = 0.05, log_mask: Sequence[bool] | bool | None = None, scale: Sequence[float] | None = None,
-            ci_halfwidth_limit: float = CI_HALFWIDTH_LIMIT, null_threshold: float = NULL_THRESHOLD
-            ) -> IdentifiabilityReport:
+            ci_halfwidth_limit: float = CI_HALFWIDTH_LIMIT, null_threshold: float = NULL_THRESHOLD,
+            robust: bool = False) -> IdentifiabilityReport:
     """Local identifiability analysis at a fitted point (see the module docstring for every criterion).
 
     jac_log: (m, n) Jacobian of the output/residual w.r.t. the analysis coordinates (log theta by default).
@@ -243,7 +258,8 @@ def analyze(jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], x: 
     x: (n,) fitted values, physical units. n_params_fitted: p_eff for the noise estimate (default: rank).
     rank_rtol: relative singular-value tolerance (default :data:`RANK_RTOL`). noise_var: known noise variance
     of the residual entries (else estimated). alpha: 1 − confidence level (the ``ci95`` key holds the
-    (1 − alpha) interval). log_mask/scale: coordinates (default: all log).
+    (1 − alpha) interval). log_mask/scale: coordinates (default: all log). robust: variances no smaller than
+    the HC3 sandwich's (noise whose level varies along the record; see the module docstring).
     Raises :class:`ConfigError` for inconsistent shapes/options and :class:`DataError` for a non-finite
     Jacobian or residual (naming the first bad parameter).
     """
@@ -276,7 +292,7 @@ def analyze(jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], x: 
     mask, s_scale = _coordinates(x, log_mask, scale)
 
     # SVD with a full set of n right singular vectors (also when m < n).
-    _, sv, vt = np.linalg.svd(jac, full_matrices=m < n)
+    u_left, sv, vt = np.linalg.svd(jac, full_matrices=m < n)
     s = np.zeros(n)
     s[: sv.shape[0]] = sv[:n]
     smax = float(s[0]) if n else 0.0
@@ -296,19 +312,38 @@ def analyze(jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], x: 
     else:
         sigma, q = None, float("nan")
 
+    # Heteroscedasticity-robust (HC3) variances, in units of the classical ones, along the singular directions.
+    v = vt.T
+    inflate = np.ones(n)
+    cov_hc = None
+    if robust and sigma is not None and sigma > 0.0 and rank > 0 and m > rank:
+        ur = u_left[:, : sv.shape[0]][:, numerical[: sv.shape[0]]]
+        h = np.minimum(np.einsum("ij,ij->i", ur, ur), 0.99)
+        g = ur * (r / (1.0 - h))[:, None]
+        core = g.T @ g  # Cov of the coordinates along v_j, times s_j² (the sandwich's meat)
+        a = v[:, numerical] / s[numerical]
+        cov_hc = a @ core @ a.T
+        inflate[numerical] = np.maximum(np.diag(core) / sigma ** 2, 1.0)
+
     # Half-widths along singular directions and the practical rank.
     with np.errstate(divide="ignore", invalid="ignore"):
-        halfwidth = np.where(numerical, q * (sigma if sigma is not None else np.nan) / np.where(numerical, s, 1.0),
-                             np.inf)
+        halfwidth = np.where(numerical, q * (sigma if sigma is not None else np.nan) * np.sqrt(inflate)
+                             / np.where(numerical, s, 1.0), np.inf)
     practical = numerical & ~(halfwidth > ci_halfwidth_limit) if sigma is not None else numerical.copy()
     practical_rank = int(np.count_nonzero(practical))
 
     # Covariance over the numerical subspace; leakage along the numerical null space.
-    v = vt.T
     vr = v[:, numerical]
+    hc_ratio = np.ones(n)
     if sigma is not None:
         cov = (sigma ** 2) * (vr / s[numerical] ** 2) @ vr.T
-        std_u = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        var = np.maximum(np.diag(cov), 0.0)
+        if cov_hc is not None:
+            var_hc = np.maximum(np.diag(cov_hc), 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                hc_ratio = np.where(var > 0.0, var_hc / np.where(var > 0.0, var, 1.0), 1.0)
+            var = np.maximum(var, var_hc)
+        std_u = np.sqrt(var)
     else:
         cov, std_u = None, np.full(n, np.nan)
     leakage = np.linalg.norm(v[:, ~numerical], axis=1) if rank < n else np.zeros(n)
@@ -348,7 +383,8 @@ def analyze(jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], x: 
         null_halfwidths=np.array([halfwidth[j] for j in null_idx]),
         null_combinations=[_combination(d, names, mask, s_scale, null_threshold) for d in null_dirs],
         noise_std=sigma, dof=dof, alpha=alpha, quantile=q, cov_u=cov, std_u=std_u, leakage=leakage,
-        identifiable=identifiable, std_errors=std_errors, ci95=ci)
+        identifiable=identifiable, std_errors=std_errors, ci95=ci, robust=bool(robust and cov_hc is not None),
+        hc_ratio=hc_ratio, cov_u_robust=cov_hc)
 
 
 def format_table(report: IdentifiabilityReport) -> str:

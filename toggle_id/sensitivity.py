@@ -52,14 +52,16 @@ def log_jacobian_model(problem: FitProblem | JointProblem, x: np.ndarray, rel_st
     return -d4, np.where(bad, 0.0, d4 - d4_2h)
 
 
-def identifiability_report(problem: FitProblem | JointProblem, x: np.ndarray, noise_var: float | None = None
-                           ) -> dict:
+def identifiability_report(problem: FitProblem | JointProblem, x: np.ndarray, noise_var: float | None = None,
+                           robust: bool = True) -> dict:
     """Sensitivity/uncertainty report of ``problem`` at ``x`` (see :mod:`toggle_id.identifiability`).
 
     The residual's correlation is estimated (an AR(p) noise model, :func:`toggle_id.discovery.noise.fit_noise`)
     and the sensitivities and residual are prewhitened by it before the analysis, so that the standard errors
     and intervals count the independent samples the record really has; the report names the noise model. A
-    known ``noise_var`` (the marginal variance σ²) is turned into the innovation variance of that model."""
+    known ``noise_var`` (the marginal variance σ²) is turned into the innovation variance of that model. With
+    ``robust`` (at a fitted ``x``) each variance is the larger of the classical one and the HC3 sandwich's (a
+    noise level that varies); a design-time report at the truth, whose residual is not a fit's, passes False."""
     from .discovery.noise import fit_noise
 
     J, E = log_jacobian_model(problem, x, return_error=True)
@@ -72,7 +74,8 @@ def identifiability_report(problem: FitProblem | JointProblem, x: np.ndarray, no
         if noise_var is not None:
             noise_var = noise_var / noise.variance_ratio
     rtol = numerical_rank_rtol(J, E)
-    rep = analyze(J, r, list(problem.free), x, log_mask=x > 0, noise_var=noise_var, rank_rtol=rtol)
+    rep = analyze(J, r, list(problem.free), x, log_mask=x > 0, noise_var=noise_var, rank_rtol=rtol,
+                  robust=robust)
     out = rep.to_dict()
     out["noise_model"] = noise.to_dict()
     out["jacobian_error_norm"] = float(np.linalg.norm(E, 2))

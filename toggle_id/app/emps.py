@@ -328,10 +328,11 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
 
     Positive parameters are analysed in log coordinates, the signed ones (:data:`SIGNED_PARAMS`, and any whose
     value is not > 0) in affine coordinates scaled by their magnitude. The residuals of a 1 kHz closed loop are
-    strongly autocorrelated, so the intervals (white-noise assumption) are optimistic; ranks and null directions
-    are what to read. Returns the JSON form of the report plus its console ``table``; ``{"error": ...}`` if the
+    strongly autocorrelated: sensitivities and residual are prewhitened by its AR noise model
+    (:func:`toggle_id.discovery.noise.fit_noise`), and each variance is no smaller than the HC3 sandwich's. Returns the JSON form of the report plus its console ``table``; ``{"error": ...}`` if the
     analysis is impossible (e.g. a failed simulation)."""
     from ..emps.fit import make_jacobian, make_residual
+    from ..discovery.noise import fit_noise
     from ..emps.model import INDEX, LOWER, UPPER
     from ..identifiability import analyze, format_table, log_jacobian
 
@@ -343,27 +344,26 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
         res = make_residual(record, free, theta, sim_options)(x)
         mask = np.array([n not in SIGNED_PARAMS and v > 0 for n, v in zip(free, x)])
         jac_u = log_jacobian(jac, x, mask)
-        m, sse = jac_u.shape[0], float(res @ res)
+        sse = float(res @ res)
         if not (np.all(np.isfinite(jac_u)) and np.isfinite(sse)):
             raise DataError("the sensitivities of the final model are not finite")
-        if m <= p:
-            rep = analyze(jac_u, res, free, x, n_params_fitted=p, log_mask=mask,
-                          noise_var=None if noise_std_m is None else noise_std_m ** 2)
-            out = rep.to_dict()
-        else:
-            # analyze() takes the SVD with full_matrices=True, i.e. an (m, m) U: 4.9 GB and ~25 s per call at
-            # m = 24 841. J = Q·R has the singular values and right vectors of R (p, p), so analyse R with the
-            # noise level estimated here from the residual (dof m − p), then restore m, SSE and dof.
-            noise_var = sse / (m - p) if noise_std_m is None else noise_std_m ** 2
-            r_fac = np.linalg.qr(jac_u, mode="r")
-            rep = analyze(r_fac, np.zeros(p), free, x, n_params_fitted=p, log_mask=mask, noise_var=noise_var)
-            out = rep.to_dict()
-            out.update({"m": int(m), "sse": sse, "dof": int(m - p), "noise_estimated": noise_std_m is None})
+        # The closed loop's residual is strongly autocorrelated: prewhiten by its AR noise model (the intervals of
+        # the prediction-error estimate). Each variance is then the larger of the classical one and the HC3
+        # sandwich's: the benchmark's residual is louder at low speed than at high (the loop's noise-level test).
+        noise = fit_noise(res)
+        noise_var = None if noise_std_m is None else noise_std_m ** 2
+        if not noise.white:
+            jac_u, res = noise.whiten_columns(jac_u), noise.whiten(res)
+            noise_var = None if noise_var is None else noise_var / noise.variance_ratio
+        rep = analyze(jac_u, res, free, x, n_params_fitted=p, log_mask=mask, robust=True, noise_var=noise_var)
+        out = rep.to_dict()
+        out.update({"sse": sse, "noise_estimated": noise_std_m is None, "noise_model": noise.to_dict()})
     except (DataError, ConfigError) as err:
         return {"error": str(err)}
     out.pop("cov_log", None)
     out["table"] = format_table(rep)
-    out["note"] = "white-residual intervals; the closed-loop residuals are autocorrelated, so they are optimistic"
+    out["note"] = (f"intervals under the residual's noise model ({noise.describe()}), each variance no smaller "
+                   "than the HC3 sandwich's (a noise level that varies)")
     return out
 
 

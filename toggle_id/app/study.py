@@ -63,7 +63,7 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
             window = windows[0]
             w = float(sc.get("i_q_weight") or 0.0)
             prob = joint([FitProblem(r, free, truth, wd, PRECISE, i_q_weight=w) for r, wd in zip(recs, windows)])
-            rep = identifiability_report(prob, prob.x0(), noise_var=noise ** 2)
+            rep = identifiability_report(prob, prob.x0(), noise_var=noise ** 2, robust=False)
             ident = [n for n, ok in rep["identifiable"].items() if ok]
             n_samples = sum(b - a for a, b in windows)
             output = ("x_B + i_q" if w else "x_B") + (f" ({' + '.join(sweeps)})" if sweeps else "")

@@ -187,8 +187,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                        "frequency — mains interference on the sensor (50/60 Hz), a resonance of its mounting?")
     loud = level_varies(diag_after)
     if loud and not unexplained:
-        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests and the "
-                       "structure test allow for it): an encoder or a mounting that is noisier in motion?")
+        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests, the "
+                       "structure test and the intervals allow for it): an encoder or a mounting that is noisier in motion?")
     glitches = judge.glitches or []
     left_out = [g for g in glitches if g["count"]]
     if left_out:
@@ -242,7 +242,10 @@ def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_af
                           "unit": eff.magnitude.unit, "std_error": a["std_errors"][eff.magnitude.name],
                           "identifiable": a["identifiable"][eff.magnitude.name],
                           "scales_with_mechanism": _force_like(eff.magnitude.name),
-                          "at_reference_scale": bool(gauge_after.get("applied")) and _force_like(eff.magnitude.name)}
+                          "at_reference_scale": bool(gauge_after.get("applied")) and _force_like(eff.magnitude.name),
+                          # the HC3 sandwich's variance over the classical one (> 1: the interval was widened for a
+                          # noise level that varies along the record)
+                          "hc_ratio": (uncertainty.get("hc_ratio") or {}).get(eff.magnitude.name)}
         k_l = float(current.theta[ALL_INDEX["K_l"]])
         if _force_like(eff.magnitude.name) and k_l > 0:
             # x_B fixes a force only relative to the mechanism (every force scales with it, exactly): the ratio

@@ -337,7 +337,8 @@ def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, he
     ``held``: parameters treated as known — one per exact symmetry fixed by :func:`gauge_fix` (the
     symmetry's scale is then the reference's, and e.g. a friction torque is determined relative to it).
     ``noise``: the AR noise model of the residual; sensitivities and residual are prewhitened by it (the
-    intervals of the prediction-error estimate), and the report names it."""
+    intervals of the prediction-error estimate), and the report names it. Each variance is the larger of the
+    classical one and the HC3 sandwich's (a noise level that varies along the record)."""
     from ..identifiability import analyze
 
     names = [nm for nm in fit.free if nm not in set(held)]
@@ -349,7 +350,7 @@ def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, he
         nm = noise if noise is not None else WHITE_ASSUMED
         known = settings.noise_std ** 2 if settings.noise_std and nm.white else None
         out = analyze(nm.whiten_columns(J), nm.whiten(r), names, x, log_mask=mask, scale=scale,
-                      noise_var=known).to_dict()
+                      noise_var=known, robust=True).to_dict()
         out["held_for_symmetries"] = list(held)
         out["noise_model"] = nm.to_dict()
         return out

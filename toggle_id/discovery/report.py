@@ -198,8 +198,10 @@ def summary_text(res: DiscoveryResult) -> str:
                      f"≈{nm.get('effective_samples')} independent samples of {nm.get('n')}")
     for a in res.effects_added:
         se = a["std_errors"].get(a["magnitude"]["name"])
+        hc = a["magnitude"].get("hc_ratio") or 1.0
         lines.append(f"added {a['name']}: {a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
                      f"{a['magnitude']['unit']}" + (f" ± {se:.2g}" if se else "") +
+                     (f" (widened ×{hc ** 0.5:.2g} for the noise's varying level)" if se and hc > 1.2 else "") +
                      f"  (F-test p {a['p_value']:.3g}, ΔBIC {a['delta_bic']:.4g})")
         if "per_K_l" in a["magnitude"]:
             lines.append(f"  a force-type magnitude: x_B fixes it only relative to the mechanism's common scale "
