@@ -16,8 +16,8 @@ FIXED = ("K_i", "J_m")  # exact symmetries of x_B: (K_i, λ_d, K_t) scaling and 
 FREE = tuple(n for n in P.PARAM_NAMES if n not in FIXED)
 
 
-def _record(noise: float, seed: int) -> tuple[Record, np.ndarray]:
-    rec = Record.from_sweep("simulation", duration=DURATION)
+def _record(noise: float, seed: int, duration: float = DURATION) -> tuple[Record, np.ndarray]:
+    rec = Record.from_sweep("simulation", duration=duration)
     clean = simulate(P.ASSIGNED[None], rec, PRECISE).x_B[0]
     rec.x_B = clean + noise * np.random.default_rng(seed).standard_normal(rec.n)
     return rec, clean
@@ -77,3 +77,32 @@ def test_moving_along_a_null_direction_leaves_x_B_unchanged():
     r = np.random.default_rng(0).standard_normal(d.size)
     y2 = simulate((x0 * np.exp(0.05 * r / np.linalg.norm(r)))[None], rec, PRECISE).x_B[0]
     assert np.sqrt(np.mean((y2 - y0) ** 2)) > 1e-5
+
+
+@pytest.mark.slow
+def test_intervals_cover_the_truth_when_the_noise_is_loud_at_speed():
+    """The paper's 5-s sweep with noise whose σ grows with slider B's speed (0.3 + |ẋ_B|/mean|ẋ_B|, rms 1 µm):
+    intervals that take one noise variance (the report's classical covariance, ``cov_log``) miss the truth far more
+    often than 5 %; the report's own, each variance no smaller than the HC3 sandwich's, keep their level (measured,
+    20 draws: 47 intervals, classical 0.77, robust 0.98)."""
+    hits, classical, total = 0, 0, 0
+    for seed in range(20):
+        rec, clean = _record(0.0, seed, 5.0)
+        v = np.abs(np.gradient(clean, rec.t))
+        level = 0.3 + v / v.mean()
+        rec.x_B = clean + 1e-6 * level / np.sqrt(np.mean(level ** 2)) * np.random.default_rng(seed).standard_normal(
+            rec.n)
+        prob, x = _fit(rec, 0.01, seed)
+        rep = identifiability_report(prob, x)
+        assert rep["covariance"].startswith("classical and HC3")
+        truth = dict(zip(FREE, prob.x0()))
+        for i, (n, ci) in enumerate(rep["ci95"].items()):
+            if ci is not None and rep["log_mask"][n]:
+                total += 1
+                hits += ci[0] <= truth[n] <= ci[1]
+                classical += abs(np.log(truth[n] / rep["values"][n])) <= rep["quantile"] * rep["cov_log"][i][i] ** 0.5
+    print(f"\n[intervals, noise loud at speed] {total} intervals: classical {classical / total:.2f}, "
+          f"robust {hits / total:.2f}")
+    assert total >= 20
+    assert hits / total >= 0.85, (hits, total)
+    assert classical / total <= hits / total - 0.1, (classical, hits, total)
