@@ -112,6 +112,7 @@ def test_job_on_the_benchmark_records(tmp_path):
     rep = _report(proc, run)
     assert rep["data"]["estimation"]["sha256_verified"] and rep["data"]["validation"]["sha256_verified"]
     assert rep["n_samples"] == 24841 and rep["effects_added"][0]["name"] == "coulomb_friction"
+    assert rep["glitches"]["count"] == 0  # the benchmark's measured position has no sample alone off its path
     # the effects are judged with the noise-aware statistics: AR noise of the larger model's residual, far fewer
     # independent samples than N, every accepted one passing all four checks
     coulomb = next(c for c in rep["candidates"] if c["name"] == "coulomb_friction" and c["accepted"])

@@ -24,7 +24,7 @@ import math
 import os
 import textwrap
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -84,6 +84,7 @@ class EmpsJobSettings:
     backward: bool = True
     explain_fraction: float = 0.5
     ambiguity_alpha: float = 0.05
+    glitch_k: float = 8.0
 
 
 def _number(name: str, value: Any, *, integer: bool = False) -> float | int:
@@ -186,6 +187,9 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     ambiguity_alpha = _number("emps.ambiguity_alpha", node["ambiguity_alpha"])
     if not 0 <= ambiguity_alpha < 1:
         raise ConfigError(f"emps.ambiguity_alpha must lie in [0, 1), got {ambiguity_alpha}")
+    glitch_k = _number("emps.glitch_k", node["glitch_k"])
+    if glitch_k < 0:
+        raise ConfigError(f"emps.glitch_k must be >= 0 (0: no look for glitches), got {glitch_k}")
     if not isinstance(node["backward"], bool):
         raise ConfigError(f"emps.backward must be true or false, got {node['backward']!r}")
     if node["solver"] not in SOLVERS:
@@ -216,7 +220,7 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
                            identifiability=bool(get(cfg, "identifiability.enabled", True)), noise_std_m=noise,
                            structure_bins=structure_bins, structure_alpha=structure_alpha,
                            backward=node["backward"], explain_fraction=explain_fraction,
-                           ambiguity_alpha=ambiguity_alpha)
+                           ambiguity_alpha=ambiguity_alpha, glitch_k=glitch_k)
 
 
 def load_record(path: str | Path) -> EmpsRecord:
@@ -408,7 +412,12 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
                                cv_block=st.cv_block, cv_folds=st.cv_folds, structure_bins=st.structure_bins,
                                structure_alpha=st.structure_alpha, backward=st.backward,
                                explain_fraction=st.explain_fraction, ambiguity_alpha=st.ambiguity_alpha,
-                               sim_options=st.sim)
+                               glitch_k=st.glitch_k, sim_options=st.sim)
+        glitch = report.get("glitches") or {}
+        if glitch.get("count"):  # the samples the loop left out, out of the identifiability report too
+            mask = np.zeros(record.n, dtype=bool)
+            mask[glitch["indices"]] = True
+            record = replace(record, excluded=mask)
         final = theta_from_dict(report["identified"])
         nominal = theta_from_dict(report["nominal"]["identified"])
         report["data"] = sources
@@ -430,6 +439,13 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
             models["OE fit of the published structure"] = theta_from_dict(report["reference"]["identified"])
         fig_paths.append(figures.save(friction_figure(record, models, float(final[INDEX["M"]]), st.sim["eps"]),
                                       run_dir / "friction.png"))
+        if glitch.get("count"):  # the raw residual of the nominal model, the glitches circled
+            from ..residuals import glitches_figure
+
+            fig_paths.append(figures.save(glitches_figure(
+                record.t, record.qm - sims[0], glitch["indices"],
+                title=f"EMPS {record.name}: glitches of the measurement, left out of every fit and test"),
+                run_dir / "glitches.png"))
         loc = report.get("localisation") or {}
         if "families" in loc:  # what the final model leaves in its position residual, and where
             from ..discovery.localise import figure as localisation_figure

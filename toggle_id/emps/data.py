@@ -209,7 +209,10 @@ class EmpsRecord:
 
     Attributes: ``t`` (s), ``vir`` (V), ``qm`` (m), ``qg`` (m), ``pulses`` (the validation record's ``pulses_N``:
     a pulse train added to the controller output, in V; zeros when the record has none), controller constants ``gtau`` (N/V), ``kp`` (1/s), ``kv`` (V/(m/s)),
-    sampling period ``dt`` (s), ``v_sat`` (V) and a ``name``. Construction validates and raises :class:`DataError`.
+    sampling period ``dt`` (s), ``v_sat`` (V) and a ``name``. ``excluded`` (bool, one per sample, or None): samples
+    the model takes as measured — glitches of the measurement (:func:`toggle_id.residuals.glitches`) — which then
+    weigh in no residual (:meth:`residual`), sensitivity or test. Construction validates and raises
+    :class:`DataError`.
     """
 
     t: np.ndarray
@@ -224,6 +227,7 @@ class EmpsRecord:
     v_sat: float = V_SAT
     name: str = "emps"
     meta: dict = field(default_factory=dict)
+    excluded: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         arrays = {}
@@ -259,6 +263,11 @@ class EmpsRecord:
             if not (np.isfinite(val) and val > 0):
                 raise DataError(f"EMPS constant {key} must be positive and finite, got {val}")
             setattr(self, key, val)
+        if self.excluded is not None:
+            mask = np.asarray(self.excluded, dtype=bool).reshape(-1)
+            if mask.size != n:
+                raise DataError(f"EMPS excluded mask has {mask.size} entries, t has {n}")
+            self.excluded = mask if mask.any() else None
         steps = np.diff(self.t)
         if np.any(steps <= 0):
             raise DataError(f"EMPS time t is not strictly increasing (sample {int(np.argmin(steps > 0)) + 1})")
@@ -271,6 +280,11 @@ class EmpsRecord:
         """Number of samples."""
         return int(self.t.size)
 
+    def residual(self, q: np.ndarray) -> np.ndarray:
+        """qm − q, zero at the :attr:`excluded` samples (works row-wise on a batch ``q`` (k, n) too)."""
+        r = self.qm - q
+        return r if self.excluded is None else np.where(self.excluded, 0.0, r)
+
     @property
     def tau(self) -> np.ndarray:
         """Measured drive force gtau·vir, N."""
@@ -281,7 +295,8 @@ class EmpsRecord:
         sl = slice(start, stop)
         return EmpsRecord(t=self.t[sl], vir=self.vir[sl], qm=self.qm[sl], qg=self.qg[sl], pulses=self.pulses[sl],
                           gtau=self.gtau, kp=self.kp, kv=self.kv, dt=self.dt, v_sat=self.v_sat,
-                          name=f"{self.name}[{start}:{'' if stop is None else stop}]", meta=dict(self.meta))
+                          name=f"{self.name}[{start}:{'' if stop is None else stop}]", meta=dict(self.meta),
+                          excluded=None if self.excluded is None else self.excluded[sl])
 
 
 def load_emps_csv(path: str | Path, gtau: float = GTAU, kp: float = KP, kv: float = KV,

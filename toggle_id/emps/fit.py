@@ -67,7 +67,8 @@ def required_substeps(theta: np.ndarray, dt: float, eps: float = 1e-4, h_lambda:
 
 def make_residual(record: EmpsRecord, free: Sequence[str], theta_base: np.ndarray,
                   sim_options: Mapping | None = None) -> Callable[[np.ndarray], np.ndarray]:
-    """residual(x) = qm − q_sim (m, length N) with θ[free] = x and the other entries from ``theta_base``.
+    """residual(x) = qm − q_sim (m, length N) with θ[free] = x and the other entries from ``theta_base`` (zero at the
+    record's excluded samples, :meth:`EmpsRecord.residual`).
 
     A failed simulation (status ≠ 0) gives a finite residual of :data:`FAIL_RESIDUAL` m per sample, so optimisers
     reject the point instead of crashing. ``sim_options`` are passed to :func:`simulate_emps`.
@@ -82,7 +83,7 @@ def make_residual(record: EmpsRecord, free: Sequence[str], theta_base: np.ndarra
         res = simulate_emps(th, record, **opts)
         if res.status[0] != 0:
             return np.full(record.n, FAIL_RESIDUAL)
-        return record.qm - res.q[0]
+        return record.residual(res.q[0])
 
     return residual
 
@@ -122,6 +123,8 @@ def make_jacobian(record: EmpsRecord, free: Sequence[str], theta_base: np.ndarra
         for j in range(p):
             if res.status[j + 1] == 0:
                 J[:, j] = -(res.q[j + 1] - res.q[0]) / steps[j]
+        if record.excluded is not None:
+            J[record.excluded] = 0.0
         return J
 
     return jac

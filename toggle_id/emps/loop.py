@@ -37,6 +37,7 @@ from ..discovery.noise import fit_noise, whitened_sse
 from ..discovery.validation import Evidence
 from ..errors import ConfigError, DataError
 from ..polish import one_blas_thread
+from ..residuals import glitch_report, glitches
 from .data import EmpsRecord
 from .fit import (
     OEFitResult,
@@ -112,7 +113,7 @@ def localisation_signals(record: EmpsRecord, theta: np.ndarray,
     sim = simulate_emps(theta, record, **dict(sim_options or {}))
     q, nu = sim.q[0], sim.nu[0]
     qdot = np.gradient(q, record.dt) if np.all(np.isfinite(q)) else np.full(record.n, np.nan)
-    return record.qm - q, {"q": q, "q_dir": q * np.sign(qdot), "qdot": qdot, "force": record.gtau * nu,
+    return record.residual(q), {"q": q, "q_dir": q * np.sign(qdot), "qdot": qdot, "force": record.gtau * nu,
                            "vir": np.asarray(record.vir, float), "t": np.asarray(record.t, float)}
 
 
@@ -311,7 +312,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
                   reference_fit: bool = True, noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
                   structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
-                  explain_fraction: float = 0.5, ambiguity_alpha: float = 0.05,
+                  explain_fraction: float = 0.5, ambiguity_alpha: float = 0.05, glitch_k: float = 8.0,
                   sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
 
@@ -323,7 +324,10 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     ``cv_folds`` folds, and every new parameter identifiable: |correlation| with each other free parameter ≤
     ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at standstill). Of the candidates that
     pass, the one with the lowest prewhitened SSE is accepted, the round's residuals all whitened by one noise
-    model (:func:`_rank_passing`); the loop stops when none passes. Then the noise-aware structure test localises
+    model (:func:`_rank_passing`); the loop stops when none passes. Before the loop, the nominal fit's residual is
+    looked at for glitches of the measurement (:func:`toggle_id.residuals.glitches` at ``glitch_k`` robust σ; 0:
+    no look): samples found are left out of every later fit and test (:attr:`EmpsRecord.excluded`) and the nominal
+    model is fitted again without them. Then the noise-aware structure test localises
     what the final model leaves in its position residual (:func:`localise`, ``structure_bins`` bins per signal,
     level ``structure_alpha``). Keys of the report:
 
@@ -347,6 +351,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
       rel. error and % differences vs the PDF;
     - ``validation`` (if given): the held-out record predicted by the final, published and reference models
       (:func:`predict_validation`; nothing is fitted on it);
+    - ``glitches``: {record, count, indices, times_s, residual_m, ...} of the look (None when ``glitch_k`` is 0);
     - ``seconds``, ``n_samples``, ``alpha``, ``max_corr``, ``noise_max_order``, ``cv_block``, ``cv_folds``,
       ``structure_bins``, ``structure_alpha``, ``solver``.
     """
@@ -363,6 +368,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         raise ConfigError(f"explain_fraction must lie in (0, 1), got {explain_fraction}")
     if not (0 <= ambiguity_alpha < 1):
         raise ConfigError(f"ambiguity_alpha must lie in [0, 1), got {ambiguity_alpha}")
+    if isinstance(glitch_k, bool) or not (np.isfinite(glitch_k) and glitch_k >= 0):
+        raise ConfigError(f"glitch_k must be a finite number >= 0, got {glitch_k!r}")
     if not (0 < max_corr <= 1):
         raise ConfigError(f"max_corr must lie in (0, 1], got {max_corr}")
     for label, value, least in (("noise_max_order", noise_max_order, 0), ("cv_block", cv_block, 1),
@@ -385,6 +392,13 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         pass
     free: list[str] = list(NOMINAL_NAMES)
     current = fit_output_error(record, free, theta, **fit_kw)
+    glitch = None
+    if glitch_k > 0:
+        mask = glitches(current.residual, glitch_k)
+        glitch = {"record": record.name, **glitch_report(record.t, current.residual, mask, glitch_k)}
+        if mask.any():  # the model takes them as measured; the nominal model fitted again without them
+            record = replace(record, excluded=mask)
+            current = fit_output_error(record, free, current.theta, **fit_kw)
     nominal = current
     before = current.rel_error_pct
 
@@ -439,6 +453,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "structure_bins": int(structure_bins),
         "structure_alpha": float(structure_alpha),
         "solver": solver,
+        "glitches": glitch,
     }
     if "asymmetric" in cmp:
         report["asymmetric_values"] = cmp["asymmetric_values"]

@@ -207,6 +207,12 @@ def console_text(report: Mapping) -> str:
              f"final {report['position_rel_error_pct_after']:.4g} %, published values "
              f"{report['published_model_rel_error_pct']:.4g} %"
              + (f", OE ref {report['reference']['rel_error_pct']:.4g} %" if report.get("reference") else "")]
+    glitch = report.get("glitches") or {}
+    if glitch.get("count"):
+        from ..residuals import glitch_text
+
+        lines.append(f"glitches of the measurement (each alone off its neighbours' path), left out of every fit and "
+                     f"test: {glitch_text(glitch)}")
     if "error" in (report.get("idim_ls") or {}):
         lines.append(f"IDIM-LS: {report['idim_ls']['error']}")
     lines.extend(candidate_lines(report))

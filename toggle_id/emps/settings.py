@@ -46,6 +46,10 @@ class EmpsSettings:
     #                                the structure energy is listed as compensating, not added
     ambiguity_alpha: float = 0.05  # two effects that pass the same round and that the record cannot tell apart
     #                                (Vuong's test at this level) are reported as ambiguous, neither as added (0: off)
+    glitch_k: float = 8.0         # glitches of the measurement: a sample of the nominal fit's residual off all four
+    #                               straight lines through its neighbours by more than this many robust σ, its
+    #                               neighbours not, is left out of every fit and test (toggle_id.residuals.glitches;
+    #                               0: no look)
     solver: str = "polish"        # polish (toggle_id.polish, log space for M) | scipy (least_squares trf)
     max_nfev: int = 50            # residual evaluations per output-error fit
     reference_fit: bool = True    # also fit the benchmark's own structure (M, Fv, Fc, offset) by output error
