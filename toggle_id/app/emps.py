@@ -333,10 +333,11 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
     Positive parameters are analysed in log coordinates, the signed ones (:data:`SIGNED_PARAMS`, and any whose
     value is not > 0) in affine coordinates scaled by their magnitude. The residuals of a 1 kHz closed loop are
     strongly autocorrelated: sensitivities and residual are prewhitened by its AR noise model
-    (:func:`toggle_id.discovery.noise.fit_noise`), and each variance is no smaller than the HC3 sandwich's. Returns the JSON form of the report plus its console ``table``; ``{"error": ...}`` if the
+    (:func:`toggle_id.discovery.noise.fit_noise`), and each variance is no smaller than the HC3 sandwich's.
+    Returns the JSON form of the report plus its console ``table``; ``{"error": ...}`` if the
     analysis is impossible (e.g. a failed simulation)."""
-    from ..emps.fit import make_jacobian, make_residual
     from ..discovery.noise import fit_noise
+    from ..emps.fit import make_jacobian, make_residual
     from ..emps.model import INDEX, LOWER, UPPER
     from ..identifiability import analyze, format_table, log_jacobian
 

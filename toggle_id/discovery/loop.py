@@ -188,7 +188,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     loud = level_varies(diag_after)
     if loud and not unexplained:
         conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests, the "
-                       "structure test and the intervals allow for it): an encoder or a mounting that is noisier in motion?")
+                       "structure test and the intervals allow for it): an encoder or a mounting that is noisier "
+                       "in motion?")
     glitches = judge.glitches or []
     left_out = [g for g in glitches if g["count"]]
     if left_out:
