@@ -98,6 +98,26 @@ def test_job_on_simulated_records_end_to_end(sim_files, tmp_path, job_env):
     assert {"result.json", "table.txt", "figures"} <= arts
 
 
+@pytest.mark.integration
+def test_job_names_glitches_of_the_measurement_and_draws_them(tmp_path):
+    """Two samples of a simulated record 20 µm off: the job (in this process, through its command-line path)
+    names them in the report and the table, circles them in glitches.png and leaves them out of the
+    identifiability report's residual too (its SSE is the loop's)."""
+    rec = simulated_record(TRUTH, 3000, name="glitchy")
+    rec.qm[[700, 1900]] += np.array([20e-6, -20e-6])
+    path = write_record(rec, str(tmp_path / "glitchy.mat"))
+    run = tmp_path / "run"
+    proc = run_in_process("jobs.run", "+experiment=emps", f"emps.path={path}", "emps.validate=false",
+                          "emps.reference_fit=false", f"hydra.run.dir={run}", "tracking.enabled=false", cwd=tmp_path)
+    rep = _report(proc, run)
+    assert rep["glitches"]["count"] == 2 and rep["glitches"]["indices"] == [700, 1900]
+    assert "glitches of the measurement" in (run / "table.txt").read_text()
+    assert (run / "glitches.png").stat().st_size > 10_000
+    assert max(abs(v) for v in rep["glitches"]["residual_m"]) > 15e-6
+    # the two samples alone would give 8e-10 m² (measured without them: 6.3e-13 m²)
+    assert rep["identifiability"]["sse"] < 0.1 * 2 * (20e-6) ** 2
+
+
 # ------------------------------------------------------------------------------------------ the benchmark's records
 @pytest.mark.integration
 @needs_records

@@ -114,7 +114,7 @@ def localisation_signals(record: EmpsRecord, theta: np.ndarray,
     q, nu = sim.q[0], sim.nu[0]
     qdot = np.gradient(q, record.dt) if np.all(np.isfinite(q)) else np.full(record.n, np.nan)
     return record.residual(q), {"q": q, "q_dir": q * np.sign(qdot), "qdot": qdot, "force": record.gtau * nu,
-                           "vir": np.asarray(record.vir, float), "t": np.asarray(record.t, float)}
+                                "vir": np.asarray(record.vir, float), "t": np.asarray(record.t, float)}
 
 
 def localise(record: EmpsRecord, theta: np.ndarray, sim_options: Mapping | None = None, *, bins: int = 12,
