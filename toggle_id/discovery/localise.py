@@ -109,16 +109,18 @@ def structure_energy(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: 
 
 
 def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
-           alpha: float = 0.01, lags: int = 50, lag_step: int = 5, J: np.ndarray | None = None) -> dict:
+           alpha: float = 0.01, lags: int = 50, lag_step: int = 5, J: np.ndarray | None = None,
+           robust: bool = False) -> dict:
     """Structure test and localisation of the residual ``r`` (see the module docstring; ``J``: the fit's
-    sensitivities, for the robust statistic of :func:`.stats.structure_test`).
+    sensitivities, for the robust statistic of :func:`.stats.structure_test`; ``robust``: the verdict from the
+    smaller of the two statistics).
 
     Returns {structure_left, alpha, families: {name: {p_value, statistic, dof, share, centres, levels,
     where, text}}, strongest, text}. ``structure_left`` when a tested family's p-value is below
     alpha / (number of tested families).
     """
     bases, centres, edges_of = family_bases(signals, bins, lags, lag_step)
-    res = structure_test(noise, r, bases, J=J)
+    res = structure_test(noise, r, bases, J=J, robust=robust)
     tested = [k for k in TESTED if k in res]
     level = alpha / max(len(tested), 1)
     families = {}

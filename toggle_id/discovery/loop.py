@@ -190,6 +190,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests, the "
                        "structure test and the intervals allow for it): an encoder or a mounting that is noisier "
                        "in motion?")
+    elif loud:
+        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only): louder noise there — an "
+                       "encoder or a mounting that is noisier in motion? — or the structure left itself; when the "
+                       "noise is known to be loud in motion, discover.robust_structure=true tests the structure "
+                       "allowing for it.")
     glitches = judge.glitches or []
     left_out = [g for g in glitches if g["count"]]
     if left_out:

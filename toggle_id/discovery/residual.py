@@ -35,7 +35,7 @@ def _signals(model: Model, states: dict) -> dict:
 def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings, J: np.ndarray | None = None
             ) -> dict:
     return locate(None, r, _signals(model, states), bins=settings.structure_bins, alpha=settings.alpha_diag,
-                  lags=settings.ccf_lags, lag_step=settings.ccf_step, J=J)
+                  lags=settings.ccf_lags, lag_step=settings.ccf_step, J=J, robust=settings.robust_structure)
 
 
 def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None,

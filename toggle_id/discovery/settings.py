@@ -71,6 +71,12 @@ class DiscoverSettings:
     - glitch_k: samples of the baseline's residual that jump away from their neighbours by more than this many robust
       standard deviations are glitches of the measurement (:func:`toggle_id.residuals.glitches`), reported and
       left out of every fit and test (the model takes them as measured); 0: none looked for.
+    - robust_structure: the structure test's verdict from the smaller of its classical statistic and the
+      heteroscedasticity-robust one (:func:`.stats.structure_test`) instead of the classical one alone. It keeps noise
+      that is louder in motion from reading as structure, but it also loses real structure that an outside effect
+      leaves where the residual is large (measured: a slider drag beside a load force, classical 33–98, robust
+      4–16, no structure left — the load force would be named); so it is off unless the noise is known to be loud
+      in motion. Both statistics are always reported.
     """
 
     top_k: int = 3
@@ -113,6 +119,7 @@ class DiscoverSettings:
     routes: str = "unexplained"
     route_rtol: float = 1e-3
     glitch_k: float = 8.0
+    robust_structure: bool = False
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -147,6 +154,8 @@ class DiscoverSettings:
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
         if isinstance(self.glitch_k, bool) or not isinstance(self.glitch_k, (int, float)) or not self.glitch_k >= 0:
             raise ConfigError(f"discover.glitch_k must be a number ≥ 0 (0: off), got {self.glitch_k!r}")
+        if not isinstance(self.robust_structure, bool):
+            raise ConfigError(f"discover.robust_structure must be true or false, got {self.robust_structure!r}")
         if self.fd_tier not in FD_TIERS:
             raise ConfigError(f"discover.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
         if not isinstance(self.noise_max_order, int) or isinstance(self.noise_max_order, bool) or \

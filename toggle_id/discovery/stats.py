@@ -214,7 +214,8 @@ def _robust_wald(B: np.ndarray, e: np.ndarray, e_fit: np.ndarray, rcond: float =
 
 
 def structure_test(noise: NoiseModel | None, r: np.ndarray, bases: Mapping[str, np.ndarray],
-                   skip: int | None = None, max_order: int = 8, J: np.ndarray | None = None) -> dict:
+                   skip: int | None = None, max_order: int = 8, J: np.ndarray | None = None,
+                   robust: bool = False) -> dict:
     """Regression of the whitened residual on each whitened basis (one family per signal).
 
     Under "the residual is the noise of ``noise``" the explained sum of squares over the whitened residual's
@@ -226,10 +227,11 @@ def structure_test(noise: NoiseModel | None, r: np.ndarray, bases: Mapping[str, 
     family's best fit removed — so that structure is not mistaken for colour of the noise (an AR model fitted
     to a residual that holds a smooth deterministic error absorbs it and the test loses its power).
 
-    The statistic is the smaller of the classical one (the whitened residual's variance taken as one number) and
-    the heteroscedasticity-robust Wald statistic of the same regression (:func:`_robust_wald`, HC3): noise that is
-    louder where slider B moves fast spreads its bins' means more there, and the classical statistic would read
-    that as structure. ``J`` (N, p), the fit's sensitivities to its free parameters: the robust statistic tests
+    The statistic is the classical one (the whitened residual's variance taken as one number); with ``robust``, the
+    smaller of it and the heteroscedasticity-robust Wald statistic of the same regression (:func:`_robust_wald`,
+    HC3): noise that is louder where slider B moves fast spreads its bins' means more there, and the classical
+    statistic would read that as structure — but what an outside effect leaves where the residual is large also
+    looks like louder noise there, and the robust statistic then misses it (not the default). ``J`` (N, p), the fit's sensitivities to its free parameters: the robust statistic tests
     each basis after them (a Gauss–Newton regression), since the least-squares parameters carry the loud
     samples' noise into the quiet ones' residual, where that is no structure either. Both statistics are kept
     (``statistic_classical``, ``statistic_robust``).
@@ -262,9 +264,9 @@ def structure_test(noise: NoiseModel | None, r: np.ndarray, bases: Mapping[str, 
             e_fit = e - np.column_stack([Jw, Bw]) @ np.linalg.lstsq(np.column_stack([Jw, Bw]), e, rcond=1e-10)[0]
         else:
             e_fit = e - fitted
-        robust = _robust_wald(Br, e, e_fit)
-        stat = min(classical, robust)
-        out[name] = {"statistic": stat, "statistic_classical": classical, "statistic_robust": robust, "dof": dof,
+        robust_stat = _robust_wald(Br, e, e_fit)
+        stat = min(classical, robust_stat) if robust else classical
+        out[name] = {"statistic": stat, "statistic_classical": classical, "statistic_robust": robust_stat, "dof": dof,
                      "p_value": float(stats.chi2.sf(stat, dof)), "share": ess / (s2 * n) if s2 > 0 else 0.0,
                      "coef": coef.tolist(), "noise": nm.to_dict()}
     return out
