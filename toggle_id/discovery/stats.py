@@ -231,9 +231,10 @@ def structure_test(noise: NoiseModel | None, r: np.ndarray, bases: Mapping[str, 
     smaller of it and the heteroscedasticity-robust Wald statistic of the same regression (:func:`_robust_wald`,
     HC3): noise that is louder where slider B moves fast spreads its bins' means more there, and the classical
     statistic would read that as structure — but what an outside effect leaves where the residual is large also
-    looks like louder noise there, and the robust statistic then misses it (not the default). ``J`` (N, p), the fit's sensitivities to its free parameters: the robust statistic tests
-    each basis after them (a Gauss–Newton regression), since the least-squares parameters carry the loud
-    samples' noise into the quiet ones' residual, where that is no structure either. Both statistics are kept
+    looks like louder noise there, and the robust statistic then misses it (not the default). ``J`` (N, p), the
+    fit's sensitivities to its free parameters: the robust statistic tests each basis after them (a Gauss–Newton
+    regression), since the least-squares parameters carry the loud samples' noise into the quiet ones' residual,
+    where that is no structure either. Both statistics are kept
     (``statistic_classical``, ``statistic_robust``).
     """
     r = np.asarray(r, float)
