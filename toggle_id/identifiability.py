@@ -152,7 +152,7 @@ class IdentifiabilityReport:
     (None without sigma). std_u (n,): sqrt(C_ii) (NaN where unknown). leakage (n,): norm along the numerical
     null space. std_errors / ci95: physical, None when not identifiable. identifiable: per parameter.
     robust: whether the HC3 sandwich was taken (``analyze(robust=True)`` with a noise level); then std_u holds
-    the larger of the two variances, hc_ratio (n,) C_HC,ii / C_ii and cov_u_robust (n, n) the sandwich.
+    the larger of the two variances and hc_ratio (n,) C_HC,ii / C_ii.
     """
 
     param_order: list[str]
@@ -182,7 +182,6 @@ class IdentifiabilityReport:
     ci95: list[tuple[float, float] | None]
     robust: bool = False
     hc_ratio: np.ndarray | None = None
-    cov_u_robust: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary: plain floats/lists/dicts, NaN and ±inf → None."""
@@ -384,7 +383,7 @@ def analyze(jac_log: np.ndarray, residual: np.ndarray, names: Sequence[str], x: 
         null_combinations=[_combination(d, names, mask, s_scale, null_threshold) for d in null_dirs],
         noise_std=sigma, dof=dof, alpha=alpha, quantile=q, cov_u=cov, std_u=std_u, leakage=leakage,
         identifiable=identifiable, std_errors=std_errors, ci95=ci, robust=bool(robust and cov_hc is not None),
-        hc_ratio=hc_ratio, cov_u_robust=cov_hc)
+        hc_ratio=hc_ratio)
 
 
 def format_table(report: IdentifiabilityReport) -> str:

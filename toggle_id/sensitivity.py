@@ -69,10 +69,8 @@ def identifiability_report(problem: FitProblem | JointProblem, x: np.ndarray, no
     if not np.all(np.isfinite(J)) or not np.all(np.isfinite(r)):
         return {"error": "simulation failed near the optimum; no sensitivity report"}
     noise = fit_noise(r)
-    if not noise.white:
-        J, E, r = noise.whiten_columns(J), noise.whiten_columns(E), noise.whiten(r)
-        if noise_var is not None:
-            noise_var = noise_var / noise.variance_ratio
+    J, r, noise_var = noise.prewhiten(J, r, noise_var)
+    E = noise.whiten_columns(E)
     rtol = numerical_rank_rtol(J, E)
     rep = analyze(J, r, list(problem.free), x, log_mask=x > 0, noise_var=noise_var, rank_rtol=rtol,
                   robust=robust)

@@ -356,11 +356,8 @@ def identifiability_of(record: EmpsRecord, theta: np.ndarray, free: list[str], s
         # the prediction-error estimate). Each variance is then the larger of the classical one and the HC3
         # sandwich's: the benchmark's residual is louder at low speed than at high (the loop's noise-level test).
         noise = fit_noise(res)
-        noise_var = None if noise_std_m is None else noise_std_m ** 2
-        if not noise.white:
-            jac_u, res = noise.whiten_columns(jac_u), noise.whiten(res)
-            noise_var = None if noise_var is None else noise_var / noise.variance_ratio
-        rep = analyze(jac_u, res, free, x, n_params_fitted=p, log_mask=mask, robust=True, noise_var=noise_var)
+        jac_w, res_w, noise_var = noise.prewhiten(jac_u, res, None if noise_std_m is None else noise_std_m ** 2)
+        rep = analyze(jac_w, res_w, free, x, n_params_fitted=p, log_mask=mask, robust=True, noise_var=noise_var)
         out = rep.to_dict()
         out.update({"sse": sse, "noise_estimated": noise_std_m is None, "noise_model": noise.to_dict()})
     except (DataError, ConfigError) as err:

@@ -57,6 +57,15 @@ class NoiseModel:
         """A(q) applied to every column of an (N, p) matrix."""
         return self.whiten(np.asarray(J, float).T).T
 
+    def prewhiten(self, J: np.ndarray, r: np.ndarray, noise_var: float | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, float | None]:
+        """A least-squares problem under this noise: sensitivities ``J`` (N, p) and residual ``r`` whitened, and a
+        known marginal noise variance σ² turned into the innovation variance σ_e² (None stays None)."""
+        if self.white:
+            return np.asarray(J, float), np.asarray(r, float), noise_var
+        return (self.whiten_columns(J), self.whiten(r),
+                None if noise_var is None else noise_var / self.variance_ratio)
+
     @property
     def variance_ratio(self) -> float:
         """σ²/σ_e²: how much the colour inflates the variance of a sum (the long-run variance ratio is larger)."""
