@@ -6,13 +6,12 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from toggle_id.discovery.engine import (
-    backward_eliminate,
-    explained_fraction,
+from toggle_id.discovery.engine import backward_eliminate, explained_fraction, split_explaining
+from toggle_id.discovery.ties import (
     indistinguishable,
     reconsider_ties,
+    settle_ties_by_encompassing,
     settle_ties_out_of_sample,
-    split_explaining,
     tie_band,
 )
 from toggle_id.discovery.localise import structure_energy
@@ -177,6 +176,64 @@ def test_a_tie_the_fitted_record_leaves_is_settled_by_the_record_it_was_not_fitt
     assert settle_ties_out_of_sample("m", untouched, swap, val.__getitem__, lambda fit: 7, lambda fit: {},
                                      noise_max_order=8, alpha=0.05, say=lambda msg: None) == "m"
     assert untouched == [{"name": "A", "iteration": 1}]
+
+
+def test_a_tie_is_settled_by_the_model_with_both_effects():
+    """The comprehensive model: A tied with B, D and E. With both A and B in, A is needed beside B and B not
+    beside A: A is named (B resolved, with both cases kept). With D, neither is needed beside the other: still
+    tied. E is needed beside A and A not beside E: the item becomes E's, the model with E in A's place is
+    returned. A rival whose union the plant forbids stays tied; a rival in the model is resolved unswapped."""
+    needed = {("B instead of A", "final + B"): True, ("final", "final + B"): False,
+              ("D instead of A", "final + D"): False, ("final", "final + D"): False,
+              ("E instead of A", "final + E"): False, ("final", "final + E"): True}
+    judged = []
+
+    def judge(small, large):
+        judged.append((small, large))
+        return _Verdict(needed[(small, large)], "not needed")
+
+    def swap(current, a, rival):
+        return f"{rival['name']} instead of {a['name']}"
+
+    def union(current, rival):
+        return None if rival["name"] == "G" else f"{current} + {rival['name']}"
+
+    added = [{"name": "A", "iteration": 1, "F": 50.0, "evidence": {"of": "A"},
+              "indistinguishable_from": [{"name": "B"}, {"name": "C"}, {"name": "D"}, {"name": "G"}]},
+             {"name": "C", "iteration": 2}]
+    log = []
+    final = settle_ties_by_encompassing("final", added, swap, union, judge, lambda fit: {"fit": fit}, log.append)
+    a = added[0]
+    assert final == "final" and [r["name"] for r in a["indistinguishable_from"]] == ["D", "G"]
+    resolved = {r["name"]: r for r in a["ties_resolved"]}
+    assert set(resolved) == {"B", "C"} and "needs A beside B" in resolved["B"]["reason"]
+    assert resolved["B"]["encompassing"]["both"] == {"fit": "final + B"}
+    assert a["indistinguishable_from"][0]["encompassing"]["rival_beside_effect"] == {"passed": False,
+                                                                                     "reason": "not needed"}
+    assert any("still tied" in m for m in log) and any("resolved" in m for m in log)
+    # the rival needed beside the effect, and not the reverse, takes its place
+    added = [{"name": "A", "iteration": 1, "F": 50.0, "evidence": {"of": "A"},
+              "indistinguishable_from": [{"name": "E", "F": 45.0, "params": {"e": 2.0}}, {"name": "D"}]}]
+    final = settle_ties_by_encompassing("final", added, swap, union, judge, lambda fit: {"fit": fit}, log.append)
+    item = added[0]
+    assert final == "E instead of A" and item["name"] == "E" and item["F"] == 45.0
+    assert item["params_at_acceptance"] == {"e": 2.0} and item["replaced"]["name"] == "A"
+    assert "needs E beside A" in item["replaced"]["reason"]
+    # once the rival has won, the other ties stay as they were (not judged against the model it replaced)
+    assert [r["name"] for r in item["indistinguishable_from"]] == ["D"]
+    assert ("D instead of A", "final + D") in judged and judged.count(("D instead of A", "final + D")) == 1
+
+
+def test_the_report_says_what_the_model_with_both_needs():
+    from toggle_id.discovery.report import _with_both
+
+    rival = {"name": "B", "encompassing": {"effect_beside_rival": {"F": 4.65, "passed": False},
+                                           "rival_beside_effect": {"F": 0.211, "passed": False}}}
+    assert _with_both("A", rival) == "the model with both needs neither beside the other: F 4.65 for A beside B, " \
+                                     "0.211 the reverse"
+    rival["encompassing"]["effect_beside_rival"]["passed"] = True
+    rival["encompassing"]["rival_beside_effect"]["passed"] = True
+    assert _with_both("A", rival).startswith("the model with both needs A and B beside the other")
 
 
 def test_the_tie_band_follows_the_level_and_is_off_at_zero():

@@ -17,13 +17,11 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
   (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
   current and input express); otherwise it lowers the error without explaining it and is listed as
   *compensating*, never as added;
-- **ambiguity** (:func:`indistinguishable`, :func:`tie_band`): two supported effects whose fits the record
-  cannot tell apart (Vuong's test of the non-nested models, :func:`.stats.vuong`) are reported together, neither
-  as added. A tie found while other effects were still missing is judged again on the final model
-  (:func:`reconsider_ties`): the missing structure, left in both residuals, can hide a difference that the
-  complete model shows. With a second record of the machine (never fitted), a tie that the fitted record leaves
-  is judged on it (:func:`settle_ties_out_of_sample`): the model that predicts it better, by Vuong's test, names
-  its effect.
+- **ambiguity** (:mod:`.ties`): two supported effects whose fits the record cannot tell apart (Vuong's test of
+  the non-nested models) are reported together, neither as added. A tie found while other effects were still
+  missing is judged again on the final model; one Vuong's test leaves is judged by the model with both effects
+  (an effect needed beside its rival, and the rival not beside it, is named); with a second record of the
+  machine (never fitted), one that is still left is judged on it.
 """
 from __future__ import annotations
 
@@ -32,10 +30,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-from scipy import stats
-
-from .noise import fit_noise
-from .stats import vuong
+from .ties import reconsider_ties, settle_ties_by_encompassing, settle_ties_out_of_sample
 
 
 class Verdict(Protocol):
@@ -107,156 +102,6 @@ def split_explaining(added: Sequence[dict], energy_with: float, energy_without: 
     return keep, compensating
 
 
-def tie_band(best_sse: float, n: int, alpha: float) -> float:
-    """How far above the best accepted refit's SSE a scout may lie and still be refitted as a possible rival:
-    twice the SSE difference at which Vuong's test separates two fits at level ``alpha`` (z ≈ √(ΔSSE/σ²)/2 for a
-    deterministic difference; a scout is polished less than a refit). 0 when ``alpha`` is 0 (no ambiguity)."""
-    if not alpha > 0:
-        return 0.0
-    z = float(stats.norm.isf(alpha / 2.0))
-    return 8.0 * z * z * best_sse / n
-
-
-def indistinguishable(r_chosen: np.ndarray, k_chosen: int, others: Sequence[tuple[np.ndarray, int]],
-                      noise_max_order: int, alpha: float) -> list[dict]:
-    """Vuong's test of the chosen fit (residual ``r_chosen``, ``k_chosen`` parameters added) against each other
-    supported fit (residual, parameters added), every residual whitened by the noise model of the chosen one's.
-    Returns, per other fit, the test's dict with ``tied``: True when it is not significant at ``alpha``."""
-    noise = fit_noise(r_chosen, noise_max_order)
-    out = []
-    for r, k in others:
-        v = vuong(noise, r_chosen, r, k_chosen, k)
-        out.append({**v, "tied": bool(v["p_value"] >= alpha)})
-    return out
-
-
-def reconsider_ties(current: Any, added: Sequence[dict], swap: Callable[[Any, dict, dict], Any],
-                    residual: Callable[[Any], np.ndarray], n_free: Callable[[Any], int],
-                    summary: Callable[[Any], dict], noise_max_order: int, alpha: float,
-                    say: Callable[[str], None], stage: str = "iteration") -> None:
-    """Judge again, on the final model ``current``, the ties of every effect added before the last one.
-
-    An effect and its rival were found indistinguishable (``indistinguishable_from``) on residuals that still held
-    the effects added later; there, the unexplained structure dominates both residuals and its noise model, and
-    hides the difference between the two. ``swap(current, a, rival)``: the final model with ``a`` replaced by the
-    rival (started at the rival's refit values, refitted), or None where the swap is impossible (another effect
-    of the model refines ``a``; the tie then stays as it was); ``stage``: the key of an item's forward step
-    (``iteration``, ``round``); ``residual(fit)``, ``n_free(fit)``, ``summary(fit)``: its residual, number of free
-    parameters and a JSON-able summary (kept under ``swapped``). Vuong's test of the final model against the
-    swapped one (on the final model's noise model) decides: a rival the final model beats at ``alpha`` moves to the
-    item's ``ties_resolved``; one that is still tied, or now preferred, stays (with the new test under
-    ``vuong_final``). A rival that is itself among ``added`` is resolved (both are in the model). Edits ``added``
-    in place."""
-    if not added:
-        return
-    last = max(a[stage] for a in added)
-    names = {a["name"] for a in added}
-    r_cur = None
-    for a in added:
-        rivals = list(a.get("indistinguishable_from") or [])
-        if not rivals or a[stage] == last:
-            continue
-        keep, resolved = [], []
-        for rv in rivals:
-            if rv["name"] in names:
-                resolved.append({**rv, "reason": f"{rv['name']} is in the final model too"})
-                continue
-            r_cur = residual(current) if r_cur is None else r_cur
-            swapped = swap(current, a, rv)
-            if swapped is None:
-                keep.append(rv)
-                continue
-            v = indistinguishable(r_cur, n_free(current), [(residual(swapped), n_free(swapped))], noise_max_order,
-                                  alpha)[0]
-            entry = {**rv, "vuong_final": v, "swapped": summary(swapped)}
-            if not v["tied"] and v["z"] > 0:
-                entry["reason"] = (f"the final model with {a['name']} beats it with {rv['name']} in its place "
-                                   f"(Vuong z {v['z']:.2f}, p {v['p_value']:.2g})")
-                resolved.append(entry)
-            else:
-                keep.append(entry)
-            say(f"tie {a['name']} / {rv['name']} judged again on the final model: Vuong z {v['z']:.2f}, "
-                f"p {v['p_value']:.2g} — {'resolved' if entry in resolved else 'still tied'}")
-        a["indistinguishable_from"] = keep
-        if resolved:
-            a["ties_resolved"] = resolved
-
-
-def settle_ties_out_of_sample(current: Any, added: list[dict], swap: Callable[[Any, dict, dict], Any],
-                              residual: Callable[[Any], np.ndarray], n_free: Callable[[Any], int],
-                              summary: Callable[[Any], dict], noise_max_order: int, alpha: float,
-                              say: Callable[[str], None]) -> Any:
-    """Judge the ties the fitted record left on a second record of the same machine that was never fitted.
-
-    Two effects tied on the fitted record may act differently under another command (a torque saturation and a
-    cubic contact stiffness agree wherever the motor draws a large current only in the clamp; an open/close
-    cycling command draws it in free motion too). For each item of ``added`` with ties: ``swap(current, a,
-    rival)`` is the final model with the rival in ``a``'s place (refitted to the fitted record, or None where
-    that is impossible) and ``residual(fit)`` its residual on the second record. Vuong's test of the two
-    predictions — both whitened by the noise model of the better prediction's residual — decides at ``alpha``:
-    the effect of the better prediction is named (the rival moves to ``ties_resolved``); when it is the rival,
-    the item becomes the rival's (its own forward evidence, ``replaced`` naming the effect it replaces) and the
-    swapped model becomes the final model, which is returned. A tie the second record does not settle either
-    stays, with the test under ``vuong_validation``; a rival that is itself in the model is resolved. Edits
-    ``added`` in place."""
-    for i, a in enumerate(list(added)):
-        rivals = list(a.get("indistinguishable_from") or [])
-        if not rivals:
-            continue
-        keep, resolved, winner = [], [], None
-        r_cur = residual(current)
-        for rv in rivals:
-            if rv["name"] in {b["name"] for b in added}:
-                resolved.append({**rv, "reason": f"{rv['name']} is in the final model too"})
-                continue
-            swapped = swap(current, a, rv)
-            if swapped is None or winner is not None:
-                keep.append(rv)
-                continue
-            r_sw = residual(swapped)
-            if not (np.all(np.isfinite(r_cur)) and np.all(np.isfinite(r_sw))):
-                keep.append(rv)
-                continue
-            rival_better = float(r_sw @ r_sw) < float(r_cur @ r_cur)
-            ref, other = (r_sw, n_free(swapped)), (r_cur, n_free(current))
-            if not rival_better:
-                ref, other = other, ref
-            v = indistinguishable(ref[0], ref[1], [other], noise_max_order, alpha)[0]
-            entry = {**rv, "vuong_validation": v, "swapped_validation": summary(swapped),
-                     "validation_rms_m": {a["name"]: float(np.sqrt(np.mean(r_cur ** 2))),
-                                          rv["name"]: float(np.sqrt(np.mean(r_sw ** 2)))}}
-            better, worse = (rv["name"], a["name"]) if rival_better else (a["name"], rv["name"])
-            say(f"tie {a['name']} / {rv['name']} judged on the validation record: {better} predicts it better "
-                f"(Vuong z {v['z']:.2f}, p {v['p_value']:.2g}) — {'still tied' if v['tied'] else 'resolved'}")
-            if v["tied"]:
-                keep.append(entry)
-                continue
-            entry["reason"] = (f"{better} predicts the validation record better than {worse} (Vuong z {v['z']:.2f}, "
-                               f"p {v['p_value']:.2g})")
-            if rival_better:
-                winner = (swapped, entry)
-            else:
-                resolved.append(entry)
-        if winner is not None:
-            swapped, entry = winner
-            loser = {k: a[k] for k in ("name", "params_at_acceptance", "evidence", "F", "p_value", "delta_bic")
-                     if k in a}
-            new = {**a, **{k: entry[k] for k in ("F", "p_value", "delta_bic", "evidence") if k in entry},
-                   "name": entry["name"], "params_at_acceptance": entry.get("params", {}),
-                   "rmse_after_m": (summary(swapped) or {}).get("rmse_m", a.get("rmse_after_m")),
-                   "replaced": {**loser, "reason": entry["reason"]},
-                   "indistinguishable_from": [r for r in keep if r["name"] != entry["name"]],
-                   "ties_resolved": [*a.get("ties_resolved", []), *resolved,
-                                     {**{k: v for k, v in entry.items() if k != "name"}, "name": a["name"]}]}
-            added[i] = new
-            current = swapped
-            continue
-        a["indistinguishable_from"] = keep
-        if resolved:
-            a["ties_resolved"] = [*a.get("ties_resolved", []), *resolved]
-    return current
-
-
 # ------------------------------------------------------------------------------------------ the loop itself
 @dataclass
 class Step:
@@ -293,7 +138,7 @@ class Plant(Protocol):
     and :meth:`forward_step` — how a plant searches its library is its own (the toggle plant scores, scouts and
     refits a few candidates, each refit costing seconds; the EMPS plant refits them all). The verdict rules are
     the engine's (:func:`run_loop`) over :meth:`without` (the model refitted with an effect off, or a rival in its
-    place; None where the plant forbids it), :meth:`judge` (the case for a larger model against a smaller:
+    place, or — the item None — the rival beside the effects it has; None where the plant forbids it), :meth:`judge` (the case for a larger model against a smaller:
     :class:`~.validation.Evidence`), :meth:`residual`, :meth:`n_free`, :meth:`summary` (JSON-able) and
     :meth:`error_text` of a fit, :meth:`keep` (an item that may not be removed: another refines it),
     :meth:`structure` ((structure left?, the plant's details) of a fit's residual), :meth:`structure_energy`,
@@ -309,7 +154,7 @@ class Plant(Protocol):
     def baseline(self) -> Any: ...
     def remaining(self, added: Sequence[dict]) -> list: ...
     def forward_step(self, current: Any, added: Sequence[dict], iteration: int) -> Step: ...
-    def without(self, current: Any, a: dict, added: Sequence[dict], rival: dict | None = None) -> Any: ...
+    def without(self, current: Any, a: dict | None, added: Sequence[dict], rival: dict | None = None) -> Any: ...
     def judge(self, small: Any, large: Any) -> Verdict: ...
     def residual(self, fit: Any) -> np.ndarray: ...
     def n_free(self, fit: Any) -> int: ...
@@ -326,11 +171,12 @@ class Plant(Protocol):
 
 
 def run_loop(plant: Plant, *, max_effects: int | None, backward: bool, ambiguity_alpha: float,
-             explain_fraction: float, noise_max_order: int) -> Outcome:
+             explain_fraction: float, noise_max_order: int, encompassing: bool = True) -> Outcome:
     """The discovery loop over any plant: :func:`forward` steps, then the :func:`verdict_rules`."""
     current, added = forward(plant, max_effects)
     return verdict_rules(plant, current, added, backward=backward, ambiguity_alpha=ambiguity_alpha,
-                         explain_fraction=explain_fraction, noise_max_order=noise_max_order)
+                         explain_fraction=explain_fraction, noise_max_order=noise_max_order,
+                         encompassing=encompassing)
 
 
 def forward(plant: Plant, max_effects: int | None) -> tuple[Any, list[dict]]:
@@ -351,10 +197,10 @@ def forward(plant: Plant, max_effects: int | None) -> tuple[Any, list[dict]]:
 
 
 def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bool, ambiguity_alpha: float,
-                  explain_fraction: float, noise_max_order: int) -> Outcome:
+                  explain_fraction: float, noise_max_order: int, encompassing: bool = True) -> Outcome:
     """The verdict rules on the model ``current`` with the accepted items ``added``: backward elimination (when
-    ``backward``), ties judged again on the final model (and on a second record when the plant has one; when
-    ``ambiguity_alpha`` > 0), and, when structure is left, the split of the accepted effects into explaining and
+    ``backward``), ties judged again on the final model, by the model with both effects (when ``encompassing``)
+    and on a second record when the plant has one (all when ``ambiguity_alpha`` > 0), and, when structure is left, the split of the accepted effects into explaining and
     compensating (at ``explain_fraction``; the compensating ones taken out of the final model)."""
     eliminated: list[dict] = []
     if backward and added:
@@ -367,6 +213,10 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
 
         reconsider_ties(current, added, swap, plant.residual, plant.n_free, plant.summary, noise_max_order,
                         ambiguity_alpha, plant.say, stage=plant.stage)
+        if encompassing:
+            current = settle_ties_by_encompassing(current, added, swap,
+                                                  lambda cur, rv: plant.without(cur, None, added, rv), plant.judge,
+                                                  plant.summary, plant.say)
         if plant.has_validation:
             current = settle_ties_out_of_sample(current, added, swap, plant.validation_residual, plant.n_free,
                                                 plant.summary, noise_max_order, ambiguity_alpha, plant.say)

@@ -95,7 +95,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     def loop(p: TogglePlant):
         return run_loop(p, max_effects=settings.max_effects, backward=settings.backward,
                         ambiguity_alpha=settings.ambiguity_alpha, explain_fraction=settings.explain_fraction,
-                        noise_max_order=settings.noise_max_order)
+                        noise_max_order=settings.noise_max_order, encompassing=settings.encompassing)
 
     first = plant_from(theta, [_with(_nominal_theta(st), fixed) for st in starts])
     routes = [Route(label, first, loop(first), nominal)]

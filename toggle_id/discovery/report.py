@@ -95,6 +95,7 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
         text += (" Ambiguous: " + " or ".join(names) + " — each explains the record, and the record cannot tell "
                  "them apart (Vuong's test: " + ", ".join(f"z {r.get('vuong_final', r['vuong'])['z']:.2f}"
                                                         for r in a["indistinguishable_from"]) +
+                 "".join(f"; {_with_both(a['name'], r)}" for r in a["indistinguishable_from"] if "encompassing" in r) +
                  f"); the final model uses {a['name']}, the better fit. To separate them: a second record of the "
                  "machine under another command (validation.path=…), or the experiment that +experiment=excite "
                  "excite.discovery=<this discovery.json> proposes.")
@@ -222,6 +223,7 @@ def summary_text(res: DiscoveryResult) -> str:
                          f"{r['name']} ({', '.join(f'{k} = {v:.5g}' for k, v in r['params'].items())}; Vuong z "
                          f"{r.get('vuong_final', r['vuong'])['z']:.2f}, "
                          f"p {r.get('vuong_final', r['vuong'])['p_value']:.2g}" +
+                         (f"; {_with_both(a['name'], r)}" if "encompassing" in r else "") +
                          (f"; on the validation record z {r['vuong_validation']['z']:.2f}"
                           if "vuong_validation" in r else "") + ")" for r in a["indistinguishable_from"])
                      + " — the record cannot tell them apart")
@@ -246,3 +248,13 @@ def summary_text(res: DiscoveryResult) -> str:
                  f"{res.seconds:.1f} s, {res.n_simulations} simulations")
     lines.append(res.conclusion)
     return "\n".join(lines)
+
+
+def _with_both(name: str, rival: dict) -> str:
+    """The comprehensive model's verdict on a tie (:func:`.ties.settle_ties_by_encompassing`), in words."""
+    enc = rival["encompassing"]
+    f_a, f_r = (enc[k].get("F", float("nan")) for k in ("effect_beside_rival", "rival_beside_effect"))
+    need = [nm for nm, k in ((name, "effect_beside_rival"), (rival["name"], "rival_beside_effect"))
+            if enc[k].get("passed")]
+    return (f"the model with both needs {' and '.join(need) if need else 'neither'} beside the other: F {f_a:.3g} for "
+            f"{name} beside {rival['name']}, {f_r:.3g} the reverse")

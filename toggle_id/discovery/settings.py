@@ -58,7 +58,9 @@ class DiscoverSettings:
       fraction of the error reduction it brings to the final model.
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
-      *ambiguous*, never one of them as added (0: off, the better fit is added).
+      *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
+      test leaves is judged by the model with both effects (:func:`.ties.settle_ties_by_encompassing`): an effect
+      needed beside its rival, and the rival not beside it, is named.
     - stronger_starts: a refit that is significant as least squares but dismissed is repeated from these
       multiples (≥ 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
       from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
@@ -115,6 +117,7 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     ambiguity_alpha: float = 0.05
+    encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
     routes: str = "unexplained"
     route_rtol: float = 1e-3
@@ -154,8 +157,9 @@ class DiscoverSettings:
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
         if isinstance(self.glitch_k, bool) or not isinstance(self.glitch_k, (int, float)) or not self.glitch_k >= 0:
             raise ConfigError(f"discover.glitch_k must be a number ≥ 0 (0: off), got {self.glitch_k!r}")
-        if not isinstance(self.robust_structure, bool):
-            raise ConfigError(f"discover.robust_structure must be true or false, got {self.robust_structure!r}")
+        for name in ("robust_structure", "encompassing"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.fd_tier not in FD_TIERS:
             raise ConfigError(f"discover.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
         if not isinstance(self.noise_max_order, int) or isinstance(self.noise_max_order, bool) or \

@@ -12,7 +12,8 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
 from ..residuals import glitch_text
 from .catchall import catch_all
-from .engine import Step, indistinguishable, tie_band
+from .engine import Step
+from .ties import indistinguishable, tie_band
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
@@ -102,8 +103,8 @@ class TogglePlant:
         self.say(f"added {chosen.name} {chosen.params}; rms {after.rmse(n) * 1e6:.4g} µm")
         return Step(base, item, after)
 
-    def without(self, current: Fit, a: dict, added: Sequence[dict], rival: dict | None = None) -> Fit:
-        return _without(self.model, current, a["name"], added, self.held, self.s, rival)
+    def without(self, current: Fit, a: dict | None, added: Sequence[dict], rival: dict | None = None) -> Fit:
+        return _without(self.model, current, a and a["name"], added, self.held, self.s, rival)
 
     def judge(self, small: Fit, large: Fit) -> Evidence:
         return self.referee.judge_pair(small, large)
@@ -288,7 +289,7 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
 
 def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
     """The other supported refits of the round the record cannot tell apart from ``chosen``
-    (:func:`.engine.indistinguishable`, on the residuals the judge already simulated); each such refit's reason
+    (:func:`.ties.indistinguishable`, on the residuals the judge already simulated); each such refit's reason
     says so."""
     if not settings.ambiguity_alpha > 0:
         return []
@@ -323,15 +324,18 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
     return current
 
 
-def _without(model: Model, current: Fit, name: str, added: Sequence[dict], held: Sequence[str],
+def _without(model: Model, current: Fit, name: str | None, added: Sequence[dict], held: Sequence[str],
              settings: DiscoverSettings, rival: dict | None = None) -> Fit:
     """The current model refitted with effect ``name`` switched off (and the gauge parameter it alone freed held
-    again); with ``rival`` ({name, params}), that effect switched on in its place, started at its ``params``."""
-    eff = EFFECTS_BY_NAME[name]
-    others = {s for b in added if b["name"] != name for s in EFFECTS_BY_NAME[b["name"]].breaks}
-    rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
-    free = tuple(nm for nm in current.free if nm not in eff.names and nm not in rehold)
-    start = _with(current.theta, _off_values(eff))
+    again); with ``rival`` ({name, params}), that effect switched on in its place (``name`` None: beside the
+    effects the model has), started at its ``params``."""
+    free, start = tuple(current.free), current.theta
+    if name is not None:
+        eff = EFFECTS_BY_NAME[name]
+        others = {s for b in added if b["name"] != name for s in EFFECTS_BY_NAME[b["name"]].breaks}
+        rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
+        free = tuple(nm for nm in free if nm not in eff.names and nm not in rehold)
+        start = _with(start, _off_values(eff))
     if rival is not None:
         free = freed_with(free, EFFECTS_BY_NAME[rival["name"]], held)
         start = _with(start, rival["params"])

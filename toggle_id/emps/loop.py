@@ -18,8 +18,8 @@ Then the engine's verdict rules (:func:`toggle_id.discovery.engine.verdict_rules
 the noise-aware structure test (:func:`toggle_id.discovery.localise.locate`) finds structure left in the final
 position residual — an accepted effect that removed less than ``explain_fraction`` of the structure energy is
 listed as compensating, not added; and an accepted effect that the record cannot tell apart from another that
-passed the same round (:func:`toggle_id.discovery.engine.indistinguishable`, judged again on the final model when
-it was found in an earlier round) is reported with it as *ambiguous*, neither named as added. The report gives
+passed the same round (:mod:`toggle_id.discovery.ties`: Vuong's test, judged again on the final model when it was
+found in an earlier round, and by the model with both) is reported with it as *ambiguous*, neither named as added. The report gives
 the three lists — ``effects_added``, ``compensating`` and ``rejected``, each item with its ``Evidence.to_dict()``
 — and where the structure left concentrates.
 """
@@ -31,9 +31,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..discovery.engine import Step, indistinguishable, run_loop
+from ..discovery.engine import Step, run_loop
 from ..discovery.localise import locate, noise_level, structure_energy
 from ..discovery.noise import fit_noise, whitened_sse
+from ..discovery.ties import indistinguishable
 from ..discovery.validation import Evidence
 from ..errors import ConfigError, DataError
 from ..polish import one_blas_thread
@@ -90,8 +91,7 @@ def _rank_passing(refits: Sequence[tuple[dict, OEFitResult, Effect]],
 def _ties(chosen: tuple[dict, OEFitResult, Effect], refits: Sequence[tuple[dict, OEFitResult, Effect]],
           noise_max_order: int, alpha: float) -> list[dict]:
     """The other refits of the round that passed every check and that the record cannot tell apart from the
-    chosen one (:func:`toggle_id.discovery.engine.indistinguishable`, the toggle loop's rule): [{name, params,
-    vuong}]."""
+    chosen one (:func:`toggle_id.discovery.ties.indistinguishable`): [{name, params, vuong}]."""
     if not alpha > 0:
         return []
     others = [rf for rf in refits if rf[0]["passed"] and rf is not chosen]
@@ -261,9 +261,9 @@ class EmpsPlant:
         self.free += list(eff.params)
         return Step(current, added_item(entry, self.evidence[id(entry)]), fit)
 
-    def without(self, current: OEFitResult, a: dict, added: Sequence[dict], rival: dict | None = None
+    def without(self, current: OEFitResult, a: dict | None, added: Sequence[dict], rival: dict | None = None
                 ) -> OEFitResult:
-        return _without(self.record, current, a["name"], self.fit_kw, rival)
+        return _without(self.record, current, a and a["name"], self.fit_kw, rival)
 
     def judge(self, small: OEFitResult, large: OEFitResult) -> Evidence:
         return judge_effect(small, _effect_last(large, [p for p in large.free if p not in small.free]),
@@ -475,15 +475,15 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     return report
 
 
-def _without(record: EmpsRecord, current: OEFitResult, name: str, fit_kw: Mapping,
+def _without(record: EmpsRecord, current: OEFitResult, name: str | None, fit_kw: Mapping,
              rival: Mapping | None = None) -> OEFitResult:
     """The current model refitted with effect ``name`` off — and, when ``rival`` ({name, params}) is given, with
-    that effect in its place, started at its refit values."""
-    gone = EFFECTS[name]
+    that effect in its place (``name`` None: beside the model's), started at its refit values."""
+    gone = EFFECTS[name].params if name is not None else ()
     theta = current.theta.copy()
-    for p in gone.params:
+    for p in gone:
         theta[INDEX[p]] = OFF[INDEX[p]]
-    free = [p for p in current.free if p not in gone.params]
+    free = [p for p in current.free if p not in gone]
     if rival is not None:
         for p, v in rival["params"].items():
             theta[INDEX[p]] = v
