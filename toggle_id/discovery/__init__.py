@@ -20,8 +20,10 @@ term and an :class:`~toggle_id.effects.Effect` entry.
    given. A nominal re-polish from the refit guards against a better nominal optimum. The candidate the score
    test ranks first is always refitted, whatever its scout. The best supported candidate joins the model; a rival
    that the record cannot tell from it (Vuong's test) is kept beside it as a tie; repeat.
-5. *Backward elimination* (:mod:`.engine`): an accepted effect the others make unnecessary is dropped; a tie found
-   while an effect was still missing is judged again on the final model.
+5. *Backward elimination* (:mod:`.engine`): an accepted effect the others make unnecessary is dropped. Ties
+   (:mod:`.ties`): one found while an effect was still missing is judged again on the final model; one Vuong's
+   test leaves, by the model with both effects (an effect needed beside its rival, and not the reverse, is
+   named); one still left, on a second record when there is one.
 6. *What is left* (:mod:`.residual`, :mod:`.localise`): a structure test of the prewhitened residual against
    functions of position, velocity, current and input. When structure is left the result is *unexplained*, the
    report says where the residual concentrates, and an effect that removed less than ``explain_fraction`` of the
