@@ -169,9 +169,12 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                 for c in cands if c["verdict"] == "rejected"]
     unexplained = bool(diag_after.get("verdict", {}).get("structure_left", False))
     # an effect that is real predicts a record it was not fitted on to that record's noise: structure left in the
-    # validation record's residual means the model still lacks something, whatever the fitted record says
-    predicted = prediction_report(judge.validation, current.theta, settings) if judge.validation else None
-    if predicted is not None and predicted.get("structure_left"):
+    # validation record's residual beyond what the parameters' sensitivities can take means the model still lacks
+    # something, whatever the fitted record says (an error all in their span is reported, not called unexplained)
+    predicted = (prediction_report(judge.validation, current.theta, settings, model, current.free)
+                 if judge.validation else None)
+    if predicted is not None and predicted.get("structure_left") and (predicted.get("parameter_uncertainty") or {
+            "rest_structure_left": True})["rest_structure_left"]:
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous, catch_report)
@@ -190,11 +193,13 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests, the "
                        "structure test and the intervals allow for it): an encoder or a mounting that is noisier "
                        "in motion?")
+    elif loud and settings.robust_structure:
+        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only): the structure test allowed "
+                       "for it, so the structure left is more than louder noise there.")
     elif loud:
         conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only): louder noise there — an "
-                       "encoder or a mounting that is noisier in motion? — or the structure left itself; when the "
-                       "noise is known to be loud in motion, discover.robust_structure=true tests the structure "
-                       "allowing for it.")
+                       "encoder or a mounting that is noisier in motion? — or the structure left itself; "
+                       "discover.robust_structure=true (the default) tests the structure allowing for it.")
     glitches = judge.glitches or []
     left_out = [g for g in glitches if g["count"]]
     if left_out:

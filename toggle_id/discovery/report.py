@@ -113,13 +113,24 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
         text += (f" A force on slider B of unknown shape (generic, piecewise linear in its speed and position) takes "
                  f"the error to {catch['rmse_m'] * 1e6:.4g} µm: what is missing acts, at least in part, like a force "
                  "on the slider (its fitted shape: catch_all.png).")
-    if predicted is not None and predicted.get("structure_left"):
+    part = (predicted or {}).get("parameter_uncertainty") or {}
+    if predicted is not None and predicted.get("structure_left") and part and not part["rest_structure_left"]:
         text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "
-                 f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm; {predicted.get('text', '')}): the model "
-                 "still lacks something, and the effects above may stand in for it.")
+                 f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm; {predicted.get('text', '')}), but all of the "
+                 f"error lies in the span of the parameters' sensitivities ({part['explained_rms_m'] * 1e6:.3g} µm "
+                 f"of it; nothing left beyond them), larger than their uncertainty from the fitted record allows "
+                 f"(Mahalanobis {part['mahalanobis']:.3g} on {part['dof']} dof): parameters that do not carry over "
+                 "to the other command — a direction the fitted record barely sees, an effect's extrapolation, or "
+                 "physics the fit absorbed.")
+    elif predicted is not None and predicted.get("structure_left"):
+        text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "
+                 f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm; {predicted.get('text', '')}"
+                 + (f"; beyond what the parameters' uncertainty explains: {part['rest_text']}" if part else "") +
+                 "): the model still lacks something, and the effects above may stand in for it.")
     elif predicted is not None:
         text += (f" The validation record {predicted.get('record', '')} is predicted to its noise (RMS "
-                 f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm, no structure left).")
+                 f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm, no structure left)."
+                 if not part else f" The validation record {predicted.get('record', '')}: {predicted['text']}.")
     return text
 
 

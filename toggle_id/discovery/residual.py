@@ -2,6 +2,8 @@
 record the model was not fitted on. Each simulates the model once and reads the residual with :mod:`.localise`."""
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy import signal, stats
 
@@ -10,7 +12,7 @@ from ..effects import ALL_INDEX
 from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
 from .localise import locate, noise_level, signals_of, structure_energy
-from .model import Model
+from .model import Model, sensitivities
 from .noise import fit_noise
 from .settings import DiscoverSettings
 
@@ -168,17 +170,78 @@ def line_text(line: dict) -> str:
     return f"{line['frequency_hz']:.4g} Hz ({line['amplitude_m'] * 1e6:.3g} µm amplitude)"
 
 
-def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings) -> dict:
+def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings, model: Model | None = None,
+                      free: Sequence[str] = ()) -> dict:
     """The final model's prediction of the validation record (never fitted on it): RMS error, noise model and the
-    structure test of its residual (:func:`.localise.locate`)."""
+    structure test of its residual (:func:`.localise.locate`).
+
+    With the fitted record's ``model`` and the ``free`` parameters fitted on it, the prediction error is first set
+    against what the parameters' uncertainty allows (:func:`parameter_part`): parameters fitted on one command
+    can be off along directions that command barely sees and another shows, and such a prediction error is not
+    missing physics. Then structure is left only where the error goes beyond that: the part of the residual in
+    the span of the parameters' sensitivities is larger than their uncertainty allows (Mahalanobis test), or the
+    rest holds structure (the structure test after the sensitivities)."""
     r, states, status = _residual(vmodel, theta)
     if states is None:
         return {"error": f"the final model cannot be simulated on the validation record (status {status})",
                 "structure_left": True, "text": "the final model cannot be simulated on the validation record"}
     loc = _locate(vmodel, r, states, settings)
     noise = fit_noise(r, settings.noise_max_order)
-    return {"record": vmodel.record.name, "rmse_m": float(np.sqrt(np.mean(r ** 2))), "noise_model": noise.to_dict(),
-            "structure_left": bool(loc["structure_left"]), "text": loc["text"], "localisation": loc}
+    out = {"record": vmodel.record.name, "rmse_m": float(np.sqrt(np.mean(r ** 2))), "noise_model": noise.to_dict(),
+           "structure_left": bool(loc["structure_left"]), "text": loc["text"], "localisation": loc}
+    if model is None or not free or not loc["structure_left"]:
+        return out
+    part = parameter_part(model, vmodel, theta, free, r, settings)
+    if part is None:
+        return out
+    rest = _locate(vmodel, r - part.pop("_explained"), states, settings, J=part.pop("_J"))
+    out["parameter_uncertainty"] = {**part, "rest_structure_left": bool(rest["structure_left"]),
+                                    "rest_text": rest["text"]}
+    if not (part["beyond"] or rest["structure_left"]):
+        out["structure_left"] = False
+        out["text"] = (f"the prediction error (RMS {out['rmse_m'] * 1e6:.4g} µm; {loc['text']}) is what the "
+                       f"uncertainty of the parameters fitted on the other record allows (Mahalanobis "
+                       f"{part['mahalanobis']:.3g} on {part['dof']} dof, p {part['p_value']:.2g}), and nothing is "
+                       "left beyond it")
+    return out
+
+
+def parameter_part(model: Model, vmodel: Model, theta: np.ndarray, free: Sequence[str], r_v: np.ndarray,
+                   settings: DiscoverSettings) -> dict | None:
+    """How much of the validation residual ``r_v`` the uncertainty of the parameters ``free`` fitted on ``model``'s
+    record explains. δ, the shift of those parameters that best explains ``r_v`` (least squares on the
+    sensitivities J_v on the validation record, both prewhitened by the fitted record's noise model), is set
+    against its covariance if the model is right — the fit's, (J_eᵀJ_e)⁻¹·s_e², plus δ's own estimation
+    error, (J_vᵀJ_v)⁻¹·s_v² — by the Mahalanobis distance m = δᵀ C⁻¹ δ, χ²(p) under that hypothesis (a direction
+    either record does not see has a variance that makes its share of m vanish). Returns {mahalanobis, dof,
+    p_value, beyond (p below ``settings.alpha_diag``), explained_rms_m} and, for the caller, the explained part
+    ``_explained`` (J_v δ) and ``_J`` (J_v); None when the sensitivities cannot be computed."""
+    r_e = model.residuals(theta[None, :])[0]
+    J_e = sensitivities(model, theta, free, settings.jac_rel_step)
+    J_v = sensitivities(vmodel, theta, free, settings.jac_rel_step)
+    if not (np.all(np.isfinite(r_e)) and np.all(np.isfinite(J_v)) and np.any(J_e) and np.any(J_v)):
+        return None
+    nm = fit_noise(r_e, settings.noise_max_order)
+    k = nm.order
+    Je, re = nm.whiten_columns(J_e)[k:], nm.whiten(r_e)[k:]
+    Jv, rv = nm.whiten_columns(J_v)[k:], nm.whiten(r_v)[k:]
+    p = len(free)
+    delta = np.linalg.lstsq(Jv, rv, rcond=1e-10)[0]
+    s2e = float(re @ re) / max(re.size - p, 1)
+    u = rv - Jv @ delta
+    s2v = float(u @ u) / max(rv.size - p, 1)
+
+    def inverse(info: np.ndarray) -> np.ndarray:  # a direction the record does not see: a huge variance
+        w, V = np.linalg.eigh(info)
+        w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+        return (V / w) @ V.T
+
+    C = inverse(Je.T @ Je / s2e) + inverse(Jv.T @ Jv / s2v)
+    m = float(delta @ np.linalg.solve(C, delta))
+    p_value = float(stats.chi2.sf(m, p))
+    explained = J_v @ delta
+    return {"mahalanobis": m, "dof": p, "p_value": p_value, "beyond": bool(p_value < settings.alpha_diag),
+            "explained_rms_m": float(np.sqrt(np.mean(explained ** 2))), "_explained": explained, "_J": J_v}
 
 
 def structure_energy_of(model: Model, r: np.ndarray, states: dict | None, settings: DiscoverSettings) -> float:
