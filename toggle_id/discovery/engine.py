@@ -138,10 +138,11 @@ class Plant(Protocol):
     and :meth:`forward_step` — how a plant searches its library is its own (the toggle plant scores, scouts and
     refits a few candidates, each refit costing seconds; the EMPS plant refits them all). The verdict rules are
     the engine's (:func:`run_loop`) over :meth:`without` (the model refitted with an effect off, or a rival in its
-    place, or — the item None — the rival beside the effects it has; None where the plant forbids it), :meth:`judge` (the case for a larger model against a smaller:
-    :class:`~.validation.Evidence`), :meth:`residual`, :meth:`n_free`, :meth:`summary` (JSON-able) and
-    :meth:`error_text` of a fit, :meth:`keep` (an item that may not be removed: another refines it),
-    :meth:`structure` ((structure left?, the plant's details) of a fit's residual), :meth:`structure_energy`,
+    place, or — the item None — the rival beside the effects it has; None where the plant forbids it),
+    :meth:`judge` (the case for a larger model against a smaller: :class:`~.validation.Evidence`),
+    :meth:`residual`, :meth:`n_free`, :meth:`summary` (JSON-able) and :meth:`error_text` of a fit, :meth:`keep`
+    (an item that may not be removed: another refines it), :meth:`structure` ((structure left?, the plant's
+    details) of a fit's residual), :meth:`structure_energy`,
     :meth:`explains` (a last check of the explaining effects, given all that were accepted, e.g. the catch-all
     force; may demote more),
     :meth:`demote` (the model without the compensating effects), :meth:`validation_residual` (the residual on a
@@ -199,9 +200,10 @@ def forward(plant: Plant, max_effects: int | None) -> tuple[Any, list[dict]]:
 def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bool, ambiguity_alpha: float,
                   explain_fraction: float, noise_max_order: int, encompassing: bool = True) -> Outcome:
     """The verdict rules on the model ``current`` with the accepted items ``added``: backward elimination (when
-    ``backward``), ties judged again on the final model, by the model with both effects (when ``encompassing``)
-    and on a second record when the plant has one (all when ``ambiguity_alpha`` > 0), and, when structure is left, the split of the accepted effects into explaining and
-    compensating (at ``explain_fraction``; the compensating ones taken out of the final model)."""
+    ``backward``), ties judged again on the final model, by the model with both effects (when ``encompassing``) and
+    on a second record when the plant has one (all when ``ambiguity_alpha`` > 0), and, when structure is left, the
+    split of the accepted effects into explaining and compensating (at ``explain_fraction``; the compensating ones
+    taken out of the final model)."""
     eliminated: list[dict] = []
     if backward and added:
         current, added, eliminated = backward_eliminate(

@@ -19,9 +19,9 @@ the noise-aware structure test (:func:`toggle_id.discovery.localise.locate`) fin
 position residual — an accepted effect that removed less than ``explain_fraction`` of the structure energy is
 listed as compensating, not added; and an accepted effect that the record cannot tell apart from another that
 passed the same round (:mod:`toggle_id.discovery.ties`: Vuong's test, judged again on the final model when it was
-found in an earlier round, and by the model with both) is reported with it as *ambiguous*, neither named as added. The report gives
-the three lists — ``effects_added``, ``compensating`` and ``rejected``, each item with its ``Evidence.to_dict()``
-— and where the structure left concentrates.
+found in an earlier round, and by the model with both) is reported with it as *ambiguous*, neither named as added.
+The report gives the three lists — ``effects_added``, ``compensating`` and ``rejected``, each item with its
+``Evidence.to_dict()`` — and where the structure left concentrates.
 """
 from __future__ import annotations
 
