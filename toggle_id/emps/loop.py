@@ -120,18 +120,18 @@ def localisation_signals(record: EmpsRecord, theta: np.ndarray,
 def localise(record: EmpsRecord, theta: np.ndarray, sim_options: Mapping | None = None, *, bins: int = 12,
              alpha: float = 0.01) -> dict:
     """Is structure left in the position residual of ``theta``, and where? :func:`toggle_id.discovery.localise.locate`
-    with no fixed noise model (each family judged under the AR noise model of its own alternative) on the signals of
-    :func:`localisation_signals`; position, position signed by the direction of motion and velocity enter the
-    verdict (Bonferroni over the three), drive force, controller output and time are shown (in a closed loop the
-    controller output carries the position error itself). Returns locate's dict (``structure_left``, ``families``,
-    ``significant``, ``strongest``, ``text``) with ``noise_level`` (report-only,
-    :func:`toggle_id.discovery.localise.noise_level`); ``{"error": ...}`` when the model cannot be simulated on the
-    record."""
+    with no fixed noise model (each family judged under the AR noise model of its own alternative; the verdict robust
+    to a noise level that varies, as the toggle loop's) on the signals of :func:`localisation_signals`; position,
+    position signed by the direction of motion and velocity enter the verdict (Bonferroni over the three), drive
+    force, controller output and time are shown (in a closed loop the controller output carries the position error
+    itself). Returns locate's dict (``structure_left``, ``families``, ``significant``, ``strongest``, ``text``) with
+    ``noise_level`` (report-only, :func:`toggle_id.discovery.localise.noise_level`); ``{"error": ...}`` when the
+    model cannot be simulated on the record."""
     r, signals = localisation_signals(record, theta, sim_options)
     if not (np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())):
         return {"error": "the final model cannot be simulated on the record", "structure_left": None,
                 "text": "no localisation: the final model cannot be simulated on the record"}
-    out = locate(None, r, signals, bins=int(bins), alpha=float(alpha))
+    out = locate(None, r, signals, bins=int(bins), alpha=float(alpha), robust=True)
     out["noise_level"] = noise_level(fit_noise(r), r, signals, bins=int(bins), alpha=float(alpha))
     return out
 
