@@ -208,6 +208,7 @@ def test_a_prediction_error_is_set_against_the_parameters_uncertainty(monkeypatc
     validation residual within its uncertainty (p-values spread over (0, 1), few below the level); the same
     error ten times the fit's standard errors along the well-seen direction is beyond it."""
     import toggle_id.discovery.residual as RS
+    from toggle_id.discovery.noise import fit_noise
 
     rng = np.random.default_rng(0)
     n, sig = 3000, 1e-6
@@ -215,12 +216,9 @@ def test_a_prediction_error_is_set_against_the_parameters_uncertainty(monkeypatc
     J_e = np.column_stack([np.sin(2 * np.pi * t), 1e-3 * np.cos(2 * np.pi * 0.3 * t)]) * 1e-5
     J_v = np.column_stack([np.sin(2 * np.pi * t + 0.2), np.cos(2 * np.pi * 0.3 * t)]) * 1e-5
 
-    class Stand:
+    class Stand:  # a record's model: its sensitivities J (set below) and residual r
         def __init__(self, r):
             self.r = r
-
-        def residuals(self, thetas):
-            return self.r[None, :]
 
     monkeypatch.setattr(RS, "sensitivities", lambda m, th, free, step: m.J)
     cov_e = sig ** 2 * np.linalg.inv(J_e.T @ J_e)
@@ -231,12 +229,13 @@ def test_a_prediction_error_is_set_against_the_parameters_uncertainty(monkeypatc
         fit.J, val.J = J_e, J_v
         eps = rng.multivariate_normal(np.zeros(2), cov_e)
         r_v = J_v @ eps + sig * rng.standard_normal(n)
-        out = RS.parameter_part(fit, val, np.zeros(3), ("a", "b"), r_v, settings)
+        out = RS.parameter_part(fit, ("a", "b"), fit.r, fit_noise(fit.r), val, np.zeros(3), r_v, settings)
         p_values.append(out["p_value"])
         beyond += out["beyond"]
     assert beyond <= 2 and 0.2 < np.median(p_values) < 0.8, (beyond, np.median(p_values))
     eps = np.array([10 * np.sqrt(cov_e[0, 0]), 0.0])
-    out = RS.parameter_part(fit, val, np.zeros(3), ("a", "b"), J_v @ eps + sig * rng.standard_normal(n), settings)
+    out = RS.parameter_part(fit, ("a", "b"), fit.r, fit_noise(fit.r), val, np.zeros(3),
+                            J_v @ eps + sig * rng.standard_normal(n), settings)
     assert out["beyond"] and out["explained_rms_m"] > 0.5 * np.sqrt(np.mean((J_v @ eps) ** 2))
 
 

@@ -140,7 +140,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                                                    broken=broken)
         else:
             gauge_after = gauge_before
-    noise_after = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
+    r_final = model.residuals(current.theta[None, :])[0]
+    noise_after = fit_noise(r_final, settings.noise_max_order)
     uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ()), noise_after) \
         if added else {}
     _describe_added(added, current, uncertainty, gauge_after)
@@ -171,7 +172,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     # an effect that is real predicts a record it was not fitted on to that record's noise: structure left in the
     # validation record's residual beyond what the parameters' sensitivities can take means the model still lacks
     # something, whatever the fitted record says (an error all in their span is reported, not called unexplained)
-    predicted = (prediction_report(judge.validation, current.theta, settings, model, current.free)
+    predicted = (prediction_report(judge.validation, current.theta, settings, (model, current.free, r_final,
+                                                                              noise_after))
                  if judge.validation else None)
     if predicted is not None and predicted.get("structure_left") and (predicted.get("parameter_uncertainty") or {
             "rest_structure_left": True})["rest_structure_left"]:

@@ -13,7 +13,7 @@ from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
 from .localise import locate, noise_level, signals_of, structure_energy
 from .model import Model, sensitivities
-from .noise import fit_noise
+from .noise import NoiseModel, fit_noise
 from .settings import DiscoverSettings
 
 
@@ -170,12 +170,13 @@ def line_text(line: dict) -> str:
     return f"{line['frequency_hz']:.4g} Hz ({line['amplitude_m'] * 1e6:.3g} µm amplitude)"
 
 
-def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings, model: Model | None = None,
-                      free: Sequence[str] = ()) -> dict:
+def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettings,
+                      fitted: tuple[Model, Sequence[str], np.ndarray, NoiseModel] | None = None) -> dict:
     """The final model's prediction of the validation record (never fitted on it): RMS error, noise model and the
     structure test of its residual (:func:`.localise.locate`).
 
-    With the fitted record's ``model`` and the ``free`` parameters fitted on it, the prediction error is first set
+    With ``fitted`` — the fitted record's model, the parameters fitted on it, its residual at ``theta`` and that
+    residual's noise model (the loop has them) — the prediction error is first set
     against what the parameters' uncertainty allows (:func:`parameter_part`): parameters fitted on one command
     can be off along directions that command barely sees and another shows, and such a prediction error is not
     missing physics. Then structure is left only where the error goes beyond that: the part of the residual in
@@ -189,9 +190,9 @@ def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettin
     noise = fit_noise(r, settings.noise_max_order)
     out = {"record": vmodel.record.name, "rmse_m": float(np.sqrt(np.mean(r ** 2))), "noise_model": noise.to_dict(),
            "structure_left": bool(loc["structure_left"]), "text": loc["text"], "localisation": loc}
-    if model is None or not free or not loc["structure_left"]:
+    if fitted is None or not fitted[1] or not loc["structure_left"]:
         return out
-    part = parameter_part(model, vmodel, theta, free, r, settings)
+    part = parameter_part(*fitted, vmodel, theta, r, settings)
     if part is None:
         return out
     rest = _locate(vmodel, r - part.pop("_explained"), states, settings, J=part.pop("_J"))
@@ -206,22 +207,20 @@ def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettin
     return out
 
 
-def parameter_part(model: Model, vmodel: Model, theta: np.ndarray, free: Sequence[str], r_v: np.ndarray,
-                   settings: DiscoverSettings) -> dict | None:
+def parameter_part(model: Model, free: Sequence[str], r_e: np.ndarray, nm: NoiseModel, vmodel: Model,
+                   theta: np.ndarray, r_v: np.ndarray, settings: DiscoverSettings) -> dict | None:
     """How much of the validation residual ``r_v`` the uncertainty of the parameters ``free`` fitted on ``model``'s
-    record explains. δ, the shift of those parameters that best explains ``r_v`` (least squares on the
-    sensitivities J_v on the validation record, both prewhitened by the fitted record's noise model), is set
-    against its covariance if the model is right — the fit's, (J_eᵀJ_e)⁻¹·s_e², plus δ's own estimation
-    error, (J_vᵀJ_v)⁻¹·s_v² — by the Mahalanobis distance m = δᵀ C⁻¹ δ, χ²(p) under that hypothesis (a direction
-    either record does not see has a variance that makes its share of m vanish). Returns {mahalanobis, dof,
-    p_value, beyond (p below ``settings.alpha_diag``), explained_rms_m} and, for the caller, the explained part
-    ``_explained`` (J_v δ) and ``_J`` (J_v); None when the sensitivities cannot be computed."""
-    r_e = model.residuals(theta[None, :])[0]
+    record (its residual ``r_e`` at ``theta``, noise model ``nm``) explains. δ, the shift of those parameters that
+    best explains ``r_v`` (least squares on the sensitivities J_v on the validation record, both prewhitened by
+    ``nm``), is set against its covariance if the model is right — the fit's, (J_eᵀJ_e)⁻¹·s_e², plus δ's own
+    estimation error, (J_vᵀJ_v)⁻¹·s_v² — by the Mahalanobis distance m = δᵀ C⁻¹ δ, χ²(p) under that hypothesis
+    (a direction either record does not see has a variance that makes its share of m vanish). Returns
+    {mahalanobis, dof, p_value, beyond (p below ``settings.alpha_diag``), explained_rms_m} and, for the caller,
+    the explained part ``_explained`` (J_v δ) and ``_J`` (J_v); None when the sensitivities cannot be computed."""
     J_e = sensitivities(model, theta, free, settings.jac_rel_step)
     J_v = sensitivities(vmodel, theta, free, settings.jac_rel_step)
     if not (np.all(np.isfinite(r_e)) and np.all(np.isfinite(J_v)) and np.any(J_e) and np.any(J_v)):
         return None
-    nm = fit_noise(r_e, settings.noise_max_order)
     k = nm.order
     Je, re = nm.whiten_columns(J_e)[k:], nm.whiten(r_e)[k:]
     Jv, rv = nm.whiten_columns(J_v)[k:], nm.whiten(r_v)[k:]
