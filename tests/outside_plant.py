@@ -14,7 +14,14 @@ with physics outside the discovery library (``toggle_id/effects.py``):
 * **saturating torque constant** (``i_sat``, A): K_t,eff = K_t / √(1 + (i_q/i_sat)²), so the torque
   K_t,eff·i_q tends to K_t·i_sat at high current (magnetic saturation of the motor); the back-EMF (λ_d) is
   unchanged. The library has had this effect since (``torque_constant_saturation``, c_kt = 1/i_sat²): here it
-  is the independent reference of that kernel term.
+  is the independent reference of that kernel term;
+* **periodic scale error** (``scale = (a, p, φ)``: m, m, rad): the sensor reads x_B + a·sin(2π·x_B/p + φ) — the
+  interpolation error of a magnetic or optical linear scale of pitch p, a property of the measurement only (the
+  motion is unchanged; the library's only sensor effect is a constant offset);
+* **pin friction under the clamping load** (``pin_mu``, dimensionless): an extra force
+  −pin_mu·|F_i|·tanh(ẋ_B/ε) on slider B while it is in contact — the toggle's pins and the platen's guides carry
+  the clamping force F_i, and their friction grows with it, so the clamp's force–stroke curve becomes a
+  hysteresis loop (the library's contact terms are a spring and a damper).
 
 All are off by default; then this is the nominal plant of docs/model.md.
 """
@@ -91,11 +98,13 @@ def x_B_of_q(q):
 @dataclass(frozen=True)
 class Outside:
     """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
-    A."""
+    A, ``scale = (a m, p m, φ rad)``, ``pin_mu`` (dimensionless)."""
 
     bump: tuple[float, float, float] | None = None
     i_sat: float | None = None
     drag: float | None = None
+    scale: tuple[float, float, float] | None = None
+    pin_mu: float | None = None
 
     def to_dict(self) -> dict:
         out: dict = {}
@@ -105,6 +114,10 @@ class Outside:
             out["saturating_torque_constant"] = {"i_sat": float(self.i_sat)}
         if self.drag is not None:
             out["quadratic_drag"] = {"c_q": float(self.drag)}
+        if self.scale is not None:
+            out["periodic_scale_error"] = dict(zip(("a", "pitch", "phase"), map(float, self.scale)))
+        if self.pin_mu is not None:
+            out["pin_friction_under_load"] = {"pin_mu": float(self.pin_mu)}
         return out
 
 
@@ -143,6 +156,8 @@ class Plant:
         if self.out.drag is not None:
             F_f -= self.out.drag * vB * abs(vB)
         F_i = p["K_l"] * (x_B - X_B_L) + p["D"] * vB if contact else 0.0
+        if self.out.pin_mu is not None and contact:
+            F_f -= self.out.pin_mu * abs(F_i) * math.tanh(vB / EPS)
         Q = F_C * dx_C + (F_f - F_i) * dx_B
         wdot = (Q - 0.5 * _dmass(q, p) * w * w) / _mass(q, p)
         idot = (p["K_i"] * self.v_in(t) - p["R_s"] * i_q - POLES * p["lambda_d"] * Z * vC) / p["L_q"]
@@ -216,4 +231,8 @@ def command_of(record) -> Callable[[float], float]:
 def simulate_outside(theta, record, outside: Outside = Outside(), **kw) -> tuple[np.ndarray, np.ndarray, dict]:
     """x_B, i_q and the summary of :meth:`Plant.run` for ``theta`` (15 physical parameters) on ``record``."""
     plant = Plant(theta, command_of(record), outside)
-    return plant.run(np.asarray(record.t, float), x_B0=float(record.x_B0), **kw)
+    x, i, info = plant.run(np.asarray(record.t, float), x_B0=float(record.x_B0), **kw)
+    if outside.scale is not None:  # what the sensor reads; the motion itself is unchanged
+        a, pitch, phase = outside.scale
+        x = x + a * np.sin(2.0 * math.pi * x / pitch + phase)
+    return x, i, info

@@ -65,6 +65,25 @@ def test_each_outside_effect_moves_x_B_clearly_and_vanishes_when_off(paper):
     assert np.max(np.abs(off - x0)) < 1e-12
 
 
+def test_the_scale_error_is_in_the_reading_only():
+    rec = Record.from_sweep("simulation", 1.0)
+    x0, i0, _ = simulate_outside(ASSIGNED, rec)
+    x, i, info = simulate_outside(ASSIGNED, rec, Outside(scale=(2e-6, 0.005, 0.3)))
+    assert info["status"] == 0
+    np.testing.assert_array_equal(i, i0)  # the motion is unchanged …
+    np.testing.assert_allclose(x - x0, 2e-6 * np.sin(2 * np.pi * x0 / 0.005 + 0.3), rtol=0, atol=1e-15)
+
+
+def test_pin_friction_acts_only_under_the_clamping_load():
+    rec = Record.from_cycling(duration=2.0)
+    x0, _, info0 = simulate_outside(ASSIGNED, rec)
+    x, _, info = simulate_outside(ASSIGNED, rec, Outside(pin_mu=0.01))
+    assert info0["status"] == info["status"] == 0 and info["contacts"] >= 1
+    first = np.argmax(x0 >= 0.056)
+    assert np.max(np.abs(x - x0)[:first]) < 1e-12  # free motion: no clamping force, no pin friction
+    assert np.max(np.abs(x - x0)[first:]) > 2e-6  # in the clamp and after it
+
+
 def test_leaving_the_assembly_range_is_a_failed_simulation():
     rec = Record.from_cycling(duration=2.0)
     theta = ASSIGNED.copy()
