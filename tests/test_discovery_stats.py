@@ -402,3 +402,14 @@ def test_a_line_in_the_noise_is_named_with_its_frequency_and_amplitude_and_colou
     loud = 1e-6 * growing * rng.standard_normal(t.size)
     assert spectral_lines(loud, 1000.0, 0.01)["lines"] == []
     assert [round(x["frequency_hz"], 1) for x in spectral_lines(loud + 0.5 * tone, 1000.0, 0.01)["lines"]] == [49.8]
+
+
+def test_a_hysteresis_of_the_load_is_found_by_the_current_signed_by_the_direction_of_motion(one_blas_thread):
+    """A friction that grows with the load (the clamp's pins) makes the residual change sign with the direction of
+    motion where the current is large: the bins of the current alone average it out, the signed bins do not."""
+    sig = trajectory()
+    hyst = 1.5e-6 * np.sign(sig["xdot_B"]) * np.clip(np.abs(sig["i_q"]) - 50.0, 0.0, None) / 50.0
+    loc = locate(None, ar1(0.0, sigma=1e-6, seed=11) + hyst, sig)
+    assert loc["structure_left"] and loc["strongest"] == "i_q_dir"
+    assert loc["families"]["i_q_dir"]["p_value"] < 1e-3 * loc["families"]["i_q"]["p_value"]
+    assert "model current i_q, signed by the direction of motion" in loc["text"]

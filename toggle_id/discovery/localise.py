@@ -1,10 +1,11 @@
 """Is structure left in the residual, and where does it concentrate?
 
 :func:`locate` tests the prewhitened residual against prewhitened functions of each signal of the trajectory —
-piecewise-constant bins of slider position and velocity, model current, input, and time — plus the lagged
-input (the classical input-correlation test, prewhitened). A family that predicts the whitened residual beyond
-its χ² level is structure the noise model cannot explain; the conditional means per bin say *where*: "a bump
-near x_B ≈ 40 mm", "grows with i_q above 150 A". That points the engineer to the physics outside the library.
+piecewise-constant bins of slider position and velocity, model current, input, and time, position and current
+also signed by the direction of motion — plus the lagged input (the classical input-correlation test,
+prewhitened). A family that predicts the whitened residual beyond its χ² level is structure the noise model cannot
+explain; the conditional means per bin say *where*: "a bump near x_B ≈ 40 mm", "grows with i_q above 150 A". That
+points the engineer to the physics outside the library.
 
 The verdict uses the physical families (position, velocities, current, input, lagged input), with a Bonferroni
 correction over them; time is shown, not tested: structure in time alone is what coloured noise looks like.
@@ -26,6 +27,7 @@ SIGNALS = {
     "xdot_B": ("slider B velocity", "m/s", 1e3, "mm/s"),
     "i_q": ("model current i_q", "A", 1.0, "A"),
     "x_B_dir": ("slider B position, signed by the direction of motion", "m", 1e3, "mm"),
+    "i_q_dir": ("model current i_q, signed by the direction of motion", "A", 1.0, "A"),
     "v_in": ("input voltage", "V", 1.0, "V"),
     "t": ("time", "s", 1.0, "s"),
     # EMPS (toggle_id.emps): load position and velocity, drive force gtau·ν, controller output
@@ -36,7 +38,7 @@ SIGNALS = {
     "vir": ("controller output", "V", 1.0, "V"),
 }
 #: Families that enter the verdict (time is shown only).
-TESTED = ("x_B", "x_B_dir", "xdot_B", "i_q", "v_in", "v_in_lags", "q", "q_dir", "qdot")
+TESTED = ("x_B", "x_B_dir", "xdot_B", "i_q", "i_q_dir", "v_in", "v_in_lags", "q", "q_dir", "qdot")
 
 
 def signals_of(t: np.ndarray, v_in: np.ndarray, states: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -70,8 +72,9 @@ def _describe(name: str, edges: np.ndarray, levels: np.ndarray) -> dict:
 def family_bases(signals: Mapping[str, np.ndarray], bins: int = 12, lags: int = 50, lag_step: int = 5
                  ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The bases of the structure test, one family per signal: equal-width bins of each signal (and of the
-    slider position signed by the direction of motion), plus the lagged input. Returns (bases, bin centres,
-    bin edges), keyed by family."""
+    slider position and of the model current, each signed by the direction of motion: a friction localised on the
+    stroke, and one that grows with the load — a hysteresis of the clamping force), plus the lagged input.
+    Returns (bases, bin centres, bin edges), keyed by family."""
     bases, centres, edges_of = {}, {}, {}
     for name, v in signals.items():
         B, edges = piecewise_basis(v, bins)
@@ -82,6 +85,9 @@ def family_bases(signals: Mapping[str, np.ndarray], bins: int = 12, lags: int = 
     if "x_B" in bases and "xdot_B" in signals:  # friction-like: a force localised on the stroke, against the motion
         bases["x_B_dir"] = bases["x_B"] * np.sign(signals["xdot_B"])[:, None]
         centres["x_B_dir"], edges_of["x_B_dir"] = centres["x_B"], edges_of["x_B"]
+    if "i_q" in bases and "xdot_B" in signals:  # a hysteresis in the force: a friction that grows with the load
+        bases["i_q_dir"] = bases["i_q"] * np.sign(signals["xdot_B"])[:, None]
+        centres["i_q_dir"], edges_of["i_q_dir"] = centres["i_q"], edges_of["i_q"]
     if "v_in" in signals:
         bases["v_in_lags"] = lagged_basis(signals["v_in"], lags, lag_step)
     return bases, centres, edges_of
@@ -218,8 +224,9 @@ def figure(locate_result: dict, r: np.ndarray, signals: Mapping[str, np.ndarray]
     for ax, name in zip(axes, names):
         label, _, scale, unit = SIGNALS[name]
         fam = locate_result["families"][name]
-        v = np.asarray(signals["x_B" if name == "x_B_dir" else name], float) * scale
-        rr = np.asarray(r) * (np.sign(signals["xdot_B"]) if name == "x_B_dir" else 1.0)
+        signed = name in ("x_B_dir", "i_q_dir")
+        v = np.asarray(signals[name[:-4] if signed else name], float) * scale
+        rr = np.asarray(r) * (np.sign(signals["xdot_B"]) if signed else 1.0)
         ax.plot(v, rr * 1e6, ".", ms=1, alpha=0.25, color="0.4")
         ax.stairs(np.asarray(fam["levels_m"]) * 1e6, np.asarray(fam["edges"]) * scale, lw=2,
                   color="C3" if fam["significant"] else "C0", label="level per bin (prewhitened fit)")

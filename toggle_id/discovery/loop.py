@@ -23,7 +23,7 @@ from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
 from .routes import Route, choose, route_line, same_basin
-from .residual import level_varies, line_text, noise_lines, prediction_report, residual_report
+from .residual import level_varies, line_text, noise_lines, periodic_text, prediction_report, residual_report
 from .noise import fit_noise
 from .validation import Judge
 
@@ -185,6 +185,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += (f" The residual drifts by {drift['drift_m'] * 1e6:.3g} µm over the record (a linear trend "
                        f"against time, z {drift['z']:.1f}, under the AR model of the detrended residual; report-only): "
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
+    if repeats := periodic_text(diag_after):
+        conclusion += f" {repeats[0].upper()}{repeats[1:]} (report-only; no effect of the library repeats so)."
     lines = noise_lines(diag_after)
     if lines and not unexplained:
         conclusion += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +

@@ -14,7 +14,7 @@ from ..record import Record
 from ..simulate import PRECISE
 from .model import Fit, Model
 from .refit import Refit
-from .residual import level_varies, line_text, noise_lines
+from .residual import level_varies, line_text, noise_lines, periodic_text
 from .routes import route_line
 from .settings import DiscoverSettings
 
@@ -250,6 +250,8 @@ def summary_text(res: DiscoveryResult) -> str:
             f"{line_text(ln)}, {ln['ratio']:.3g}× the local floor" for ln in tones))
     if loud := level_varies(res.diagnostics_after):
         lines.append(f"noise level of the final residual: {loud}")
+    if repeats := periodic_text(res.diagnostics_after):
+        lines.append(f"periodic in a position: {repeats}")
     routes = res.extra.get("routes") or []
     lines += [route_line(r) for r in routes] if len(routes) > 1 else []
     loc = res.diagnostics_after.get("localisation") or {}

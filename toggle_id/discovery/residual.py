@@ -14,6 +14,7 @@ from ..simulate import STATUS_OK
 from .localise import locate, noise_level, signals_of, structure_energy
 from .model import Model, sensitivities
 from .noise import NoiseModel, fit_noise
+from .periodic import periodic
 from .settings import DiscoverSettings
 
 
@@ -48,8 +49,8 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     holds the AR noise model of the residual (``noise_model``), the Ljung–Box test of the prewhitened residual
     (``whiteness_prewhitened``) and the noise-aware structure test with its localisation (``localisation``,
     :func:`.localise.locate`, robust to a varying noise level given the fit's sensitivities ``J``), and report-only
-    looks at a drift, lines in the spectrum and a noise level that varies
-    (``drift``, ``lines``, ``noise_level``); ``verdict.structure_left`` is the structure test's."""
+    looks at a drift, lines in the spectrum, a noise level that varies and an error that repeats with a position
+    (``drift``, ``lines``, ``noise_level``, ``periodic``); ``verdict.structure_left`` is the structure test's."""
     r, states, status = _residual(model, theta)
     if states is None:
         return {"error": f"the model cannot be simulated on this record (status {status})"}, r, {}
@@ -67,6 +68,8 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     d["lines"] = spectral_lines(r, 1.0 / rec.dt, settings.alpha_diag)
     d["noise_level"] = noise_level(noise, r, _signals(model, states), bins=settings.structure_bins,
                                    alpha=settings.alpha_diag)
+    d["periodic"] = periodic(r, states, alpha=settings.alpha_diag, max_order=settings.noise_max_order, J=J,
+                             robust=settings.robust_structure)
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
@@ -151,6 +154,12 @@ def spectral_lines(r: np.ndarray, fs: float, alpha: float, half_window: int = 12
         k = j + 1
     out["lines"] = sorted(lines, key=lambda d: -d["ratio"])
     return out
+
+
+def periodic_text(diagnostics: dict) -> str | None:
+    """What :func:`.periodic.periodic` found in a :func:`residual_report` (None: nothing, or no such look)."""
+    found = diagnostics.get("periodic") or {}
+    return found["text"] if found.get("periodic") else None
 
 
 def noise_lines(diagnostics: dict) -> list[dict]:

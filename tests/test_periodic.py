@@ -1,0 +1,70 @@
+"""The report-only scan of :mod:`toggle_id.discovery.periodic`: an error that repeats with a position is named with
+its period and amplitude; white and coloured noise make none."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from toggle_id.discovery.noise import NoiseModel
+from toggle_id.discovery.periodic import frequency_grid, periodic, scan
+
+N = 5001
+
+
+def states(n: int = N) -> dict[str, np.ndarray]:
+    """A slider that strokes 20 → 56 mm and back, resting at the ends, with a motor angle that is a strongly
+    nonlinear image of its position (as the toggle's crosshead's is)."""
+    t = np.arange(n) / 1000.0
+    x = 0.038 - 0.018 * np.cos(2 * np.pi * 0.4 * t) ** 3
+    return {"x_B": x, "motor_angle": 600.0 * (x - 0.019) ** 2 / 0.037, "t": t}
+
+
+def noise(seed: int, rho: float = 0.0) -> np.ndarray:
+    w = np.random.default_rng(seed).standard_normal(N) * 1e-6 * np.sqrt(1 - rho ** 2)
+    return signal.lfilter([1.0], [1.0, -rho], w)
+
+
+def test_the_scan_is_the_least_squares_fit_of_a_sinusoid_at_each_period():
+    st = states()
+    x, r = st["x_B"], noise(0)
+    freqs = np.array([150.0, 200.0, 333.3])
+    got = scan(NoiseModel(), r, x, freqs)
+    for f, g in zip(freqs, got):  # the explained sum of squares of lstsq on [sin, cos] over the mean square
+        B = np.column_stack([np.sin(2 * np.pi * f * x), np.cos(2 * np.pi * f * x)])
+        fit = B @ np.linalg.lstsq(B, r, rcond=None)[0]
+        assert g == pytest.approx(float(fit @ fit) / float(r @ r / r.size), rel=1e-9)
+
+
+def test_a_scale_error_is_named_with_its_pitch_and_amplitude():
+    st = states()
+    r = noise(1) + 0.5e-6 * np.sin(2 * np.pi * st["x_B"] / 0.005 + 0.3)
+    out = periodic(r, st)
+    assert out["periodic"] and out["strongest"] == "x_B"
+    fam = out["families"]["x_B"]
+    assert fam["period"] == pytest.approx(0.005, rel=0.01)
+    assert fam["amplitude_m"] == pytest.approx(0.5e-6, rel=0.15)
+    assert "mm of slider B position" in out["text"] and "motor revolution" not in out["text"]
+
+
+def test_a_repetition_per_motor_revolution_is_counted_per_revolution():
+    st = states()
+    out = periodic(noise(2) + 0.4e-6 * np.sin(6.0 * st["motor_angle"]), st)
+    assert out["periodic"] and out["strongest"] == "motor_angle"
+    assert out["families"]["motor_angle"]["cycles_per_revolution"] == pytest.approx(6.0, rel=0.01)
+    assert "times per motor revolution" in out["text"] and "slider B position" not in out["text"]
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_white_and_coloured_noise_repeat_with_no_position(rho):
+    st = states()
+    hits = sum(periodic(noise(100 + k, rho), st)["periodic"] for k in range(8))
+    assert hits <= 1  # at most 1 % per draw (a conservative Bonferroni over the scan and the positions)
+
+
+def test_a_position_that_does_not_move_is_not_scanned():
+    freqs, m = frequency_grid(np.full(100, 0.03))
+    assert freqs.size == 0 and m == 0.0
+    st = {"x_B": np.full(N, 0.03)}
+    assert periodic(noise(3), st) == {"periodic": False, "alpha": 0.01, "families": {}, "strongest": None,
+                                      "text": "the residual repeats with no position"}
