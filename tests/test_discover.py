@@ -132,6 +132,7 @@ def test_no_effect_no_false_positive():
     d = res.to_dict()
     assert d["residual_tests_after"]["whiteness"]["p_value"] > 0.01
     assert d["residual_tests_after"]["lines"]["lines"] == [] and "line at" not in res.conclusion
+    assert not d["residual_tests_after"]["periodic"]["periodic"] and "repeats" not in res.conclusion
     assert {c["name"] for c in d["candidates"]} == {e.name for e in EFFECTS}
     json.dumps(d)
 
@@ -180,6 +181,22 @@ def test_a_tone_in_the_noise_is_named_as_a_line_not_taken_for_an_effect():
     assert len(lines) == 1 and abs(lines[0]["frequency_hz"] - 200.0) < 7.9
     assert lines[0]["amplitude_m"] == pytest.approx(1.5 * NOISE, rel=0.15)
     assert "The noise carries a line at" in res.conclusion and "lines in the final residual" in summary_text(res)
+
+
+@pytest.mark.slow
+def test_a_scale_error_is_named_by_its_pitch():
+    """A linear scale's interpolation error (the sensor reads x_B + a·sin(2π·x_B/p + φ), p = 2 mm, a = 2 σ) on a
+    record with no effect: the report names the pitch and the amplitude the model leaves, whatever the loop did."""
+    from toggle_id.discovery.report import summary_text
+
+    rec, truth, start = make_record({})
+    rec.x_B = rec.x_B + 2.0 * NOISE * np.sin(2 * np.pi * rec.x_B / 0.002 + 0.3)
+    res = D.discover(rec, nominal=start, settings=D.DiscoverSettings(
+        candidates=("cogging_torque", "sensor_offset"), **FAST))
+    found = res.to_dict()["residual_tests_after"]["periodic"]
+    assert found["periodic"] and found["strongest"] == "x_B"
+    assert found["families"]["x_B"]["period"] == pytest.approx(0.002, rel=0.02)
+    assert "repeats every 2" in res.conclusion and "periodic in a position" in summary_text(res)
 
 
 def test_a_validation_record_the_model_cannot_predict_leaves_it_unexplained():
