@@ -194,3 +194,22 @@ def test_on_the_plant_a_load_force_standing_in_for_a_drag_is_compensating_and_a_
     assert report["supported"] and report["rmse_m"] < 1.05e-6
     assert [c["name"] for c in comp] == ["constant_load_force"]
     assert [a["name"] for a in kept] == (["sensor_offset"] if offset else [])
+
+
+@pytest.mark.parametrize("n_cog, odd", [(6.0, False), (6.04, False), (5.93, False), (3.29, True), (2.5, True)])
+def test_a_cogging_torque_that_repeats_a_fraction_of_times_per_revolution_is_no_motors(n_cog, odd):
+    """When structure is left, an accepted cogging torque with n_cog off a whole number stands in for something
+    else (rec23 of the adversarial set: a scale error of 5-mm pitch took a cogging torque at n_cog 3.29)."""
+    from toggle_id.discovery.toggle_plant import implausible
+    from toggle_id.simulate import extend
+    from toggle_id.params import ASSIGNED
+
+    theta = extend(ASSIGNED)[0]
+    theta[ALL_INDEX["n_cog"]] = n_cog
+    why = implausible("cogging_torque", theta, DiscoverSettings().cogging_whole_tol)
+    assert (why is not None) == odd
+    if odd:
+        assert f"{n_cog:.3g} times per motor revolution" in why
+    assert implausible("dead_time", theta, 0.1) is None
+    with pytest.raises(Exception, match="cogging_whole_tol"):
+        DiscoverSettings(cogging_whole_tol=0.7).validate()

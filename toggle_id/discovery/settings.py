@@ -55,7 +55,10 @@ class DiscoverSettings:
       (any piecewise-linear function of its speed and position) on top of the final model; if it is supported,
       an accepted effect it makes unnecessary is compensating, not added (:mod:`.catchall`). catch_all_keep: an
       effect is still needed beside that force if its removal is significant in sample and costs at least this
-      fraction of the error reduction it brings to the final model.
+      fraction of the error reduction it brings to the final model. cogging_whole_tol: when structure is left, an
+      accepted cogging torque whose n_cog lies farther than this from a whole number is compensating: a motor's
+      cogging repeats a whole number of times per revolution (its slots and poles), so a fitted fraction stands in
+      for something else that repeats with a position (:func:`.toggle_plant.implausible`).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
@@ -117,6 +120,7 @@ class DiscoverSettings:
     explain_fraction: float = 0.5
     catch_all: bool = True
     catch_all_keep: float = 0.1
+    cogging_whole_tol: float = 0.1
     ambiguity_alpha: float = 0.05
     encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
@@ -173,6 +177,9 @@ class DiscoverSettings:
         if not (isinstance(self.catch_all_keep, (int, float)) and not isinstance(self.catch_all_keep, bool)
                 and 0.0 <= float(self.catch_all_keep) < 1.0):
             raise ConfigError(f"discover.catch_all_keep must lie in [0, 1), got {self.catch_all_keep!r}")
+        if not (isinstance(self.cogging_whole_tol, (int, float)) and not isinstance(self.cogging_whole_tol, bool)
+                and 0.0 <= float(self.cogging_whole_tol) <= 0.5):
+            raise ConfigError(f"discover.cogging_whole_tol must lie in [0, 0.5], got {self.cogging_whole_tol!r}")
         if not (isinstance(self.ambiguity_alpha, (int, float)) and not isinstance(self.ambiguity_alpha, bool)
                 and 0.0 <= float(self.ambiguity_alpha) < 1.0):
             raise ConfigError(f"discover.ambiguity_alpha must lie in [0, 1), got {self.ambiguity_alpha!r}")

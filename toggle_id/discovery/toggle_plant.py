@@ -137,17 +137,36 @@ class TogglePlant:
     def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict]
                  ) -> tuple[list[dict], list[dict]]:
         """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
-        makes unnecessary is compensating."""
+        makes unnecessary is compensating; so is one whose fitted values no machine has (:func:`implausible`)."""
+        odd = [dict(a, reason=why) for a in added
+               if (why := implausible(a["name"], current.theta, self.s.cogging_whole_tol))]
+        for a in odd:
+            self.say(f"{a['name']}: {a['reason']}")
+        added = [a for a in added if a["name"] not in {o["name"] for o in odd}]
         states = details[2]
-        if not (self.s.catch_all and states):
-            return added, []
+        if not (self.s.catch_all and states and added):
+            return added, odd
 
         def without(fit: Fit, a: dict) -> Fit:
             return _without(self.model, fit, a["name"], everyone, self.held, self.s)
 
         added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
                                                    self.say)
-        return added, more
+        return added, odd + more
+
+
+def implausible(name: str, theta: np.ndarray, cogging_whole_tol: float) -> str | None:
+    """Why the fitted values of effect ``name`` in ``theta`` are no machine's (None: nothing against them). A motor's
+    cogging torque repeats a whole number of times per revolution (the least common multiple of its slots and
+    poles): an n_cog farther than ``cogging_whole_tol`` from a whole number stands in for something else that repeats
+    with a position — a scale's pitch along the stroke, a screw's lead error."""
+    if name == "cogging_torque":
+        n = float(theta[ALL_INDEX["n_cog"]])
+        if abs(n - round(n)) > cogging_whole_tol:
+            return (f"lowers the error, but repeats {n:.3g} times per motor revolution, and a motor's cogging repeats "
+                    "a whole number of times (its slots and poles): it stands in for something outside the library "
+                    "that repeats with a position")
+    return None
 
     def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
         """The final model without the compensating effects: the baseline when none explains, else refitted."""
