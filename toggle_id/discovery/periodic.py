@@ -11,8 +11,9 @@ residual over periods from ``min_cycles`` per stroke down to a few samples' trav
 ``oversample`` times. The best period is then tested as one basis by :func:`.stats.structure_test` (under the noise
 model of the residual with the sinusoid removed, robust to a varying noise level, after the fit's sensitivities),
 and its p-value multiplied by the number of positions and by N/2, the most 2-dof directions an N-sample record can
-hold (Bonferroni over the scan: the grid's own count, range × frequency band, was measured too small — 2 of 12 draws
-of white noise flagged at 1 % on a stroke that rests at its ends, where the sinusoids are far from orthogonal). It names the period and amplitude of the position that explains most (a mechanism's positions are
+hold (Bonferroni over the scan: the grid's own count, range × frequency band, was measured too small — 2 of 12
+draws of white noise flagged at 1 % on a stroke that rests at its ends, where the sinusoids are far from
+orthogonal). It names the period and amplitude of the position that explains most (a mechanism's positions are
 functions of one another, so an error periodic in one shows, weaker, in the others); the loop's verdict does not
 use it.
 """
@@ -116,7 +117,8 @@ def periodic(r: np.ndarray, states: Mapping[str, np.ndarray], *, alpha: float = 
         fam["text"] = (f"the residual repeats {every}, amplitude {fam['amplitude_m'] * 1e6:.3g} µm "
                        f"(p = {p_scan:.2g} after the scan): {CAUSES[key]}")
         out["families"][key] = fam
-    sig = sorted((k for k, v in out["families"].items() if v["significant"]), key=lambda k: out["families"][k]["p_scan"])
+    fams = out["families"]
+    sig = sorted((k for k, v in fams.items() if v["significant"]), key=lambda k: fams[k]["p_scan"])
     if sig:  # positions of one mechanism are functions of each other: the best period is named, the others kept
-        out.update(periodic=True, strongest=sig[0], text=out["families"][sig[0]]["text"])
+        out.update(periodic=True, strongest=sig[0], text=fams[sig[0]]["text"])
     return out
