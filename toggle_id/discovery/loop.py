@@ -186,7 +186,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                        f"against time, z {drift['z']:.1f}, under the AR model of the detrended residual; report-only): "
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
     if repeats := periodic_text(diag_after):
-        conclusion += f" {repeats[0].upper()}{repeats[1:]} (report-only; no effect of the library repeats so)."
+        conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
     lines = noise_lines(diag_after)
     if lines and not unexplained:
         conclusion += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +

@@ -5,8 +5,8 @@ encoder's eccentricity once per motor revolution, a motor's cogging n times per 
 periodic function of a position, not of time (the record's speed changes, so it is no line in the spectrum), and
 twelve bins over the stroke (:mod:`.localise`) cannot draw a period shorter than a few bins.
 
-:func:`periodic` scans each position the trajectory has (slider B's position and the motor angle for the toggle
-plant, the load position for EMPS) for a sinusoid sin/cos(2π·x/P): a least-squares periodogram of the prewhitened
+:func:`periodic` scans each position the trajectory has (slider B's position and the motor angle of the toggle
+plant) for a sinusoid sin/cos(2π·x/P): a least-squares periodogram of the prewhitened
 residual over periods from ``min_cycles`` per stroke down to a few samples' travel, on a grid oversampled
 ``oversample`` times. The best period is then tested as one basis by :func:`.stats.structure_test` (under the noise
 model of the residual with the sinusoid removed, robust to a varying noise level, after the fit's sensitivities),
@@ -28,12 +28,10 @@ from .stats import structure_test
 
 #: Positions scanned: state key → (label, display scale, display unit, the period also said per motor revolution).
 POSITIONS = {"x_B": ("slider B position", 1e3, "mm", False),
-             "motor_angle": ("motor angle", 1.0, "rad", True),
-             "q": ("load position", 1e3, "mm", False)}
+             "motor_angle": ("motor angle", 1.0, "rad", True)}
 #: What a period of each position may be (the user's next look).
 CAUSES = {"x_B": "a linear scale's interpolation error, or a force that repeats along the stroke?",
-          "motor_angle": "cogging, an encoder's eccentricity or a ball screw's lead error?",
-          "q": "a linear scale's interpolation error, or a force that repeats along the stroke?"}
+          "motor_angle": "cogging, an encoder's eccentricity or a ball screw's lead error?"}
 
 
 def _basis(x: np.ndarray, f: np.ndarray) -> np.ndarray:
