@@ -154,6 +154,19 @@ class TogglePlant:
                                                    self.say)
         return added, odd + more
 
+    def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
+        """The final model without the compensating effects: the baseline when none explains, else refitted."""
+        if not added:
+            return self.baseline_fit
+        names = [c["name"] for c in demoted]
+        return fit_free(self.model, _with(current.theta, {p.name: p.off for nm in names
+                                                          for p in EFFECTS_BY_NAME[nm].params}),
+                        tuple(nm for nm in current.free if not any(nm in EFFECTS_BY_NAME[d].names for d in names)),
+                        self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
+
+    def validation_residual(self, fit: Fit) -> np.ndarray:
+        return self.referee.validation.residuals(fit.theta[None, :])[0]
+
 
 def implausible(name: str, theta: np.ndarray, cogging_whole_tol: float) -> str | None:
     """Why the fitted values of effect ``name`` in ``theta`` are no machine's (None: nothing against them). A motor's
@@ -167,19 +180,6 @@ def implausible(name: str, theta: np.ndarray, cogging_whole_tol: float) -> str |
                     "a whole number of times (its slots and poles): it stands in for something outside the library "
                     "that repeats with a position")
     return None
-
-    def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
-        """The final model without the compensating effects: the baseline when none explains, else refitted."""
-        if not added:
-            return self.baseline_fit
-        names = [c["name"] for c in demoted]
-        return fit_free(self.model, _with(current.theta, {p.name: p.off for nm in names
-                                                          for p in EFFECTS_BY_NAME[nm].params}),
-                        tuple(nm for nm in current.free if not any(nm in EFFECTS_BY_NAME[d].names for d in names)),
-                        self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
-
-    def validation_residual(self, fit: Fit) -> np.ndarray:
-        return self.referee.validation.residuals(fit.theta[None, :])[0]
 
 
 def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], free: Sequence[str],
