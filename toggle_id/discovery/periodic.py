@@ -78,7 +78,7 @@ def frequency_grid(x: np.ndarray, min_cycles: float = 3.0, oversample: int = 4, 
 
 
 def periodic(r: np.ndarray, states: Mapping[str, np.ndarray], *, alpha: float = 0.01, max_order: int = 8,
-             J: np.ndarray | None = None, robust: bool = True, min_cycles: float = 3.0, oversample: int = 4) -> dict:
+             J: np.ndarray | None = None, robust: bool = True, min_cycles: float = 3.0, oversample: int = 2) -> dict:
     """Scan the residual ``r`` for a period in each position of :data:`POSITIONS` that ``states`` holds (see the
     module docstring). Returns {periodic, alpha, families: {key: {period, period_display, cycles_per_revolution,
     amplitude_m, statistic, dof, p_value, p_scan, periods_in_band, significant, text}}, strongest, text}."""
