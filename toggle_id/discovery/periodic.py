@@ -57,7 +57,7 @@ def scan(noise: NoiseModel, r: np.ndarray, x: np.ndarray, freqs: np.ndarray) -> 
     return ess / s2 if s2 > 0 else np.zeros(nf)
 
 
-def frequency_grid(x: np.ndarray, min_cycles: float = 3.0, oversample: int = 4, samples_per_period: float = 4.0,
+def frequency_grid(x: np.ndarray, min_cycles: float = 3.0, oversample: int = 2, samples_per_period: float = 4.0,
                    max_periods: int = 400) -> tuple[np.ndarray, float]:
     """Frequencies to scan (cycles per unit of ``x``) and how many periods the band holds (range × band): from
     ``min_cycles`` over the range of ``x`` up to a period of ``samples_per_period`` times the typical travel
@@ -78,17 +78,19 @@ def frequency_grid(x: np.ndarray, min_cycles: float = 3.0, oversample: int = 4, 
 
 
 def periodic(r: np.ndarray, states: Mapping[str, np.ndarray], *, alpha: float = 0.01, max_order: int = 8,
-             J: np.ndarray | None = None, robust: bool = True, min_cycles: float = 3.0, oversample: int = 2) -> dict:
+             J: np.ndarray | None = None, robust: bool = True, min_cycles: float = 3.0, oversample: int = 2,
+             noise: NoiseModel | None = None) -> dict:
     """Scan the residual ``r`` for a period in each position of :data:`POSITIONS` that ``states`` holds (see the
-    module docstring). Returns {periodic, alpha, families: {key: {period, period_display, cycles_per_revolution,
-    amplitude_m, statistic, dof, p_value, p_scan, periods_in_band, significant, text}}, strongest, text}."""
+    module docstring; ``noise``: the residual's AR noise model when the caller has it, else fitted here). Returns
+    {periodic, alpha, families: {key: {period, period_display, cycles_per_revolution, amplitude_m, statistic, dof,
+    p_value, p_scan, periods_in_band, significant, text}}, strongest, text}."""
     r = np.asarray(r, float)
     keys = [k for k in POSITIONS if k in states and np.all(np.isfinite(states[k]))]
     out: dict = {"periodic": False, "alpha": alpha, "families": {}, "strongest": None,
                  "text": "the residual repeats with no position"}
     if not keys or not np.all(np.isfinite(r)):
         return out
-    noise = fit_noise(r, max_order)
+    noise = noise if noise is not None else fit_noise(r, max_order)
     for key in keys:
         x = np.asarray(states[key], float)
         freqs, m = frequency_grid(x, min_cycles, oversample)

@@ -69,7 +69,7 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     d["noise_level"] = noise_level(noise, r, _signals(model, states), bins=settings.structure_bins,
                                    alpha=settings.alpha_diag)
     d["periodic"] = periodic(r, states, alpha=settings.alpha_diag, max_order=settings.noise_max_order, J=J,
-                             robust=settings.robust_structure)
+                             robust=settings.robust_structure, noise=noise)
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
