@@ -37,6 +37,8 @@ SIGNALS = {
     "force": ("drive force", "N", 1.0, "N"),
     "vir": ("controller output", "V", 1.0, "V"),
 }
+#: Families of a signal's bins signed by the direction of slider B's motion (``<signal>_dir``).
+SIGNED = ("x_B_dir", "i_q_dir")
 #: Families that enter the verdict (time is shown only).
 TESTED = ("x_B", "x_B_dir", "xdot_B", "i_q", "i_q_dir", "v_in", "v_in_lags", "q", "q_dir", "qdot")
 
@@ -82,12 +84,11 @@ def family_bases(signals: Mapping[str, np.ndarray], bins: int = 12, lags: int = 
             bases[name] = B
             edges_of[name] = edges
             centres[name] = 0.5 * (edges[:-1] + edges[1:])
-    if "x_B" in bases and "xdot_B" in signals:  # friction-like: a force localised on the stroke, against the motion
-        bases["x_B_dir"] = bases["x_B"] * np.sign(signals["xdot_B"])[:, None]
-        centres["x_B_dir"], edges_of["x_B_dir"] = centres["x_B"], edges_of["x_B"]
-    if "i_q" in bases and "xdot_B" in signals:  # a hysteresis in the force: a friction that grows with the load
-        bases["i_q_dir"] = bases["i_q"] * np.sign(signals["xdot_B"])[:, None]
-        centres["i_q_dir"], edges_of["i_q_dir"] = centres["i_q"], edges_of["i_q"]
+    for name in SIGNED:  # friction-like: localised on the stroke, or growing with the load; against the motion
+        base = name[:-4]
+        if base in bases and "xdot_B" in signals:
+            bases[name] = bases[base] * np.sign(signals["xdot_B"])[:, None]
+            centres[name], edges_of[name] = centres[base], edges_of[base]
     if "v_in" in signals:
         bases["v_in_lags"] = lagged_basis(signals["v_in"], lags, lag_step)
     return bases, centres, edges_of
@@ -224,7 +225,7 @@ def figure(locate_result: dict, r: np.ndarray, signals: Mapping[str, np.ndarray]
     for ax, name in zip(axes, names):
         label, _, scale, unit = SIGNALS[name]
         fam = locate_result["families"][name]
-        signed = name in ("x_B_dir", "i_q_dir")
+        signed = name in SIGNED
         v = np.asarray(signals[name[:-4] if signed else name], float) * scale
         rr = np.asarray(r) * (np.sign(signals["xdot_B"]) if signed else 1.0)
         ax.plot(v, rr * 1e6, ".", ms=1, alpha=0.25, color="0.4")
