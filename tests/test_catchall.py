@@ -3,7 +3,7 @@ unnecessary is compensating; nothing changes when that force is not supported. T
 is tested against the library forces it can take the shape of in tests/test_kernels.py."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,21 +47,31 @@ class _Judge:
 
 
 @dataclass
+class _Record:
+    x_B: np.ndarray = field(default_factory=lambda: np.linspace(0.021, 0.069, 100))
+
+
+@dataclass
 class _Model:
     n: int = 100
+    record: _Record = field(default_factory=_Record)
 
 
 STATES = {"x_B": np.linspace(0.02, 0.07, 50), "xdot_B": np.sin(np.linspace(0, 6, 50))}
 
 
 def test_the_knots_span_the_records_speed_and_position():
-    k = catchall.knots_of(STATES)
+    k = catchall.knots_of(STATES, _Record().x_B)
     assert k["gx_lo"] == pytest.approx(0.02) and k["gx_hi"] == pytest.approx(0.07)
     assert k["gv_lo"] == pytest.approx(STATES["xdot_B"].min()) and k["gv_hi"] == pytest.approx(1.0, abs=1e-3)
-    assert set(catchall.WEIGHTS) == {f"{p}_w{i}" for p in ("gv", "gx") for i in range(K.N_GEN)} - {"gx_w0"}
-    assert not set(catchall.WEIGHTS) & {"gv_lo", "gv_hi", "gx_lo", "gx_hi"}
+    assert k["gs_lo"] == pytest.approx(0.021) and k["gs_hi"] == pytest.approx(0.069)  # the measured position's
+    assert set(catchall.WEIGHTS) == ({f"{p}_w{i}" for p in ("gv", "gx") for i in range(K.N_GEN)} - {"gx_w0"}
+                                     | {f"gs_w{i}" for i in range(K.N_GS)})
+    assert not set(catchall.WEIGHTS) & {"gv_lo", "gv_hi", "gx_lo", "gx_hi", "gs_lo", "gs_hi"}
     with pytest.raises(ValueError, match="not finite"):
-        catchall.knots_of({"x_B": np.array([0.01, np.nan]), "xdot_B": np.zeros(2)})
+        catchall.knots_of({"x_B": np.array([0.01, np.nan]), "xdot_B": np.zeros(2)}, np.zeros(2))
+    with pytest.raises(ValueError, match="not finite"):
+        catchall.knots_of(STATES, np.array([0.01, np.inf]))
 
 
 def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_sse: dict[str, float],
@@ -99,7 +109,8 @@ def test_an_effect_the_generic_force_makes_unnecessary_is_compensating(monkeypat
                                     {"constant_load_force": 30.0, "cogging_torque": 16.0})
     assert [a["name"] for a in kept] == ["cogging_torque"]
     assert [c["name"] for c in comp] == ["constant_load_force"]
-    assert "generic force on slider B" in comp[0]["reason"] and "outside the library" in comp[0]["reason"]
+    assert "generic force on slider B" in comp[0]["reason"] and "position reading" in comp[0]["reason"]
+    assert "outside the library" in comp[0]["reason"]
     assert report["supported"] and report["effects"]["constant_load_force"]["needed"] is False
     assert report["effects"]["cogging_torque"]["needed"] is True
     assert report["effects"]["cogging_torque"]["kept_fraction"] == pytest.approx(7.0 / 6.0)
@@ -133,6 +144,8 @@ def test_the_report_gives_the_forces_shape_its_figure_and_a_sentence_of_the_conc
                               {"constant_load_force": 30.0, "cogging_torque": 16.0})
     sh = report["shape"]
     assert sh["x_m"][0] == pytest.approx(0.02) and sh["x_m"][-1] == pytest.approx(0.07) and len(sh["g_N"]) == K.N_GEN
+    assert sh["xs_m"][0] == pytest.approx(0.021) and sh["xs_m"][-1] == pytest.approx(0.069)
+    assert len(sh["h_m"]) == K.N_GS and report["n_knots_sensor"] == K.N_GS and report["sensor_rms_m"] == 0.0
     th = extend(ASSIGNED)[0]
     th[ALL_INDEX["gv_lo"]], th[ALL_INDEX["gv_hi"]] = -0.1, 0.8
     th[K.GV_W0:K.GV_W0 + K.N_GEN] = np.arange(K.N_GEN)
@@ -143,7 +156,8 @@ def test_the_report_gives_the_forces_shape_its_figure_and_a_sentence_of_the_conc
     before = {"rms_m": 3e-6}
     after = {"rms_m": 1.3e-6, "verdict": {"structure_left": True}, "localisation": {"text": "a bump"}}
     text = _conclusion([], before, after, True, DiscoverSettings(), comp, catch={**report, "rmse_m": 1.0e-6})
-    assert "force on slider B of unknown shape" in text and "1 µm" in text and "catch_all.png" in text
+    assert "error of the position reading, both of unknown shape" in text and "reading error's part" in text
+    assert "1 µm" in text and "catch_all.png" in text
     assert "unknown shape" not in _conclusion([], before, after, True, DiscoverSettings(), comp,
                                               catch={**report, "supported": False})
 
@@ -213,3 +227,33 @@ def test_a_cogging_torque_that_repeats_a_fraction_of_times_per_revolution_is_no_
     assert implausible("dead_time", theta, 0.1) is None
     with pytest.raises(Exception, match="cogging_whole_tol"):
         DiscoverSettings(cogging_whole_tol=0.7).validate()
+
+
+def test_the_generic_sensor_error_is_added_at_the_measured_position_and_costs_no_simulation():
+    from toggle_id.discovery.model import Model
+    from toggle_id.effects import hat_basis, sensor_error
+    from toggle_id.record import Record
+    from toggle_id.simulate import PRECISE, simulate
+
+    rec = Record.from_sweep("simulation", duration=1.0)
+    theta = extend(ASSIGNED)[0]
+    rec.x_B = simulate(theta[None, :], rec, PRECISE).x_B[0] + 1e-6 * np.sin(np.arange(rec.n))  # a "measured" x_B
+    model = Model(rec, parallel=False)
+    lo, hi = float(rec.x_B.min()), float(rec.x_B.max())
+    w = 1e-5 * np.cos(np.arange(K.N_GS))
+    T = np.repeat(theta[None, :], 4, axis=0)
+    T[:, K.GS_LO], T[:, K.GS_HI] = lo, hi
+    T[1, K.GS_W0:] = w
+    T[2, K.GS_W0 + 3] = 2e-6
+    T[3, K.K_T] *= 1.01  # a plant change: a second simulation
+    X = model.outputs(T)
+    assert model.n_sims == 2
+    plain = simulate(T[[0, 3]], rec, PRECISE).x_B
+    knots = np.linspace(lo, hi, K.N_GS)
+    np.testing.assert_allclose(X[0], plain[0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(X[1] - plain[0], np.interp(rec.x_B, knots, w), rtol=1e-9, atol=1e-18)
+    np.testing.assert_allclose(X[2] - plain[0], np.interp(rec.x_B, knots, 2e-6 * np.eye(K.N_GS)[3]), atol=1e-18)
+    np.testing.assert_allclose(X[3], plain[1], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(sensor_error(T[1], rec.x_B)[0], hat_basis(rec.x_B, lo, hi, K.N_GS) @ w)
+    with pytest.raises(ValueError, match="hi > lo"):
+        hat_basis(rec.x_B, hi, lo, K.N_GS)

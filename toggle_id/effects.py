@@ -113,10 +113,11 @@ EFFECTS: tuple[Effect, ...] = (
 EFFECTS_BY_NAME: dict[str, Effect] = {e.name: e for e in EFFECTS}
 
 
-def _generic_params(prefix: str, lo: int, w0: int, unit: str) -> tuple[EffectParam, ...]:
+def _generic_params(prefix: str, lo: int, w0: int, unit: str, n: int = K.N_GEN, weight: str = "N",
+                    bound: float = 5e3) -> tuple[EffectParam, ...]:
     knots = (EffectParam(f"{prefix}_lo", lo, unit, -1e3, 1e3, 0.0, True),
              EffectParam(f"{prefix}_hi", lo + 1, unit, -1e3, 1e3, 0.0, True))
-    return knots + tuple(EffectParam(f"{prefix}_w{k}", w0 + k, "N", -5e3, 5e3) for k in range(K.N_GEN))
+    return knots + tuple(EffectParam(f"{prefix}_w{k}", w0 + k, weight, -bound, bound) for k in range(n))
 
 
 #: Not a library effect, never named: a force on slider B of any shape in its speed and position,
@@ -132,14 +133,25 @@ GENERIC_FORCE = Effect(
     # moves x_B well above the integrator's error
     tuple({f"{p}_w{k}": 100.0} for p in ("gv", "gx") for k in range(K.N_GEN)))
 
-#: Every term of the extended parameter vector beyond the 15 physical parameters: the library, then the generic force.
-TERMS: tuple[Effect, ...] = EFFECTS + (GENERIC_FORCE,)
+#: Not a library effect, never named: an error of the position reading of any shape, h(x_B), piecewise linear on
+#: ``N_GS`` uniform knots from ``gs_lo`` to ``gs_hi`` (m; set from the record, not fitted) with weights ``gs_w*`` (m),
+#: added to the model's x_B at the *measured* position (an interpolation error of a linear scale, a misaligned or
+#: bent scale). An output map, not a kernel term: :class:`toggle_id.discovery.model.Model` adds it, and a batch whose
+#: rows differ only in it costs one simulation. The catch-all check fits it beside :data:`GENERIC_FORCE`.
+GENERIC_SENSOR = Effect(
+    "generic_sensor_error", "an error of the position reading, any piecewise-linear function of the measured x_B",
+    _generic_params("gs", K.GS_LO, K.GS_W0, "m", K.N_GS, "m", 5e-3),
+    tuple({f"gs_w{k}": 1e-6} for k in range(K.N_GS)))
+
+#: Every term of the extended parameter vector beyond the 15 physical parameters: the library, then the generic
+#: force and the generic sensor error.
+TERMS: tuple[Effect, ...] = EFFECTS + (GENERIC_FORCE, GENERIC_SENSOR)
 
 #: Names of the library effects' parameters (kernel order); the extended parameter vector holds the 15 physical
 #: ones, then these, then the generic force's (which no report lists: it is never part of a reported model).
 EXTRA_NAMES: tuple[str, ...] = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a_cog", "n_cog", "phi_cog",
                                 "F_load", "k3", "s_sat", "x_off", "c_kt")
-ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES + GENERIC_FORCE.names
+ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES + GENERIC_FORCE.names + GENERIC_SENSOR.names
 ALL_INDEX: dict[str, int] = {n: i for i, n in enumerate(ALL_NAMES)}
 assert len(ALL_NAMES) == K.N_THETA
 for _e in TERMS:
@@ -164,3 +176,30 @@ def effect_bounds(names) -> tuple[np.ndarray, np.ndarray]:
     """Feasible domain of extended (effect) parameter names."""
     lookup = {p.name: p for e in TERMS for p in e.params}
     return (np.array([lookup[n].lower for n in names], float), np.array([lookup[n].upper for n in names], float))
+
+
+def hat_basis(x: np.ndarray, lo: float, hi: float, n: int) -> np.ndarray:
+    """(len(x), n) piecewise-linear interpolation weights of ``x`` on ``n`` uniform knots from ``lo`` to ``hi``
+    (constant beyond them): row i times the knots' values is the interpolant at x[i]."""
+    x = np.asarray(x, float)
+    if not hi > lo:
+        raise ValueError(f"the knots need hi > lo, got {lo!r} … {hi!r}")
+    u = np.clip((x - lo) / (hi - lo) * (n - 1), 0.0, n - 1)
+    k = np.minimum(np.floor(u).astype(np.int64), n - 2)
+    w = u - k
+    out = np.zeros((x.size, n))
+    rows = np.arange(x.size)
+    out[rows, k] = 1.0 - w
+    out[rows, k + 1] = w
+    return out
+
+
+def sensor_error(thetas: np.ndarray, x_measured: np.ndarray) -> np.ndarray:
+    """(P, N) generic error of the position reading (:data:`GENERIC_SENSOR`) of extended vectors ``thetas`` at the
+    measured positions ``x_measured``; zeros for rows with all its weights at 0."""
+    thetas = np.atleast_2d(thetas)
+    W = thetas[:, K.GS_W0:K.GS_W0 + K.N_GS]
+    out = np.zeros((thetas.shape[0], np.size(x_measured)))
+    for i in np.flatnonzero(np.any(W != 0.0, axis=1)):
+        out[i] = hat_basis(x_measured, thetas[i, K.GS_LO], thetas[i, K.GS_HI], K.N_GS) @ W[i]
+    return out

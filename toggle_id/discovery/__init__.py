@@ -28,8 +28,8 @@ term and an :class:`~toggle_id.effects.Effect` entry.
    functions of position, velocity, current and input. When structure is left the result is *unexplained*, the
    report says where the residual concentrates, and an effect that removed less than ``explain_fraction`` of the
    structure energy is listed as *compensating* (it lowers the error but does not explain it), not as added; so
-   is one that a generic force on slider B, any function of its speed and position, makes unnecessary
-   (:mod:`.catchall`: a stand-in for physics outside the library).
+   is one that a generic force on slider B, any function of its speed and position, or a generic error of the
+   position reading makes unnecessary (:mod:`.catchall`: stand-ins for physics outside the library).
 7. *Routes* (:mod:`.routes`): before saying structure is left, the loop runs again from the other nominal fits it
    was given (the job gives the fast fit beside the GA's) — on a cycling record the nominal model has several
    optima far apart, and an effect refitted from one explains what it cannot from another; the route whose model

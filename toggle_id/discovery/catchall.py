@@ -1,4 +1,4 @@
-"""The catch-all check: does an accepted effect do anything that a force of unknown shape would not?
+"""The catch-all check: does an accepted effect do anything that a force or a reading error of unknown shape would not?
 
 When structure is left in the residual of the final model, the record holds something the library lacks, and
 an accepted effect may only stand in for it — a constant load force for a drag that, on a stroke run mostly
@@ -8,15 +8,18 @@ with the model *without* it, and against that model a stand-in does lower the er
 The check asks the question against a model that could hold the missing physics instead. It fits the final
 model with a generic force on slider B, any piecewise-linear function of the slider's speed plus one of its
 position (:data:`toggle_id.effects.GENERIC_FORCE`; the knots span the range the record covers, so the
-force is a non-parametric stand-in for every friction, drag, load or spring acting there). If the judge finds
-that force significant (prewhitened F-test and BIC, and the validation record when given; see :data:`SUPPORT`),
+force is a non-parametric stand-in for every friction, drag, load or spring acting there), and with a generic
+error of the position reading, any piecewise-linear function of the measured position on 40 knots
+(:data:`toggle_id.effects.GENERIC_SENSOR`: a stand-in for a scale's interpolation error, a bent or misaligned
+scale, and for a sensor offset, which it contains; an output map, so it costs no simulation). If the judge finds
+the two significant (prewhitened F-test and BIC, and the validation record when given; see :data:`SUPPORT`),
 every accepted effect is taken out of the model with the generic force in turn: one whose removal the same checks do
 not find significant — or that keeps less than ``catch_all_keep`` (10 %) of the error reduction it brings to the
 final model (a least-squares polish converges only so far, and an F-test on thousands of samples finds a 0.1 %
 gap) — does nothing the generic force does not do, and is listed as *compensating*, never as added.
 An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
-the generic force explains nothing more — the missing physics is then not a force on slider B, and the check
-decides nothing. The generic force is never part of the reported model.
+the generic terms explain nothing more — the missing physics is then neither a force on slider B nor an error of
+the reading, and the check decides nothing. The generic terms are never part of the reported model.
 """
 from __future__ import annotations
 
@@ -25,15 +28,17 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..effects import ALL_INDEX, EFFECTS_BY_NAME, GENERIC_FORCE
-from ..kernels.slots import N_GEN
+from ..effects import ALL_INDEX, EFFECTS_BY_NAME, GENERIC_FORCE, GENERIC_SENSOR, sensor_error
+from ..kernels.slots import N_GEN, N_GS
 from .model import Fit, Model, _off_values, _with, fit_free
 from .settings import DiscoverSettings
 from .validation import Judge
 
-#: The fitted weights of the generic force (its knots are set from the record). g is held at 0 at its first knot:
-#: f and g each hold the constant, and a direction of the fit that changes nothing would slow it down.
-WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_FORCE.names if "_w" in nm and nm != "gx_w0")
+#: The fitted weights of the generic force and of the generic sensor error (their knots are set from the record).
+#: g is held at 0 at its first knot: f and g each hold the constant, and a direction of the fit that changes nothing
+#: would slow it down.
+WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_FORCE.names + GENERIC_SENSOR.names
+                                 if "_w" in nm and nm != "gx_w0")
 
 
 #: The judge's checks that decide whether the generic force is supported, and whether an effect is still needed
@@ -51,47 +56,56 @@ def _supports(ev) -> bool:
     return all(ok for check, ok in ev.checks.items() if check in SUPPORT)
 
 
-def knots_of(states: dict) -> dict[str, float]:
-    """The knot ranges of the generic force from a model's plant states: slider B's speed and position, each from
-    its smallest to its largest value on the record."""
+def knots_of(states: dict, x_measured: np.ndarray) -> dict[str, float]:
+    """The knot ranges of the generic terms, each from the smallest to the largest value on the record: the force's
+    from a model's plant states (slider B's speed and position), the sensor error's from the measured position."""
     v = np.asarray(states["xdot_B"], float)
     x = np.asarray(states["x_B"], float)
-    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(x))):
-        raise ValueError("the plant states are not finite")
-    return {"gv_lo": float(v.min()), "gv_hi": float(v.max()), "gx_lo": float(x.min()), "gx_hi": float(x.max())}
+    xm = np.asarray(x_measured, float)
+    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(x)) and np.all(np.isfinite(xm))):
+        raise ValueError("the plant states or the measured position are not finite")
+    return {"gv_lo": float(v.min()), "gv_hi": float(v.max()), "gx_lo": float(x.min()), "gx_hi": float(x.max()),
+            "gs_lo": float(xm.min()), "gs_hi": float(xm.max())}
 
 
 def shape_of(theta: np.ndarray) -> dict[str, list[float]]:
-    """The generic force of ``theta`` at its knots: speeds ``v_m_s`` and f (N), positions ``x_m`` and g (N); f is
-    fixed only up to a constant that g (held at 0 at its first knot) and any constant slider force of the model
-    share with it."""
+    """The generic terms of ``theta`` at their knots: speeds ``v_m_s`` and f (N), positions ``x_m`` and g (N);
+    measured positions ``xs_m`` and the sensor error h (m). f is fixed only up to a constant that g (held at 0 at
+    its first knot) and any constant slider force of the model share with it; h's constant is shared with a
+    sensor offset of the model."""
     th = np.asarray(theta, float)
     v = np.linspace(th[ALL_INDEX["gv_lo"]], th[ALL_INDEX["gv_hi"]], N_GEN)
     x = np.linspace(th[ALL_INDEX["gx_lo"]], th[ALL_INDEX["gx_hi"]], N_GEN)
+    xs = np.linspace(th[ALL_INDEX["gs_lo"]], th[ALL_INDEX["gs_hi"]], N_GS)
     f = [float(th[ALL_INDEX[f"gv_w{k}"]]) for k in range(N_GEN)]
     g = [float(th[ALL_INDEX[f"gx_w{k}"]]) for k in range(N_GEN)]
-    return {"v_m_s": v.tolist(), "f_N": f, "x_m": x.tolist(), "g_N": g}
+    h = [float(th[ALL_INDEX[f"gs_w{k}"]]) for k in range(N_GS)]
+    return {"v_m_s": v.tolist(), "f_N": f, "x_m": x.tolist(), "g_N": g, "xs_m": xs.tolist(), "h_m": h}
 
 
 def figure(report: dict, title: str | None = None):
-    """The fitted generic force: f against slider B's speed and g against its position, at the knots (a
-    matplotlib Figure)."""
+    """The fitted generic terms: f against slider B's speed, g against its position and the sensor error h against
+    the measured position, at the knots (a matplotlib Figure)."""
     from ..figures import _finish, _new_figure
 
     sh = report["shape"]
-    fig, (a1, a2) = _new_figure(1, 2, height=3.4, width=9.0)
+    fig, (a1, a2, a3) = _new_figure(1, 3, height=3.4, width=13.0)
     a1.plot(np.asarray(sh["v_m_s"]) * 1e3, sh["f_N"], "o-")
     a1.set_xlabel("slider B speed ẋ_B (mm/s)")
     a1.set_ylabel("f(ẋ_B) (N, opposes closing)")
     a2.plot(np.asarray(sh["x_m"]) * 1e3, sh["g_N"], "o-", color="tab:orange")
     a2.set_xlabel("slider B position x_B (mm)")
     a2.set_ylabel("g(x_B) (N)")
-    for ax in (a1, a2):
+    a3.plot(np.asarray(sh["xs_m"]) * 1e3, np.asarray(sh["h_m"]) * 1e6, ".-", color="tab:green")
+    a3.set_xlabel("measured position x_B (mm)")
+    a3.set_ylabel("h(x_B), error of the reading (µm)")
+    for ax in (a1, a2, a3):
         ax.axhline(0.0, color="0.6", lw=0.8)
         ax.grid(alpha=0.3)
-    return _finish(fig, title or f"A generic force on slider B on top of the final model: rms "
-                              f"{report['rmse_before_m'] * 1e6:.4g} → {report['rmse_m'] * 1e6:.4g} µm\n"
-                              "(fitted beside the model's effects: f up to a constant shared with g and any load)")
+    return _finish(fig, title or f"A generic force on slider B and a generic error of the position reading on top "
+                              f"of the final model: rms {report['rmse_before_m'] * 1e6:.4g} → "
+                              f"{report['rmse_m'] * 1e6:.4g} µm\n(fitted beside the model's effects: f up to a "
+                              "constant shared with g and any load; h's constant shared with a sensor offset)")
 
 
 def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
@@ -101,7 +115,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     left in its residual; ``states``: its plant states). ``without(fit, a)``: ``fit`` refitted with effect ``a``
     switched off. See the module docstring."""
     n = model.n
-    knots = knots_of(states)
+    knots = knots_of(states, model.record.x_B)
     free = tuple(current.free) + WEIGHTS
     # the weights alone first (the force's shape, the model held), then everything
     shaped = fit_free(model, _with(current.theta, knots), WEIGHTS, settings.baseline_nfev, settings.fd_rel_step)
@@ -126,10 +140,11 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)
     supported = _supports(ev)
-    report = {"knots": knots, "n_knots": N_GEN, "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
+    report = {"knots": knots, "n_knots": N_GEN, "n_knots_sensor": N_GS, "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
-              "shape": shape_of(generic.theta), "effects": {}}
-    say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms "
+              "shape": shape_of(generic.theta), "effects": {},
+              "sensor_rms_m": float(np.sqrt(np.mean(sensor_error(generic.theta, model.record.x_B) ** 2)))}
+    say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) and sensor error h(x_B) on top of the final model: rms "
         f"{current.rmse(n) * 1e6:.4g} → {generic.rmse(n) * 1e6:.4g} µm, "
         + ("supported" if supported else "not supported (" + ev.reason + "); it decides nothing"))
     if not supported:
@@ -152,8 +167,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
             kept.append(a)
         else:
             compensating.append(dict(a, reason=(
-                f"lowers the error, but a generic force on slider B (any function of its speed and position) does "
-                f"its work: with that force {generic.rmse(n) * 1e6:.4g} µm, and {small.rmse(n) * 1e6:.4g} µm "
+                f"lowers the error, but a generic force on slider B (any function of its speed and position) or "
+                f"error of the position reading (any function of it) does its work: with them {generic.rmse(n) * 1e6:.4g} µm, and {small.rmse(n) * 1e6:.4g} µm "
                 f"without {a['name']} (it keeps {kept_fraction:.1%} of what it explains in the final model, "
                 f"{alone.rmse(n) * 1e6:.4g} → {current.rmse(n) * 1e6:.4g} µm). It stands in for something outside "
                 "the library")))

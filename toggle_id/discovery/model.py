@@ -10,9 +10,10 @@ from typing import Any
 import numpy as np
 
 from .. import params as P
-from ..effects import ALL_INDEX, EFFECTS, TERMS, Effect
+from ..effects import ALL_INDEX, EFFECTS, TERMS, Effect, sensor_error
 from ..errors import ConfigError, DataError
 from ..identify import stage_bounds
+from ..kernels.slots import GS_LO
 from ..polish import polish
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
@@ -76,14 +77,18 @@ class Model:
         """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA); NaN rows for failures. ``tier``:
         the integrator settings (default :attr:`settings`; the stiff fallback once the effect set is known stiff)."""
         thetas = np.atleast_2d(thetas)
-        self.n_sims += thetas.shape[0]
+        # rows that differ only in the generic sensor error (an output map) share one simulation
+        _, first, inverse = np.unique(thetas[:, :GS_LO], axis=0, return_index=True, return_inverse=True)
+        plant = thetas[first]
+        self.n_sims += plant.shape[0]
         tier = tier if tier is not None else self.settings
-        settings = self._settings_for(thetas[0], tier)
-        res = simulate(thetas, self.record, settings, parallel=self.parallel and thetas.shape[0] > 1)
-        if settings is tier and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(thetas):
-            self.stiff.add(effects_on(thetas[0]))
-        x = res.x_B
-        ok = res.status == STATUS_OK
+        settings = self._settings_for(plant[0], tier)
+        res = simulate(plant, self.record, settings, parallel=self.parallel and plant.shape[0] > 1)
+        if settings is tier and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(plant):
+            self.stiff.add(effects_on(plant[0]))
+        inverse = inverse.reshape(-1)
+        x = res.x_B[inverse] + sensor_error(thetas, self.record.x_B)
+        ok = res.status[inverse] == STATUS_OK
         x[~ok] = np.nan
         if self.excluded is not None:
             x[np.ix_(ok, self.excluded)] = self.record.x_B[self.excluded]
@@ -100,7 +105,7 @@ class Model:
     def response(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """x_B [m], i_q [A] and the status of one vector."""
         res = simulate(np.atleast_2d(theta), self.record, self._settings_for(np.atleast_2d(theta)[0]))
-        return res.x_B[0], res.i_q[0], int(res.status[0])
+        return res.x_B[0] + sensor_error(theta, self.record.x_B)[0], res.i_q[0], int(res.status[0])
 
 
 def _sse(r: np.ndarray) -> np.ndarray:

@@ -52,9 +52,9 @@ class DiscoverSettings:
       an accepted effect still counts as an explanation if it removed at least this fraction of the structure
       energy of the model without it (:func:`.localise.structure_energy`: it explains most of what it was added
       for); otherwise it is compensating. catch_all: when structure is left, fit a generic force on slider B
-      (any piecewise-linear function of its speed and position) on top of the final model; if it is supported,
-      an accepted effect it makes unnecessary is compensating, not added (:mod:`.catchall`). catch_all_keep: an
-      effect is still needed beside that force if its removal is significant in sample and costs at least this
+      (any piecewise-linear function of its speed and position) and a generic error of the position reading
+      on top of the final model; if they are supported, an accepted effect they make unnecessary is compensating,
+      not added (:mod:`.catchall`). catch_all_keep: an effect is still needed beside them if its removal is significant in sample and costs at least this
       fraction of the error reduction it brings to the final model. cogging_whole_tol: when structure is left, an
       accepted cogging torque whose n_cog lies farther than this from a whole number is compensating: a motor's
       cogging repeats a whole number of times per revolution (its slots and poles), so a fitted fraction stands in

@@ -15,7 +15,12 @@ GV_LO, GV_HI = C_KT + 1, C_KT + 2
 GV_W0 = GV_HI + 1
 GX_LO, GX_HI = GV_W0 + N_GEN, GV_W0 + N_GEN + 1
 GX_W0 = GX_HI + 1
-N_THETA = GX_W0 + N_GEN
+# the generic error of the position reading, h(x_B measured), piecewise linear on N_GS uniform knots from GS_LO to
+# GS_HI, weights GS_W0 … (m): an output map that toggle_id.discovery.model.Model adds; no kernel reads these slots
+N_GS = 40
+GS_LO, GS_HI = GX_W0 + N_GEN, GX_W0 + N_GEN + 1
+GS_W0 = GS_HI + 1
+N_THETA = GS_W0 + N_GS
 
 # ---- layout of the geometry array (toggle_id.plant.Geometry.as_array) --------------------------------------
 G_R1, G_R2, G_R3, G_R4, G_R5, G_H, G_PHI, G_P, G_Z, G_G, G_XBL, G_EPS = range(12)
