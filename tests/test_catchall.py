@@ -72,6 +72,8 @@ def test_the_knots_span_the_records_speed_and_position():
         catchall.knots_of({"x_B": np.array([0.01, np.nan]), "xdot_B": np.zeros(2)}, np.zeros(2))
     with pytest.raises(ValueError, match="not finite"):
         catchall.knots_of(STATES, np.array([0.01, np.inf]))
+    at_rest = catchall.knots_of(STATES, np.full(5, 0.03))
+    assert at_rest["gs_hi"] - at_rest["gs_lo"] == pytest.approx(1e-6)
 
 
 def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_sse: dict[str, float],

@@ -65,7 +65,7 @@ def knots_of(states: dict, x_measured: np.ndarray) -> dict[str, float]:
     if not (np.all(np.isfinite(v)) and np.all(np.isfinite(x)) and np.all(np.isfinite(xm))):
         raise ValueError("the plant states or the measured position are not finite")
     return {"gv_lo": float(v.min()), "gv_hi": float(v.max()), "gx_lo": float(x.min()), "gx_hi": float(x.max()),
-            "gs_lo": float(xm.min()), "gs_hi": float(xm.max())}
+            "gs_lo": float(xm.min()), "gs_hi": float(max(xm.max(), xm.min() + 1e-6))}  # a record at rest: 1 µm
 
 
 def shape_of(theta: np.ndarray) -> dict[str, list[float]]:
