@@ -259,3 +259,49 @@ def test_the_generic_sensor_error_is_added_at_the_measured_position_and_costs_no
     np.testing.assert_allclose(sensor_error(T[1], rec.x_B)[0], hat_basis(rec.x_B, lo, hi, K.N_GS) @ w)
     with pytest.raises(ValueError, match="hi > lo"):
         hat_basis(rec.x_B, hi, lo, K.N_GS)
+
+
+@pytest.mark.slow
+def test_a_sensor_offset_that_stands_in_for_a_scale_error_is_compensating():
+    """rec23's case, small: a linear scale's interpolation error (pitch 4 mm, 4 µm, largest where the slider rests
+    clamped) on a record with no effect of the library. A sensor offset takes up its value at the clamped end and
+    is significant; the generic error of the reading does that work and more, so the offset is compensating."""
+    from toggle_id.discovery.model import Model, fit_free
+    from toggle_id.discovery.residual import _residual
+    from toggle_id.discovery.validation import Judge
+    from toggle_id.record import Record
+    from toggle_id.simulate import PRECISE, simulate
+
+    rec = Record.from_sweep("simulation", duration=1.0)
+    truth = extend(ASSIGNED)[0]
+    x = simulate(truth[None, :], rec, PRECISE).x_B[0]
+    phase = np.pi / 2 - 2 * np.pi * x[-1] / 4e-3
+    rec.x_B = x + 4e-6 * np.sin(2 * np.pi * x / 4e-3 + phase) + 1e-6 * np.random.default_rng(4).standard_normal(rec.n)
+    model = Model(rec)
+    s = DiscoverSettings(baseline_nfev=40, null_nfev=20)
+    free = ("mu", "K_i")
+    current = fit_free(model, truth, free + ("x_off",), s.baseline_nfev, s.fd_rel_step)
+    alone = fit_free(model, truth, free, s.baseline_nfev, s.fd_rel_step)
+    judge = Judge(model, s)
+    assert judge.judge_pair(alone, current).checks["f_test"]  # the offset alone is significant
+    states = _residual(model, current.theta)[1]
+
+    def without(fit, a):  # the sensor offset switched off, the rest refitted
+        start = fit.theta.copy()
+        start[ALL_INDEX["x_off"]] = 0.0
+        return fit_free(model, start, tuple(n for n in fit.free if n != "x_off"), s.baseline_nfev, s.fd_rel_step)
+
+    said = []
+    kept, comp, report = catchall.catch_all(model, judge, current, [{"name": "sensor_offset"}], states, without, s,
+                                            said.append)
+    assert report["supported"] and kept == [] and [c["name"] for c in comp] == ["sensor_offset"]
+    assert report["sensor_rms_m"] > 2e-6
+    # the fitted reading error holds the scale's error: its 4-mm component has the scale's amplitude and phase. (Its
+    # smooth part trades with the generic force and the parameters on a stroke run once: the record fixes only
+    # the sum, which reaches the noise.)
+    xf = np.linspace(report["shape"]["xs_m"][0], report["shape"]["xs_m"][-1], 4000)
+    u, arg = (xf - xf[0]) / np.ptp(xf), 2 * np.pi * xf / 4e-3 + phase
+    B = np.column_stack([np.sin(arg), np.cos(arg), np.ones_like(u), u, u ** 2, u ** 3])
+    c = np.linalg.lstsq(B, np.interp(xf, report["shape"]["xs_m"], report["shape"]["h_m"]), rcond=None)[0]
+    assert c[0] == pytest.approx(4e-6, rel=0.25) and abs(c[1]) < 1e-6
+    assert report["rmse_m"] < 1.1e-6

@@ -744,7 +744,7 @@ def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest
 
 def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_models_whitened_fit(monkeypatch):
     """Under a coloured noise model both fits are refitted whitened; the larger one also from the smaller one's
-    whitened fit with its extra parameters added (nested), and the lower of its two refits is judged: from its
+    whitened fit with everything else as in the larger (nested), and the lower of its two refits is judged: from its
     own least-squares point alone it ends above the smaller model here (F < 0)."""
     from types import SimpleNamespace
 
@@ -756,6 +756,7 @@ def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_mod
     small = Fit(theta.copy(), ("mu",), sse=10.0)
     large = Fit(theta.copy(), ("mu", "tau_c"), sse=8.0)
     large.theta[ALL_INDEX["tau_c"]], large.theta[ALL_INDEX["mu"]] = 0.2, 0.5
+    large.theta[ALL_INDEX["gs_lo"]] = 0.02  # fixed, not free: shapes the larger model (a generic term's knot)
 
     def fake_fit_free(model, start, names, *a, **k):
         names = tuple(names)
@@ -776,6 +777,7 @@ def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_mod
     small_w, large_w = seen[0]
     assert small_w.sse == 9.0 and large_w.sse == 7.0
     assert large_w.theta[ALL_INDEX["mu"]] == 0.3 and large_w.theta[ALL_INDEX["tau_c"]] == 0.2
+    assert large_w.theta[ALL_INDEX["gs_lo"]] == 0.02  # the nested start keeps what shapes the larger model
     assert judge.model.noise == "white"  # the model's own noise model is restored
     seen.clear()
     monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=True))

@@ -138,12 +138,13 @@ class Judge:
         try:
             small_w = fit_free(self.model, small.theta, small.free, self.s.null_nfev, self.s.fd_rel_step)
             large_w = fit_free(self.model, large.theta, large.free, self.s.null_nfev, self.s.fd_rel_step)
-            extra = {nm: large.theta[ALL_INDEX[nm]] for nm in large.free if nm not in small.free}
-            if extra and set(small.free) <= set(large.free):
-                # nested: the larger model also from the smaller one's whitened fit with its extra parameters as
-                # in ``large`` — the least-squares optimum of ``large`` can lie where the whitened one of the
-                # smaller model is not, and a whitened refit from there alone can end above it (F < 0)
-                nested = fit_free(self.model, _with(small_w.theta, extra), large.free, self.s.null_nfev,
+            if set(small.free) < set(large.free):
+                # nested: the larger model also from the smaller one's whitened fit with everything else as in
+                # ``large`` (its extra parameters, and the fixed ones that shape them: a nuisance parameter, the
+                # knots of a generic term) — the least-squares optimum of ``large`` can lie where the whitened one
+                # of the smaller model is not, and a whitened refit from there alone can end above it (F < 0)
+                shared = {nm: small_w.theta[ALL_INDEX[nm]] for nm in small.free}
+                nested = fit_free(self.model, _with(large.theta, shared), large.free, self.s.null_nfev,
                                   self.s.fd_rel_step)
                 large_w = min((large_w, nested), key=lambda f: f.sse)
         finally:
