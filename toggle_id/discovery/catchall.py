@@ -140,7 +140,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)
     supported = _supports(ev)
-    report = {"knots": knots, "n_knots": N_GEN, "n_knots_sensor": N_GS, "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
+    report = {"knots": knots, "n_knots": N_GEN, "n_knots_sensor": N_GS, "rmse_before_m": current.rmse(n),
+              "rmse_m": generic.rmse(n),
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
               "shape": shape_of(generic.theta), "effects": {},
               "sensor_rms_m": float(np.sqrt(np.mean(sensor_error(generic.theta, model.record.x_B) ** 2)))}
@@ -168,7 +169,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         else:
             compensating.append(dict(a, reason=(
                 f"lowers the error, but a generic force on slider B (any function of its speed and position) or "
-                f"error of the position reading (any function of it) does its work: with them {generic.rmse(n) * 1e6:.4g} µm, and {small.rmse(n) * 1e6:.4g} µm "
+                f"error of the position reading (any function of it) does its work: with them "
+                f"{generic.rmse(n) * 1e6:.4g} µm, and {small.rmse(n) * 1e6:.4g} µm "
                 f"without {a['name']} (it keeps {kept_fraction:.1%} of what it explains in the final model, "
                 f"{alone.rmse(n) * 1e6:.4g} → {current.rmse(n) * 1e6:.4g} µm). It stands in for something outside "
                 "the library")))

@@ -110,10 +110,11 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
     else:
         text += f" The residual is consistent with {noise(after)} noise independent of the states and the input."
     if catch and catch.get("supported"):
-        text += (f" A force on slider B and an error of the position reading, both of unknown shape (generic, piecewise "
-                 f"linear in the slider's speed and position), take the error to {catch['rmse_m'] * 1e6:.4g} µm (the "
-                 f"reading error's part: RMS {catch.get('sensor_rms_m', float('nan')) * 1e6:.3g} µm): what is "
-                 "missing acts, at least in part, like one of them (their fitted shapes: catch_all.png).")
+        reading = catch.get("sensor_rms_m", float("nan")) * 1e6
+        text += (f" A force on slider B and an error of the position reading, both of unknown shape (generic, "
+                 f"piecewise linear in the slider's speed and position), take the error to "
+                 f"{catch['rmse_m'] * 1e6:.4g} µm (the reading error's part: RMS {reading:.3g} µm): what is missing "
+                 "acts, at least in part, like one of them (their fitted shapes: catch_all.png).")
     part = (predicted or {}).get("parameter_uncertainty") or {}
     if predicted is not None and predicted.get("structure_left") and part and not part["rest_structure_left"]:
         text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "
