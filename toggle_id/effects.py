@@ -135,12 +135,13 @@ GENERIC_FORCE = Effect(
 
 #: Not a library effect, never named: an error of the position reading of any shape, h(x_B), piecewise linear on
 #: ``N_GS`` uniform knots from ``gs_lo`` to ``gs_hi`` (m; set from the record, not fitted) with weights ``gs_w*`` (m),
-#: added to the model's x_B at the *measured* position (an interpolation error of a linear scale, a misaligned or
-#: bent scale). An output map, not a kernel term: :class:`toggle_id.discovery.model.Model` adds it, and a batch whose
-#: rows differ only in it costs one simulation. The catch-all check fits it beside :data:`GENERIC_FORCE`.
+#: added to the model's x_B at the model's position (an interpolation error of a linear scale, a misaligned or bent
+#: scale; at the measured position its slope would fit the noise of a slider at rest). An output map, not a kernel
+#: term: :class:`toggle_id.discovery.model.Model` adds it, and a batch whose rows differ only in it costs one
+#: simulation. The catch-all check fits it beside :data:`GENERIC_FORCE`.
 GENERIC_SENSOR = Effect(
-    "generic_sensor_error", "an error of the position reading, any piecewise-linear function of the measured x_B",
-    _generic_params("gs", K.GS_LO, K.GS_W0, "m", K.N_GS, "m", 5e-3),
+    "generic_sensor_error", "an error of the position reading, any piecewise-linear function of the position x_B",
+    _generic_params("gs", K.GS_LO, K.GS_W0, "m", K.N_GS, "m", 1e-3),
     tuple({f"gs_w{k}": 1e-6} for k in range(K.N_GS)))
 
 #: Every term of the extended parameter vector beyond the 15 physical parameters: the library, then the generic
@@ -178,28 +179,18 @@ def effect_bounds(names) -> tuple[np.ndarray, np.ndarray]:
     return (np.array([lookup[n].lower for n in names], float), np.array([lookup[n].upper for n in names], float))
 
 
-def hat_basis(x: np.ndarray, lo: float, hi: float, n: int) -> np.ndarray:
-    """(len(x), n) piecewise-linear interpolation weights of ``x`` on ``n`` uniform knots from ``lo`` to ``hi``
-    (constant beyond them): row i times the knots' values is the interpolant at x[i]."""
-    x = np.asarray(x, float)
-    if not hi > lo:
-        raise ValueError(f"the knots need hi > lo, got {lo!r} … {hi!r}")
-    u = np.clip((x - lo) / (hi - lo) * (n - 1), 0.0, n - 1)
-    k = np.minimum(np.floor(u).astype(np.int64), n - 2)
-    w = u - k
-    out = np.zeros((x.size, n))
-    rows = np.arange(x.size)
-    out[rows, k] = 1.0 - w
-    out[rows, k + 1] = w
-    return out
 
-
-def sensor_error(thetas: np.ndarray, x_measured: np.ndarray) -> np.ndarray:
+def sensor_error(thetas: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(P, N) generic error of the position reading (:data:`GENERIC_SENSOR`) of extended vectors ``thetas`` at the
-    measured positions ``x_measured``; zeros for rows with all its weights at 0."""
+    positions ``x`` ((N,), or (P, N): one row per vector), interpolated linearly between its knots and constant
+    beyond them; zeros for rows with all its weights at 0."""
     thetas = np.atleast_2d(thetas)
+    x = np.asarray(x, float)
     W = thetas[:, K.GS_W0:K.GS_W0 + K.N_GS]
-    out = np.zeros((thetas.shape[0], np.size(x_measured)))
+    out = np.zeros((thetas.shape[0], x.shape[-1]))
     for i in np.flatnonzero(np.any(W != 0.0, axis=1)):
-        out[i] = hat_basis(x_measured, thetas[i, K.GS_LO], thetas[i, K.GS_HI], K.N_GS) @ W[i]
+        lo, hi = thetas[i, K.GS_LO], thetas[i, K.GS_HI]
+        if not hi > lo:
+            raise ValueError(f"the generic sensor error's knots need gs_hi > gs_lo, got {lo!r} … {hi!r}")
+        out[i] = np.interp(x if x.ndim == 1 else x[i], np.linspace(lo, hi, K.N_GS), W[i])
     return out

@@ -9,7 +9,7 @@ The check asks the question against a model that could hold the missing physics 
 model with a generic force on slider B, any piecewise-linear function of the slider's speed plus one of its
 position (:data:`toggle_id.effects.GENERIC_FORCE`; the knots span the range the record covers, so the
 force is a non-parametric stand-in for every friction, drag, load or spring acting there), and with a generic
-error of the position reading, any piecewise-linear function of the measured position on 40 knots
+error of the position reading, any piecewise-linear function of the position on 40 knots
 (:data:`toggle_id.effects.GENERIC_SENSOR`: a stand-in for a scale's interpolation error, a bent or misaligned
 scale, and for a sensor offset, which it contains; an output map, so it costs no simulation). If the judge finds
 the two significant (prewhitened F-test and BIC, and the validation record when given; see :data:`SUPPORT`),
@@ -58,7 +58,8 @@ def _supports(ev) -> bool:
 
 def knots_of(states: dict, x_measured: np.ndarray) -> dict[str, float]:
     """The knot ranges of the generic terms, each from the smallest to the largest value on the record: the force's
-    from a model's plant states (slider B's speed and position), the sensor error's from the measured position."""
+    from a model's plant states (slider B's speed and position), the sensor error's from the measured position
+    (the range the reading covers; the error is evaluated at the model's position, constant beyond its knots)."""
     v = np.asarray(states["xdot_B"], float)
     x = np.asarray(states["x_B"], float)
     xm = np.asarray(x_measured, float)

@@ -86,9 +86,9 @@ class Model:
         res = simulate(plant, self.record, settings, parallel=self.parallel and plant.shape[0] > 1)
         if settings is tier and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(plant):
             self.stiff.add(effects_on(plant[0]))
-        inverse = inverse.reshape(-1)
-        x = res.x_B[inverse] + sensor_error(thetas, self.record.x_B)
-        ok = res.status[inverse] == STATUS_OK
+        x = res.x_B[inverse.reshape(-1)]
+        x += sensor_error(thetas, x)
+        ok = res.status[inverse.reshape(-1)] == STATUS_OK
         x[~ok] = np.nan
         if self.excluded is not None:
             x[np.ix_(ok, self.excluded)] = self.record.x_B[self.excluded]
@@ -105,7 +105,7 @@ class Model:
     def response(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """x_B [m], i_q [A] and the status of one vector."""
         res = simulate(np.atleast_2d(theta), self.record, self._settings_for(np.atleast_2d(theta)[0]))
-        return res.x_B[0] + sensor_error(theta, self.record.x_B)[0], res.i_q[0], int(res.status[0])
+        return res.x_B[0] + sensor_error(theta, res.x_B[0])[0], res.i_q[0], int(res.status[0])
 
 
 def _sse(r: np.ndarray) -> np.ndarray:
