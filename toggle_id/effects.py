@@ -149,7 +149,8 @@ GENERIC_SENSOR = Effect(
 TERMS: tuple[Effect, ...] = EFFECTS + (GENERIC_FORCE, GENERIC_SENSOR)
 
 #: Names of the library effects' parameters (kernel order); the extended parameter vector holds the 15 physical
-#: ones, then these, then the generic force's (which no report lists: it is never part of a reported model).
+#: ones, then these, then the generic force's and the generic sensor error's (which no report lists: they are never
+#: part of a reported model).
 EXTRA_NAMES: tuple[str, ...] = ("tau_c", "F_s", "v_s", "c_B", "tau_d", "b_l", "a_cog", "n_cog", "phi_cog",
                                 "F_load", "k3", "s_sat", "x_off", "c_kt")
 ALL_NAMES: tuple[str, ...] = PARAM_NAMES + EXTRA_NAMES + GENERIC_FORCE.names + GENERIC_SENSOR.names
@@ -177,7 +178,6 @@ def effect_bounds(names) -> tuple[np.ndarray, np.ndarray]:
     """Feasible domain of extended (effect) parameter names."""
     lookup = {p.name: p for e in TERMS for p in e.params}
     return (np.array([lookup[n].lower for n in names], float), np.array([lookup[n].upper for n in names], float))
-
 
 
 def sensor_error(thetas: np.ndarray, x: np.ndarray) -> np.ndarray:

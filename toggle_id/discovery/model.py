@@ -74,8 +74,9 @@ class Model:
         return fb if fb is not None and effects_on(theta) in self.stiff else tier
 
     def outputs(self, thetas: np.ndarray, tier: SolverSettings | None = None) -> np.ndarray:
-        """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA); NaN rows for failures. ``tier``:
-        the integrator settings (default :attr:`settings`; the stiff fallback once the effect set is known stiff)."""
+        """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA), the generic sensor error
+        (:func:`toggle_id.effects.sensor_error`) added; NaN rows for failures. ``tier``: the integrator settings
+        (default :attr:`settings`; the stiff fallback once the effect set is known stiff)."""
         thetas = np.atleast_2d(thetas)
         # rows that differ only in the generic sensor error (an output map) share one simulation
         _, first, inverse = np.unique(thetas[:, :GS_LO], axis=0, return_index=True, return_inverse=True)
