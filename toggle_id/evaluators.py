@@ -9,8 +9,8 @@ The thing evaluated is a *problem*: a picklable object with
 Evaluators own no randomness and never reorder rows, so for a row-deterministic problem every evaluator,
 whatever its number of workers, returns the same array bit for bit.
 
-Ray and the network (Ray 2.60, read from its ``ray/_private/worker.py``, ``services.py`` and
-``authentication/authentication_token_setup.py``): a local Ray started here gets ``include_dashboard=False``
+Ray and the network (Ray 2.60, read from its modules ``ray._private.worker``, ``ray._private.services`` and
+``ray._private.authentication.authentication_token_setup``): a local Ray started here gets ``include_dashboard=False``
 and ``_node_ip_address="127.0.0.1"``, but Ray re-resolves a loopback node address to the machine's routable
 IP (``services.resolve_ip_for_localhost``) and its gRPC servers (GCS, raylet, workers) bind the wildcard
 address, so ``ray.init`` cannot confine a cluster to loopback. What protects it is token authentication:

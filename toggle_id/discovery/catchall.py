@@ -145,6 +145,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
               "rmse_m": generic.rmse(n),
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
               "shape": shape_of(generic.theta), "effects": {},
+              # at the measured positions (the model's are a simulation away; they differ by the residual)
               "sensor_rms_m": float(np.sqrt(np.mean(sensor_error(generic.theta, model.record.x_B) ** 2)))}
     say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) and sensor error h(x_B) on top of the final model: rms "
         f"{current.rmse(n) * 1e6:.4g} → {generic.rmse(n) * 1e6:.4g} µm, "

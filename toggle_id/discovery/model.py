@@ -78,18 +78,21 @@ class Model:
         (:func:`toggle_id.effects.sensor_error`) added; NaN rows for failures. ``tier``: the integrator settings
         (default :attr:`settings`; the stiff fallback once the effect set is known stiff)."""
         thetas = np.atleast_2d(thetas)
-        # rows that differ only in the generic sensor error (an output map) share one simulation
+        # rows that differ only in the generic sensor error (an output map) share one simulation; the plant rows in
+        # the order they first occur, so plant[0] is thetas[0] (the stiff-fallback decision reads it)
         _, first, inverse = np.unique(thetas[:, :GS_LO], axis=0, return_index=True, return_inverse=True)
-        plant = thetas[first]
+        order = np.argsort(first)
+        plant = thetas[first[order]]
+        inverse = np.argsort(order)[inverse.reshape(-1)]
         self.n_sims += plant.shape[0]
         tier = tier if tier is not None else self.settings
         settings = self._settings_for(plant[0], tier)
         res = simulate(plant, self.record, settings, parallel=self.parallel and plant.shape[0] > 1)
         if settings is tier and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(plant):
             self.stiff.add(effects_on(plant[0]))
-        x = res.x_B[inverse.reshape(-1)]
+        x = res.x_B[inverse]
         x += sensor_error(thetas, x)
-        ok = res.status[inverse.reshape(-1)] == STATUS_OK
+        ok = res.status[inverse] == STATUS_OK
         x[~ok] = np.nan
         if self.excluded is not None:
             x[np.ix_(ok, self.excluded)] = self.record.x_B[self.excluded]
