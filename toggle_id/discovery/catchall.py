@@ -11,9 +11,11 @@ position (:data:`toggle_id.effects.GENERIC_FORCE`; the knots span the range the 
 force is a non-parametric stand-in for every friction, drag, load or spring acting there), and with a generic
 error of the position reading, any piecewise-linear function of the position on 40 knots
 (:data:`toggle_id.effects.GENERIC_SENSOR`: a stand-in for a scale's interpolation error, a bent or misaligned
-scale, and for a sensor offset, which it contains; an output map, so it costs no simulation). If the judge finds
-the two significant (prewhitened F-test and BIC, and the validation record when given; see :data:`SUPPORT`),
-every accepted effect is taken out of the model with the generic force in turn: one whose removal the same checks do
+scale, and for a sensor offset, which it contains; an output map, so it costs no simulation). The reading error is
+fitted after the force, from its fit, and kept only where the judge finds it needed beyond the force: its constant
+would otherwise make every true sensor offset look unneeded. If the judge finds the generic terms significant
+(prewhitened F-test and BIC, and the validation record when given; see :data:`SUPPORT`), every accepted effect is
+taken out of the model with them in turn: one whose removal the same checks do
 not find significant — or that keeps less than ``catch_all_keep`` (10 %) of the error reduction it brings to the
 final model (a least-squares polish converges only so far, and an F-test on thousands of samples finds a 0.1 %
 gap) — does nothing the generic force does not do, and is listed as *compensating*, never as added.
@@ -34,11 +36,12 @@ from .model import Fit, Model, _off_values, _with, fit_free
 from .settings import DiscoverSettings
 from .validation import Judge
 
-#: The fitted weights of the generic force and of the generic sensor error (their knots are set from the record).
-#: g is held at 0 at its first knot: f and g each hold the constant, and a direction of the fit that changes nothing
-#: would slow it down.
-WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_FORCE.names + GENERIC_SENSOR.names
-                                 if "_w" in nm and nm != "gx_w0")
+#: The fitted weights of the generic force (their knots are set from the record). g is held at 0 at its first knot:
+#: f and g each hold the constant, and a direction of the fit that changes nothing would slow it down.
+FORCE_WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_FORCE.names if "_w" in nm and nm != "gx_w0")
+#: The fitted weights of the generic error of the reading (its knots are set from the record).
+SENSOR_WEIGHTS: tuple[str, ...] = tuple(nm for nm in GENERIC_SENSOR.names if "_w" in nm)
+WEIGHTS: tuple[str, ...] = FORCE_WEIGHTS + SENSOR_WEIGHTS
 
 
 #: The judge's checks that decide whether the generic force is supported, and whether an effect is still needed
@@ -117,14 +120,25 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     switched off. See the module docstring."""
     n = model.n
     knots = knots_of(states, model.record.x_B)
-    free = tuple(current.free) + WEIGHTS
-    # the weights alone first (the force's shape, the model held), then everything
-    shaped = fit_free(model, _with(current.theta, knots), WEIGHTS, settings.baseline_nfev, settings.fd_rel_step)
-    generic = fit_free(model, shaped.theta, free, settings.baseline_nfev, settings.fd_rel_step,
-                       rounds=settings.rounds)
 
-    def taken_out(a: dict) -> Fit:  # the force's shape takes over first (the model held), then the whole refit
-        off = fit_free(model, _with(generic.theta, _off_values(EFFECTS_BY_NAME[a["name"]])), WEIGHTS,
+    def generic_fit(start: np.ndarray, shaping: tuple[str, ...], weights: tuple[str, ...]) -> Fit:
+        # the new weights alone first (their shape, the model held), then everything
+        shaped = fit_free(model, start, shaping, settings.baseline_nfev, settings.fd_rel_step)
+        return fit_free(model, shaped.theta, tuple(current.free) + weights, settings.baseline_nfev,
+                        settings.fd_rel_step, rounds=settings.rounds)
+
+    # the force first, then the reading error beside it (nested: from the force's fit). The reading error is kept
+    # only if the judge finds it needed beyond the force: it contains a constant, so a true sensor offset would
+    # otherwise always be "done" by it, whatever else it finds to do
+    force = generic_fit(_with(current.theta, knots), FORCE_WEIGHTS, FORCE_WEIGHTS)
+    both = generic_fit(force.theta, SENSOR_WEIGHTS, WEIGHTS)
+    ev_reading = judge.judge_pair(force, both)
+    reading = _supports(ev_reading)
+    weights, generic = (WEIGHTS, both) if reading else (FORCE_WEIGHTS, force)
+    free = tuple(current.free) + weights
+
+    def taken_out(a: dict) -> Fit:  # the generic terms take over first (the model held), then the whole refit
+        off = fit_free(model, _with(generic.theta, _off_values(EFFECTS_BY_NAME[a["name"]])), weights,
                        settings.baseline_nfev, settings.fd_rel_step)
         return without(replace(off, free=generic.free), a)
 
@@ -141,15 +155,18 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)
     supported = _supports(ev)
-    report = {"knots": knots, "n_knots": N_GEN, "n_knots_sensor": N_GS, "rmse_before_m": current.rmse(n),
-              "rmse_m": generic.rmse(n),
+    report = {"knots": knots, "n_knots": N_GEN, "n_knots_sensor": N_GS,
+              "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
+              "reading_error": {"needed": reading, "rmse_force_only_m": force.rmse(n),
+                                "rmse_with_it_m": both.rmse(n), "evidence": ev_reading.to_dict()},
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
               "shape": shape_of(generic.theta), "effects": {},
               # at the measured positions (the model's are a simulation away; they differ by the residual)
               "sensor_rms_m": float(np.sqrt(np.mean(sensor_error(generic.theta, model.record.x_B) ** 2)))}
-    say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) and sensor error h(x_B) on top of the final model: rms "
-        f"{current.rmse(n) * 1e6:.4g} → {generic.rmse(n) * 1e6:.4g} µm, "
-        + ("supported" if supported else "not supported (" + ev.reason + "); it decides nothing"))
+    say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms {current.rmse(n) * 1e6:.4g}"
+        f" → {force.rmse(n) * 1e6:.4g} µm; a generic sensor error h(x_B) beside it: {both.rmse(n) * 1e6:.4g} µm, "
+        + ("needed" if reading else f"not needed ({ev_reading.reason})") + "; the generic terms: "
+        + ("supported" if supported else "not supported (" + ev.reason + "); they decide nothing"))
     if not supported:
         return list(added), [], report
     kept, compensating = [], []
@@ -170,8 +187,9 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
             kept.append(a)
         else:
             compensating.append(dict(a, reason=(
-                f"lowers the error, but a generic force on slider B (any function of its speed and position) or "
-                f"error of the position reading (any function of it) does its work: with them "
+                "lowers the error, but a generic force on slider B (any function of its speed and position)"
+                + (" or error of the position reading (any function of it)" if reading else "") +
+                f" does its work: with them "
                 f"{generic.rmse(n) * 1e6:.4g} µm, and {small.rmse(n) * 1e6:.4g} µm "
                 f"without {a['name']} (it keeps {kept_fraction:.1%} of what it explains in the final model, "
                 f"{alone.rmse(n) * 1e6:.4g} → {current.rmse(n) * 1e6:.4g} µm). It stands in for something outside "
