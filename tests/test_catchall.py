@@ -189,8 +189,11 @@ def test_the_report_gives_the_forces_shape_its_figure_and_a_sentence_of_the_conc
     before = {"rms_m": 3e-6}
     after = {"rms_m": 1.3e-6, "verdict": {"structure_left": True}, "localisation": {"text": "a bump"}}
     text = _conclusion([], before, after, True, DiscoverSettings(), comp, catch={**report, "rmse_m": 1.0e-6})
+    assert "error of the position reading, both of unknown shape" not in text and "reading error's part" not in text
+    assert "adds nothing significant beside it" in text and "1 µm" in text and "catch_all.png" in text
+    needed = {**report, "rmse_m": 1.0e-6, "reading_error": {**report["reading_error"], "needed": True}}
+    text = _conclusion([], before, after, True, DiscoverSettings(), comp, catch=needed)
     assert "error of the position reading, both of unknown shape" in text and "reading error's part" in text
-    assert "1 µm" in text and "catch_all.png" in text
     assert "unknown shape" not in _conclusion([], before, after, True, DiscoverSettings(), comp,
                                               catch={**report, "supported": False})
 

@@ -103,6 +103,8 @@ def figure(report: dict, title: str | None = None):
     a3.plot(np.asarray(sh["xs_m"]) * 1e3, np.asarray(sh["h_m"]) * 1e6, ".-", color="tab:green")
     a3.set_xlabel("measured position x_B (mm)")
     a3.set_ylabel("h(x_B), error of the reading (µm)")
+    if not (report.get("reading_error") or {}).get("needed", True):
+        a3.set_title("not needed beside the force: left out", fontsize=9)
     for ax in (a1, a2, a3):
         ax.axhline(0.0, color="0.6", lw=0.8)
         ax.grid(alpha=0.3)

@@ -110,11 +110,17 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
     else:
         text += f" The residual is consistent with {noise(after)} noise independent of the states and the input."
     if catch and catch.get("supported"):
-        reading = catch.get("sensor_rms_m", float("nan")) * 1e6
-        text += (f" A force on slider B and an error of the position reading, both of unknown shape (generic, "
-                 f"piecewise linear in the slider's speed and position), take the error to "
-                 f"{catch['rmse_m'] * 1e6:.4g} µm (the reading error's part: RMS {reading:.3g} µm): what is missing "
-                 "acts, at least in part, like one of them (their fitted shapes: catch_all.png).")
+        if (catch.get("reading_error") or {}).get("needed", True):
+            reading = catch.get("sensor_rms_m", float("nan")) * 1e6
+            text += (f" A force on slider B and an error of the position reading, both of unknown shape (generic, "
+                     f"piecewise linear in the slider's speed and position), take the error to "
+                     f"{catch['rmse_m'] * 1e6:.4g} µm (the reading error's part: RMS {reading:.3g} µm): what is "
+                     "missing acts, at least in part, like one of them (their fitted shapes: catch_all.png).")
+        else:
+            text += (f" A force on slider B of unknown shape (generic, piecewise linear in the slider's speed and "
+                     f"position) takes the error to {catch['rmse_m'] * 1e6:.4g} µm, and an error of the position "
+                     "reading of any shape adds nothing significant beside it: what is missing acts, at least in "
+                     "part, like a force on the slider (its fitted shape: catch_all.png).")
     part = (predicted or {}).get("parameter_uncertainty") or {}
     if predicted is not None and predicted.get("structure_left") and part and not part["rest_structure_left"]:
         text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "
