@@ -103,13 +103,14 @@ def figure(report: dict, title: str | None = None):
     a3.plot(np.asarray(sh["xs_m"]) * 1e3, np.asarray(sh["h_m"]) * 1e6, ".-", color="tab:green")
     a3.set_xlabel("measured position x_B (mm)")
     a3.set_ylabel("h(x_B), error of the reading (µm)")
-    if not (report.get("reading_error") or {}).get("needed", True):
+    reading = (report.get("reading_error") or {}).get("needed", True)
+    if not reading:
         a3.set_title("not needed beside the force: left out", fontsize=9)
     for ax in (a1, a2, a3):
         ax.axhline(0.0, color="0.6", lw=0.8)
         ax.grid(alpha=0.3)
-    return _finish(fig, title or f"A generic force on slider B and a generic error of the position reading on top "
-                              f"of the final model: rms {report['rmse_before_m'] * 1e6:.4g} → "
+    terms = "A generic force on slider B" + (" and a generic error of the position reading" if reading else "")
+    return _finish(fig, title or f"{terms} on top of the final model: rms {report['rmse_before_m'] * 1e6:.4g} → "
                               f"{report['rmse_m'] * 1e6:.4g} µm\n(fitted beside the model's effects: f up to a "
                               "constant shared with g and any load; h's constant shared with a sensor offset)")
 
