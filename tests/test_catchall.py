@@ -194,8 +194,25 @@ def test_the_report_gives_the_forces_shape_its_figure_and_a_sentence_of_the_conc
     needed = {**report, "rmse_m": 1.0e-6, "reading_error": {**report["reading_error"], "needed": True}}
     text = _conclusion([], before, after, True, DiscoverSettings(), comp, catch=needed)
     assert "error of the position reading, both of unknown shape" in text and "reading error's part" in text
+    assert "scale error" not in text  # h is flat here: no trend to describe
+    xs = np.asarray(report["shape"]["xs_m"])
+    ramp = {**report["shape"], "h_m": list(5e-4 * (xs - xs[0]) + 2e-6 * np.sin(xs / 1e-3))}
+    text = _conclusion([], before, after, True, DiscoverSettings(), comp,
+                       catch={**needed, "shape": ramp, "sensor_trend": catchall.trend_of(ramp)})
+    assert "as a scale error of 0.0005 would" in text and "rises 23.8 µm over the 48 mm measured" in text
     assert "unknown shape" not in _conclusion([], before, after, True, DiscoverSettings(), comp,
                                               catch={**report, "supported": False})
+
+
+def test_the_trend_of_the_reading_error_is_its_straight_line_part():
+    xs = np.linspace(0.02, 0.066, K.N_GS)
+    line = catchall.trend_of({"xs_m": list(xs), "h_m": list(-3e-6 + 4e-4 * xs)})
+    assert line["scale_error"] == pytest.approx(4e-4) and line["r2"] == pytest.approx(1.0)
+    assert line["rise_m"] == pytest.approx(4e-4 * 0.046)
+    wave = catchall.trend_of({"xs_m": list(xs), "h_m": list(4e-6 * np.sin(2 * np.pi * xs / 5e-3))})
+    assert wave["r2"] < catchall.TREND_R2  # a periodic error is no scale error
+    assert catchall.trend_of({"xs_m": list(xs), "h_m": [0.0] * K.N_GS}) == {"scale_error": 0.0, "rise_m": 0.0,
+                                                                             "r2": 0.0}
 
 
 def test_the_generic_force_is_no_library_effect_and_off_by_default():

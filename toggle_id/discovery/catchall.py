@@ -87,6 +87,23 @@ def shape_of(theta: np.ndarray) -> dict[str, list[float]]:
     return {"v_m_s": v.tolist(), "f_N": f, "x_m": x.tolist(), "g_N": g, "xs_m": xs.tolist(), "h_m": h}
 
 
+#: The share of the sensor error's variance a straight line must hold for the report to call it a scale error
+#: (a description of the fitted shape; no verdict reads it).
+TREND_R2 = 0.5
+
+
+def trend_of(shape: dict[str, list[float]]) -> dict[str, float]:
+    """The straight-line part of the sensor error h of ``shape`` (:func:`shape_of`) over its knots, uniform along the
+    measured range: ``scale_error`` (its slope, m/m: a scale's thermal expansion or a wrong resolution reads as one),
+    ``rise_m`` over the range, and ``r2``, the share of h's variance over the knots that the line holds (0 when h is
+    flat)."""
+    xs, h = np.asarray(shape["xs_m"], float), np.asarray(shape["h_m"], float)
+    slope, icpt = np.polyfit(xs, h, 1)
+    var = float(np.var(h))
+    r2 = 1.0 - float(np.var(h - (slope * xs + icpt))) / var if var > 0 else 0.0
+    return {"scale_error": float(slope), "rise_m": float(slope * (xs[-1] - xs[0])), "r2": r2}
+
+
 def figure(report: dict, title: str | None = None):
     """The fitted generic terms: f against slider B's speed, g against its position and the sensor error h against
     the measured position, at the knots (a matplotlib Figure)."""
@@ -163,7 +180,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
               "reading_error": {"needed": reading, "rmse_force_only_m": force.rmse(n),
                                 "rmse_with_it_m": both.rmse(n), "evidence": ev_reading.to_dict()},
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
-              "shape": shape_of(generic.theta), "effects": {},
+              "shape": shape_of(generic.theta), "effects": {}, "sensor_trend": trend_of(shape_of(generic.theta)),
               # at the measured positions (the model's are a simulation away; they differ by the residual)
               "sensor_rms_m": float(np.sqrt(np.mean(sensor_error(generic.theta, model.record.x_B) ** 2)))}
     say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms {current.rmse(n) * 1e6:.4g}"

@@ -12,6 +12,7 @@ from ..effects import ALL_INDEX, EXTRA_NAMES
 from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE
+from .catchall import TREND_R2
 from .model import Fit, Model
 from .refit import Refit
 from .residual import level_varies, line_text, noise_lines, periodic_text
@@ -116,6 +117,14 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                      f"piecewise linear in the slider's speed and position), take the error to "
                      f"{catch['rmse_m'] * 1e6:.4g} µm (the reading error's part: RMS {reading:.3g} µm): what is "
                      "missing acts, at least in part, like one of them (their fitted shapes: catch_all.png).")
+            trend = catch.get("sensor_trend") or {}
+            if trend.get("r2", 0.0) >= TREND_R2:
+                sh = catch["shape"]["xs_m"]
+                text += (f" The reading error is mostly a straight line along the stroke ({trend['r2']:.0%} of its "
+                         f"variance over the knots): it rises {trend['rise_m'] * 1e6:.3g} µm over the "
+                         f"{(sh[-1] - sh[0]) * 1e3:.3g} mm measured, as a scale error of {trend['scale_error']:.2g} "
+                         "would (a scale's thermal expansion, a wrong resolution); the force and the parameters trade "
+                         "with it, so the record fixes its size only roughly.")
         else:
             text += (f" A force on slider B of unknown shape (generic, piecewise linear in the slider's speed and "
                      f"position) takes the error to {catch['rmse_m'] * 1e6:.4g} µm, and an error of the position "
