@@ -322,11 +322,10 @@ def test_the_generic_sensor_error_is_added_at_the_models_position_and_costs_no_s
         sensor_error(bad, plain[0])
 
 
-@pytest.mark.slow
-def test_a_sensor_offset_that_stands_in_for_a_scale_error_is_compensating():
-    """rec23's case, small: a linear scale's interpolation error (pitch 4 mm, 4 µm, largest where the slider rests
-    clamped) on a record with no effect of the library. A sensor offset takes up its value at the clamped end and
-    is significant; the generic error of the reading does that work and more, so the offset is compensating."""
+def _an_offset_beside_a_reading_error(error):
+    """A 1-s simulation-sweep record with no effect of the library and the reading error ``error(x)`` (m) added to
+    the true position, 1 µm of noise; the nominal model with a sensor offset fitted to it (the offset alone must be
+    significant), then the catch-all. Returns (kept, compensating, report)."""
     from toggle_id.discovery.model import Model, fit_free
     from toggle_id.discovery.residual import _residual
     from toggle_id.discovery.validation import Judge
@@ -336,8 +335,7 @@ def test_a_sensor_offset_that_stands_in_for_a_scale_error_is_compensating():
     rec = Record.from_sweep("simulation", duration=1.0)
     truth = extend(ASSIGNED)[0]
     x = simulate(truth[None, :], rec, PRECISE).x_B[0]
-    phase = np.pi / 2 - 2 * np.pi * x[-1] / 4e-3
-    rec.x_B = x + 4e-6 * np.sin(2 * np.pi * x / 4e-3 + phase) + 1e-6 * np.random.default_rng(4).standard_normal(rec.n)
+    rec.x_B = x + error(x) + 1e-6 * np.random.default_rng(4).standard_normal(rec.n)
     model = Model(rec)
     s = DiscoverSettings(baseline_nfev=40, null_nfev=20)
     free = ("mu", "K_i")
@@ -352,18 +350,47 @@ def test_a_sensor_offset_that_stands_in_for_a_scale_error_is_compensating():
         start[ALL_INDEX["x_off"]] = 0.0
         return fit_free(model, start, tuple(n for n in fit.free if n != "x_off"), s.baseline_nfev, s.fd_rel_step)
 
-    said = []
-    kept, comp, report = catchall.catch_all(model, judge, current, [{"name": "sensor_offset"}], states, without, s,
-                                            said.append)
-    assert report["supported"] and kept == [] and [c["name"] for c in comp] == ["sensor_offset"]
+    return catchall.catch_all(model, judge, current, [{"name": "sensor_offset"}], states, without, s, print)
+
+
+@pytest.mark.slow
+def test_a_sensor_offset_that_stands_in_for_a_scale_error_is_compensating():
+    """rec23's case, small: a linear scale's interpolation error (pitch 4 mm, 4 µm, largest where the slider rests
+    clamped) on a record with no effect of the library. A sensor offset takes up its value at the clamped end and
+    is significant; the generic error of the reading does that work and more, so the offset is compensating."""
+    phase = [0.0]
+
+    def scale(x):
+        phase[0] = np.pi / 2 - 2 * np.pi * x[-1] / 4e-3
+        return 4e-6 * np.sin(2 * np.pi * x / 4e-3 + phase[0])
+
+    kept, comp, report = _an_offset_beside_a_reading_error(scale)
+    assert report["supported"] and report["reading_error"]["needed"]
+    assert kept == [] and [c["name"] for c in comp] == ["sensor_offset"]
     assert report["sensor_rms_m"] > 2e-6
     # the fitted reading error holds the scale's error: its 4-mm component has the scale's amplitude and phase. (Its
     # smooth part trades with the generic force and the parameters on a stroke run once: the record fixes only
     # the sum, which reaches the noise.)
     xf = np.linspace(report["shape"]["xs_m"][0], report["shape"]["xs_m"][-1], 4000)
-    u, arg = (xf - xf[0]) / np.ptp(xf), 2 * np.pi * xf / 4e-3 + phase
+    u, arg = (xf - xf[0]) / np.ptp(xf), 2 * np.pi * xf / 4e-3 + phase[0]
     B = np.column_stack([np.sin(arg), np.cos(arg), np.ones_like(u), u, u ** 2, u ** 3])
     c = np.linalg.lstsq(B, np.interp(xf, report["shape"]["xs_m"], report["shape"]["h_m"]), rcond=None)[0]
     assert c[0] == pytest.approx(4e-6, rel=0.25) and abs(c[1]) < 1e-6
     # to the noise, not below it
+    assert 0.9e-6 < report["rmse_m"] < 1.1e-6
+    assert report["sensor_trend"]["r2"] < catchall.TREND_R2  # no scale error is called
+
+
+@pytest.mark.slow
+def test_a_sensor_offset_that_stands_in_for_a_wrong_scale_factor_is_compensating_and_the_trend_named():
+    """A scale that reads 0.05 % long (x·(1 + 5e-4)), small: the offset takes up its mean; the reading error is
+    needed beside the force, the offset is compensating, and the reading error is called a scale error."""
+    kept, comp, report = _an_offset_beside_a_reading_error(lambda x: 5e-4 * x)
+    print(f"\n[catch-all] scale factor: trend {report['sensor_trend']}, rms {report['rmse_m'] * 1e6:.4g} um")
+    assert report["supported"] and report["reading_error"]["needed"]
+    assert kept == [] and [c["name"] for c in comp] == ["sensor_offset"]
+    assert report["sensor_trend"]["r2"] >= catchall.TREND_R2
+    # its size only roughly, as the report says: the force and the parameters trade with h (measured: 9.8e-4 here,
+    # 6.2e-4 on a 5-s experiment-sweep record of the same error; the text's claim is the order, checked here)
+    assert 5e-4 / 3 < report["sensor_trend"]["scale_error"] < 3 * 5e-4
     assert 0.9e-6 < report["rmse_m"] < 1.1e-6
