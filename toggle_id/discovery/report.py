@@ -123,9 +123,9 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                 text += (f" The reading error is mostly a straight line along the stroke ({trend['r2']:.0%} of its "
                          f"variance over the knots): it rises {trend['rise_m'] * 1e6:.3g} µm over the "
                          f"{(sh[-1] - sh[0]) * 1e3:.3g} mm measured, as a scale error of {trend['scale_error']:.2g} "
-                         "would (a scale's thermal expansion, a wrong resolution); the force and the parameters trade "
-                         "with it, so the record fixes its size only roughly (within a factor of two on the records it was "
-                         "tried on).")
+                         "would (a scale's thermal expansion, a wrong resolution); the force and the parameters "
+                         "trade with it, so the record fixes its size only roughly (within a factor of two on the "
+                         "records it was tried on).")
         else:
             text += (f" A force on slider B of unknown shape (generic, piecewise linear in the slider's speed and "
                      f"position) takes the error to {catch['rmse_m'] * 1e6:.4g} µm, and an error of the position "
