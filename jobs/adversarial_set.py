@@ -22,7 +22,8 @@ The set (:data:`SPECS`):
   localised on the slider's stroke; a drag quadratic in the slider's speed), calibrated to ≈ 3σ after the
   nominal refit; and two more, one command each (added 2026-11-27): a periodic error of the linear scale (the
   sensor reads x_B + a·sin(2π·x_B/p + φ), p = 5 mm; the paper's simulation sweep) and pin friction that grows
-  with the clamping force (the cycling command, which opens and closes the clamp four times).
+  with the clamping force (the cycling command, which opens and closes the clamp four times); and one more (added
+  2026-11-27, fourth session): a scale that reads x_B·(1 + e), a scale factor error (the experiment sweep).
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
@@ -64,7 +65,7 @@ HELD = ("K_l", "K_i", "m_C")
 class Spec:
     """One record of the set. ``key`` is for the manifest only; ``fixed`` holds effect parameters that only shape
     an effect (not calibrated); ``calibrate`` names the magnitudes calibrated (one per effect); ``outside`` is
-    ``bump``, ``saturation``, ``drag``, ``scale`` or ``pin_friction`` (tests/outside_plant.py)."""
+    ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction`` or ``scale_factor`` (tests/outside_plant.py)."""
 
     key: str
     category: str  # library | pair | noise | outside
@@ -112,6 +113,8 @@ SPECS: tuple[Spec, ...] = (
     Spec("outside_scale_simulation", "outside", "simulation", 407, calibrate=("a_s",), outside="scale", target=3.0),
     Spec("outside_pin_friction_cycling", "outside", "cycling", 408, calibrate=("pin_mu",), outside="pin_friction",
          target=3.0),
+    Spec("outside_scale_factor_experiment", "outside", "experiment", 409, calibrate=("e_s",), outside="scale_factor",
+         target=3.0),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -147,6 +150,7 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "outside_drag_experiment": {"c_q": (1958.6, 3.086)},  # refit RMS 2.92 um
     "outside_scale_simulation": {"a_s": (1.29053e-05, 3.049)},  # refit RMS 2.88 um (the refit absorbs most of it)
     "outside_pin_friction_cycling": {"pin_mu": (0.00353614, 3.001)},  # refit RMS 2.83 um
+    "outside_scale_factor_experiment": {"e_s": (0.00065988, 3.054)},  # refit RMS 2.89 um
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
@@ -154,7 +158,8 @@ COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179}
 
 #: First guesses of the calibration (a magnitude of about the right order on the 5-s records).
 GUESS = {"tau_c": 1.5, "F_s": 150.0, "c_B": 3000.0, "tau_d": 5e-4, "b_l": 2e-5, "a_cog": 0.1, "F_load": 150.0,
-         "k3": 1e12, "x_off": 1.5e-5, "F_b": 20.0, "i_sat": 3000.0, "c_q": 5000.0, "a_s": 2e-6, "pin_mu": 0.005}
+         "k3": 1e12, "x_off": 1.5e-5, "F_b": 20.0, "i_sat": 3000.0, "c_q": 5000.0, "a_s": 2e-6, "pin_mu": 0.005,
+         "e_s": 5e-4}
 
 
 # ------------------------------------------------------------------------------------------ truths and records
@@ -221,6 +226,8 @@ def outside_of(spec: Spec, magnitudes: dict[str, float]):
         return Outside(scale=(float(magnitudes["a_s"]), SCALE_PITCH, SCALE_PHASE))
     if spec.outside == "pin_friction":
         return Outside(pin_mu=float(magnitudes["pin_mu"]))
+    if spec.outside == "scale_factor":
+        return Outside(scale_factor=float(magnitudes["e_s"]))
     return Outside()
 
 

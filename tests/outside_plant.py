@@ -18,6 +18,8 @@ with physics outside the discovery library (``toggle_id/effects.py``):
 * **periodic scale error** (``scale = (a, p, φ)``: m, m, rad): the sensor reads x_B + a·sin(2π·x_B/p + φ) — the
   interpolation error of a magnetic or optical linear scale of pitch p, a property of the measurement only (the
   motion is unchanged; the library's only sensor effect is a constant offset);
+* **scale factor error** (``scale_factor = e``, dimensionless): the sensor reads x_B·(1 + e) — a linear scale's
+  resolution set wrong, or its thermal expansion against the machine's frame; the motion is unchanged;
 * **pin friction under the clamping load** (``pin_mu``, dimensionless): an extra force
   −pin_mu·|F_i|·tanh(ẋ_B/ε) on slider B while it is in contact — the toggle's pins and the platen's guides carry
   the clamping force F_i, and their friction grows with it, so the clamp's force–stroke curve becomes a
@@ -98,13 +100,14 @@ def x_B_of_q(q):
 @dataclass(frozen=True)
 class Outside:
     """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
-    A, ``scale = (a m, p m, φ rad)``, ``pin_mu`` (dimensionless)."""
+    A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless)."""
 
     bump: tuple[float, float, float] | None = None
     i_sat: float | None = None
     drag: float | None = None
     scale: tuple[float, float, float] | None = None
     pin_mu: float | None = None
+    scale_factor: float | None = None
 
     def to_dict(self) -> dict:
         out: dict = {}
@@ -118,6 +121,8 @@ class Outside:
             out["periodic_scale_error"] = dict(zip(("a", "pitch", "phase"), map(float, self.scale)))
         if self.pin_mu is not None:
             out["pin_friction_under_load"] = {"pin_mu": float(self.pin_mu)}
+        if self.scale_factor is not None:
+            out["scale_factor_error"] = {"e": float(self.scale_factor)}
         return out
 
 
@@ -235,4 +240,6 @@ def simulate_outside(theta, record, outside: Outside = Outside(), **kw) -> tuple
     if outside.scale is not None:  # what the sensor reads; the motion itself is unchanged
         a, pitch, phase = outside.scale
         x = x + a * np.sin(2.0 * math.pi * x / pitch + phase)
+    if outside.scale_factor is not None:  # likewise
+        x = x * (1.0 + outside.scale_factor)
     return x, i, info

@@ -74,6 +74,15 @@ def test_the_scale_error_is_in_the_reading_only():
     np.testing.assert_allclose(x - x0, 2e-6 * np.sin(2 * np.pi * x0 / 0.005 + 0.3), rtol=0, atol=1e-15)
 
 
+def test_the_scale_factor_error_is_in_the_reading_only():
+    rec = Record.from_sweep("experiment", 1.0)
+    x0, i0, _ = simulate_outside(ASSIGNED, rec)
+    x, i, info = simulate_outside(ASSIGNED, rec, Outside(scale_factor=5e-4))
+    assert info["status"] == 0
+    np.testing.assert_array_equal(i, i0)  # the motion is unchanged …
+    np.testing.assert_allclose(x - x0, 5e-4 * x0, rtol=0, atol=1e-15)  # … the reading 0.05 % long
+
+
 def test_pin_friction_acts_only_under_the_clamping_load():
     rec = Record.from_cycling(duration=2.0)
     x0, _, info0 = simulate_outside(ASSIGNED, rec)
