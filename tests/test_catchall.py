@@ -95,7 +95,7 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
         sse = reading_sse if with_reading and reading_sse is not None else generic_sse
         out = start.copy()
         if with_reading and reading_sse is not None:
-            out[K.GS_W0:K.GS_W0 + K.N_GS] = 1e-6  # a fitted reading error
+            out[K.GS_W0:K.GS_W0 + K.N_GS] = 1e-6 * np.cos(np.arange(K.N_GS))  # a fitted reading error
         return Fit(out, tuple(free), sse)
 
     monkeypatch.setattr(catchall, "fit_free", fake_fit)

@@ -181,8 +181,9 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
                                 "rmse_with_it_m": both.rmse(n), "evidence": ev_reading.to_dict()},
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
               "shape": shape_of(generic.theta), "effects": {}, "sensor_trend": trend_of(shape_of(generic.theta)),
-              # at the measured positions (the model's are a simulation away; they differ by the residual)
-              "sensor_rms_m": float(np.sqrt(np.mean(sensor_error(generic.theta, model.record.x_B) ** 2)))}
+              # at the measured positions (the model's are a simulation away; they differ by the residual), about
+              # its mean: h's constant is shared with the model's sensor offset
+              "sensor_rms_m": float(np.std(sensor_error(generic.theta, model.record.x_B)))}
     say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms "
         f"{current.rmse(n) * 1e6:.4g} → {force.rmse(n) * 1e6:.4g} µm; a generic sensor error h(x_B) beside it: {both.rmse(n) * 1e6:.4g} µm, "
         + ("needed" if reading else f"not needed ({ev_reading.reason})") + "; the generic terms: "

@@ -115,8 +115,9 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
             reading = catch.get("sensor_rms_m", float("nan")) * 1e6
             text += (f" A force on slider B and an error of the position reading, both of unknown shape (generic, "
                      f"piecewise linear in the slider's speed and position), take the error to "
-                     f"{catch['rmse_m'] * 1e6:.4g} µm (the reading error's part: RMS {reading:.3g} µm): what is "
-                     "missing acts, at least in part, like one of them (their fitted shapes: catch_all.png).")
+                     f"{catch['rmse_m'] * 1e6:.4g} µm (the reading error's part beyond a constant, which a sensor "
+                     f"offset shares: RMS {reading:.3g} µm): what is missing acts, at least in part, like one of them "
+                     "(their fitted shapes: catch_all.png).")
             trend = catch.get("sensor_trend") or {}
             if trend.get("r2", 0.0) >= TREND_R2:
                 sh = catch["shape"]["xs_m"]
