@@ -216,19 +216,12 @@ def effect_values(spec: Spec, magnitudes: dict[str, float]) -> dict[str, float]:
 def outside_of(spec: Spec, magnitudes: dict[str, float]):
     from outside_plant import Outside
 
-    if spec.outside == "bump":
-        return Outside(bump=(float(magnitudes["F_b"]), BUMP_AT, BUMP_WIDTH))
-    if spec.outside == "saturation":
-        return Outside(i_sat=float(magnitudes["i_sat"]))
-    if spec.outside == "drag":
-        return Outside(drag=float(magnitudes["c_q"]))
-    if spec.outside == "scale":
-        return Outside(scale=(float(magnitudes["a_s"]), SCALE_PITCH, SCALE_PHASE))
-    if spec.outside == "pin_friction":
-        return Outside(pin_mu=float(magnitudes["pin_mu"]))
-    if spec.outside == "scale_factor":
-        return Outside(scale_factor=float(magnitudes["e_s"]))
-    return Outside()
+    m = {k: float(v) for k, v in magnitudes.items()}
+    make = {"bump": lambda: Outside(bump=(m["F_b"], BUMP_AT, BUMP_WIDTH)),
+            "saturation": lambda: Outside(i_sat=m["i_sat"]), "drag": lambda: Outside(drag=m["c_q"]),
+            "scale": lambda: Outside(scale=(m["a_s"], SCALE_PITCH, SCALE_PHASE)),
+            "pin_friction": lambda: Outside(pin_mu=m["pin_mu"]), "scale_factor": lambda: Outside(scale_factor=m["e_s"])}
+    return make[spec.outside]() if spec.outside else Outside()
 
 
 def clean_response(spec: Spec, theta: np.ndarray, effects: dict, magnitudes: dict, rec) -> tuple[np.ndarray, np.ndarray]:
