@@ -185,7 +185,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
               # its mean: h's constant is shared with the model's sensor offset
               "sensor_rms_m": float(np.std(sensor_error(generic.theta, model.record.x_B)))}
     say(f"catch-all: a generic slider force f(ẋ_B) + g(x_B) on top of the final model: rms "
-        f"{current.rmse(n) * 1e6:.4g} → {force.rmse(n) * 1e6:.4g} µm; a generic sensor error h(x_B) beside it: {both.rmse(n) * 1e6:.4g} µm, "
+        f"{current.rmse(n) * 1e6:.4g} → {force.rmse(n) * 1e6:.4g} µm; a generic sensor error h(x_B) beside it: "
+        f"{both.rmse(n) * 1e6:.4g} µm, "
         + ("needed" if reading else f"not needed ({ev_reading.reason})") + "; the generic terms: "
         + ("supported" if supported else "not supported (" + ev.reason + "); they decide nothing"))
     if not supported:
