@@ -104,6 +104,12 @@ def trend_of(shape: dict[str, list[float]]) -> dict[str, float]:
     return {"scale_error": float(slope), "rise_m": float(slope * (xs[-1] - xs[0])), "r2": r2}
 
 
+def reading_needed(report: dict) -> bool:
+    """Whether the catch-all ``report`` kept the generic error of the reading beside the force (reports written before
+    the two were judged apart always had it)."""
+    return bool((report.get("reading_error") or {}).get("needed", True))
+
+
 def figure(report: dict, title: str | None = None):
     """The fitted generic terms: f against slider B's speed, g against its position and the sensor error h against
     the measured position, at the knots (a matplotlib Figure)."""
@@ -120,7 +126,7 @@ def figure(report: dict, title: str | None = None):
     a3.plot(np.asarray(sh["xs_m"]) * 1e3, np.asarray(sh["h_m"]) * 1e6, ".-", color="tab:green")
     a3.set_xlabel("measured position x_B (mm)")
     a3.set_ylabel("h(x_B), error of the reading (µm)")
-    reading = (report.get("reading_error") or {}).get("needed", True)
+    reading = reading_needed(report)
     if not reading:
         a3.set_title("not needed beside the force: left out", fontsize=9)
     for ax in (a1, a2, a3):
@@ -175,12 +181,13 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)
     supported = _supports(ev)
+    shape = shape_of(generic.theta)
     report = {"knots": knots, "n_knots": N_GEN, "n_knots_sensor": N_GS,
               "rmse_before_m": current.rmse(n), "rmse_m": generic.rmse(n),
               "reading_error": {"needed": reading, "rmse_force_only_m": force.rmse(n),
                                 "rmse_with_it_m": both.rmse(n), "evidence": ev_reading.to_dict()},
               "evidence": ev.to_dict(), "supported": supported, "support_checks": list(SUPPORT),
-              "shape": shape_of(generic.theta), "effects": {}, "sensor_trend": trend_of(shape_of(generic.theta)),
+              "shape": shape, "effects": {}, "sensor_trend": trend_of(shape),
               # at the measured positions (the model's are a simulation away; they differ by the residual), about
               # its mean: h's constant is shared with the model's sensor offset
               "sensor_rms_m": float(np.std(sensor_error(generic.theta, model.record.x_B)))}

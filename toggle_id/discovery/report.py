@@ -12,7 +12,7 @@ from ..effects import ALL_INDEX, EXTRA_NAMES
 from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE
-from .catchall import TREND_R2
+from .catchall import TREND_R2, reading_needed
 from .model import Fit, Model
 from .refit import Refit
 from .residual import level_varies, line_text, noise_lines, periodic_text
@@ -111,7 +111,7 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
     else:
         text += f" The residual is consistent with {noise(after)} noise independent of the states and the input."
     if catch and catch.get("supported"):
-        if (catch.get("reading_error") or {}).get("needed", True):
+        if reading_needed(catch):
             reading = catch.get("sensor_rms_m", float("nan")) * 1e6
             text += (f" A force on slider B and an error of the position reading, both of unknown shape (generic, "
                      f"piecewise linear in the slider's speed and position), take the error to "
