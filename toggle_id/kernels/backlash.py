@@ -49,9 +49,10 @@ from .slots import (
     S_HMAX,
     S_MAXSTEPS,
     S_RTOL,
+    S_STOPS,
     SOLVER_FAILURE,
 )
-from .stepping import _dense, _first_sample, _illinois, _pi_control
+from .stepping import _dense, _first_sample, _illinois, _next_stop, _pi_control
 from .tableaus import (
     _A21,
     _A31,
@@ -231,6 +232,7 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                      settings[S_ATOL_W] * R])
     hmax = settings[S_HMAX]
     max_steps = int(settings[S_MAXSTEPS])
+    stops = settings[S_STOPS] != 0.0
     pc = _derived(th, geo, sweep, use_sweep, t_out[0], t_out[1] - t_out[0])
     q_L = math.acos(geo[G_XBL] / (geo[G_R1] + geo[G_R3]))
     xoff = pc[PC_XOFF]
@@ -267,6 +269,8 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             return SOLVER_FAILURE, n_steps, t_c, qc, wc, ic
         if t + h > t_end:
             h = t_end - t
+        if stops:
+            h = min(h, _next_stop(t, pc, use_sweep) - t)
         if need_f:
             ok, F_s = lash_rhs(y, _command(t, pc, v)[0], mode, contact, pc, jz2, geo, tab, head, k[0])
             if not ok:

@@ -35,9 +35,10 @@ from .slots import (
     S_MAXSTEPS,
     S_METHOD,
     S_RTOL,
+    S_STOPS,
     SOLVER_FAILURE,
 )
-from .stepping import _dense, _first_sample, _illinois, _pi_control
+from .stepping import _dense, _first_sample, _illinois, _next_stop, _pi_control
 from .tableaus import (
     _A21,
     _A31,
@@ -261,6 +262,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     hmax = settings[S_HMAX]
     max_steps = int(settings[S_MAXSTEPS])
     method = int(settings[S_METHOD])
+    stops = settings[S_STOPS] != 0.0
     pc = _derived(th, geo, sweep, use_sweep, t_out[0], t_out[1] - t_out[0])
     q_L = math.acos(geo[G_XBL] / (geo[G_R1] + geo[G_R3]))  # contact iff q ≤ q_L (x_B ≥ x_B^L)
     xoff = pc[PC_XOFF]
@@ -294,6 +296,8 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
             return (MODEL_FAILURE if geom_fail else SOLVER_FAILURE), n_steps, t_c, qc, wc, ic
         if t + h > t_end:
             h = t_end - t
+        if stops:
+            h = min(h, _next_stop(t, pc, use_sweep) - t)
         use_ros = method == METHOD_RODAS4 or (method == METHOD_MIXED and contact == 1)
         if use_ros and not have_j:
             ok, _, fw, fi, ja, jb, jc, jd, je, jg, fti = _rhs_jac_u(q, w, iq, ut, dut, contact, pc, geo, tab, head)

@@ -29,8 +29,9 @@ G_R1, G_R2, G_R3, G_R4, G_R5, G_H, G_PHI, G_P, G_Z, G_G, G_XBL, G_EPS = range(12
 OK, MODEL_FAILURE, SOLVER_FAILURE, INVALID_PARAMS = 0, 1, 2, 3
 
 # ---- integrator settings array -----------------------------------------------------------------------------
-# S_METHOD: 0 = DOPRI5 in both modes, 1 = DOPRI5 free / Rodas4 clamped, 2 = Rodas4 in both modes
-S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS, S_METHOD = range(8)
+# S_METHOD: 0 = DOPRI5 in both modes, 1 = DOPRI5 free / Rodas4 clamped, 2 = Rodas4 in both modes;
+# S_STOPS: 1.0 = end a step at every sample (see toggle_id.kernels.stepping._next_stop), 0.0 = step freely
+S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS, S_METHOD, S_STOPS = range(9)
 METHOD_DOPRI5, METHOD_MIXED, METHOD_RODAS4 = 0, 1, 2
 
 # ---- per-individual constants (see _derived) ---------------------------------------------------------------

@@ -1,12 +1,15 @@
 """What the two integrators (:mod:`.rigid`, :mod:`.backlash`) share: the continuous extension's polynomial,
-DOPRI5's PI step-size controller, one bracket update of the Illinois root finder (event location) and the first
-output sample of a simulation.
+DOPRI5's PI step-size controller, one bracket update of the Illinois root finder (event location), where a step
+must stop (the samples) and the first output sample of a simulation.
 """
 from __future__ import annotations
+
+import math
 
 import numba as nb
 
 from .geometry import _geometry, _x_of_q
+from .slots import PC_IDT, PC_T0, PC_TAUD
 
 
 @nb.njit(cache=True, inline="always")
@@ -39,6 +42,19 @@ def _illinois(a, b, ga, gb, side, th_, gm):
     if side == 1:
         ga *= 0.5
     return a, th_, ga, gm, 1
+
+
+@nb.njit(cache=True, inline="always")
+def _next_stop(t, pc, use_sweep):
+    """Where a step that starts at t must end at the latest when steps stop at the samples: the next output
+    sample and, for a sampled input (linear between its samples, so kinked at each; shifted by the dead time),
+    the next input sample. A point within 1e-7 of a sample interval before one counts as on it."""
+    idt = pc[PC_IDT]
+    t_next = pc[PC_T0] + (math.floor((t - pc[PC_T0]) * idt + 1e-7) + 1.0) / idt
+    if not use_sweep and pc[PC_TAUD] != 0.0:
+        t0 = pc[PC_T0] + pc[PC_TAUD]
+        t_next = min(t_next, t0 + (math.floor((t - t0) * idt + 1e-7) + 1.0) / idt)
+    return t_next
 
 
 @nb.njit(cache=True)
