@@ -1,10 +1,11 @@
 """Benchmark of the precise integrators with and without stops at the samples (``SolverSettings.stops``).
 
-``python -m jobs.bench_stops [--n 16] [--repeat 5] [--json PATH]`` simulates, side by side in one run, the
+``python -m jobs.bench_stops [--n 16] [--repeat 5] [--duration 5] [--only TEXT] [--json PATH]`` simulates, side by side in one run, the
 precise tier (:data:`~toggle_id.simulate.PRECISE`) and the Jacobian tier (:data:`~toggle_id.simulate.JACOBIAN`),
 each with stops off and on, on 5-s records: the two swept sines given in continuous time (a simulated record),
 the same sweeps and the open/close cycling command given by their samples (a record read from a CSV: the input
-is linear between samples), and a 0.5-mm screw backlash (the two-body kernel) on the sampled cycling command.
+is linear between samples), and a 0.5-mm screw backlash (the two-body kernel) on the sampled cycling command
+(``--only``: the records whose name contains TEXT; ``--duration``: their length in s).
 For each it prints
 
 - ``ms/sim``: median wall time per simulation of ``n`` near-assigned individuals on one core;
@@ -35,16 +36,16 @@ REFERENCE = SolverSettings(rtol=1e-13, atol_q=1e-15, atol_w=1e-12, atol_i=1e-9, 
 FD_STEP = 1e-4
 
 
-def records() -> dict[str, tuple[Record, float]]:
+def records(duration: float = 5.0) -> dict[str, tuple[Record, float]]:
     """The benchmark's records by name, each with its backlash (0: the rigid kernel)."""
-    sampled = {name: Record.from_sweep(name) for name in ("simulation", "experiment")}
+    sweep = {name: Record.from_sweep(name, duration) for name in ("simulation", "experiment")}
     return {
-        "simulation sweep, continuous": (Record.from_sweep("simulation"), 0.0),
-        "experiment sweep, continuous": (Record.from_sweep("experiment"), 0.0),
-        "simulation sweep, sampled": (Record(t=sampled["simulation"].t, v_in=sampled["simulation"].v_in), 0.0),
-        "experiment sweep, sampled": (Record(t=sampled["experiment"].t, v_in=sampled["experiment"].v_in), 0.0),
-        "cycling, sampled": (Record.from_cycling(), 0.0),
-        "cycling, sampled, backlash 0.5 mm": (Record.from_cycling(), 5e-4),
+        "simulation sweep, continuous": (sweep["simulation"], 0.0),
+        "experiment sweep, continuous": (sweep["experiment"], 0.0),
+        "simulation sweep, sampled": (Record(t=sweep["simulation"].t, v_in=sweep["simulation"].v_in), 0.0),
+        "experiment sweep, sampled": (Record(t=sweep["experiment"].t, v_in=sweep["experiment"].v_in), 0.0),
+        "cycling, sampled": (Record.from_cycling(duration=duration), 0.0),
+        "cycling, sampled, backlash 0.5 mm": (Record.from_cycling(duration=duration), 5e-4),
     }
 
 
@@ -67,14 +68,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=16, help="near-assigned individuals timed per case")
     ap.add_argument("--repeat", type=int, default=5, help="timed repeats (median)")
+    ap.add_argument("--duration", type=float, default=5.0, help="record length in s")
+    ap.add_argument("--only", type=str, default="", help="only the records whose name contains this text")
     ap.add_argument("--json", type=str, default=None, help="also write the table as JSON")
     args = ap.parse_args(argv)
+    chosen = {k: v for k, v in records(args.duration).items() if args.only in k}
+    if not chosen:
+        raise SystemExit(f"bench_stops: no record name contains {args.only!r}; names: {', '.join(records(1.0))}")
     rng = np.random.default_rng(1)
     tiers = {"PRECISE": PRECISE, "JACOBIAN": JACOBIAN}
     rows: list[dict] = []
     print(f"{'record':36s} {'tier':9s} {'stops':5s} {'ms/sim':>7s} {'steps':>7s} {'max err um':>10s} "
           f"{'fd noise median':>15s} {'worst':>8s} {'(param)':>9s}")
-    for rname, (rec, lash) in records().items():
+    for rname, (rec, lash) in chosen.items():
         theta = with_backlash(ASSIGNED[None], lash)
         near = with_backlash(ASSIGNED * (1.0 + 0.1 * rng.uniform(-1.0, 1.0, (args.n, ASSIGNED.size))), lash)
         points = fd_points(theta)

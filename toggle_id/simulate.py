@@ -65,8 +65,9 @@ class SolverSettings:
     method: str = "rodas4"
     #: end a step at every output sample and, for a sampled input, at every input sample (shifted by the dead
     #: time): no step straddles a kink of the linearly interpolated input, and every output is a step's end,
-    #: not an interpolation. For the precise tiers (measured, ``jobs.bench --stops``): on a sampled input
-    #: fewer steps and far smoother in the parameters; on a swept sine more steps, smoother too.
+    #: not an interpolation. For the precise tiers (``python -m jobs.bench_stops``): on a sampled input far
+    #: smoother in the parameters (the steps' jitter had made finite differences noise); on a swept sine more
+    #: steps, smoother too.
     stops: bool = False
     #: rows that exhaust ``max_steps`` are integrated again with these settings (None: they fail)
     fallback: "SolverSettings | None" = None
@@ -88,9 +89,8 @@ class SolverSettings:
 #: Precise tier (polish, finite-difference sensitivities, residuals): DOPRI5 at tight tolerances with steps
 #: that stop at the samples, x_B within 1e-5 µm of the references and smooth in the parameters: a forward
 #: difference at a relative step of 1e-4 lies within ~1e-3 of the exact one on every column (4e-3 with a
-#: backlash), where stepping
-#: freely across the samples left up to 2× a column's norm on a sampled input — the input's kinks and the
-#: interpolated outputs made the step selection jitter (``python -m jobs.bench_stops``). A stiff
+#: backlash), where stepping freely across the samples left up to 14× a column's norm on a sampled input — the
+#: input's kinks and the interpolated outputs made the step selection jitter (``python -m jobs.bench_stops``). A stiff
 #: candidate (large D or K_l, small L_q) makes DOPRI5 crawl at its stability limit: past 20 000 steps
 #: (a normal 5-s record takes ~13 000-16 000) the row is redone by Rodas4 at rtol 1e-9 (as exact, less smooth).
 FAST = SolverSettings()
