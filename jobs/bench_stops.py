@@ -1,11 +1,12 @@
-"""Benchmark of the precise integrators with and without stops at the samples (``SolverSettings.stops``).
+"""Benchmark of the precise integrators with and without steps that stop at the samples (``SolverSettings.stops``).
 
-``python -m jobs.bench_stops [--n 16] [--repeat 5] [--duration 5] [--only TEXT] [--json PATH]`` simulates, side by side in one run, the
-precise tier (:data:`~toggle_id.simulate.PRECISE`) and the Jacobian tier (:data:`~toggle_id.simulate.JACOBIAN`),
-each with stops off and on, on 5-s records: the two swept sines given in continuous time (a simulated record),
-the same sweeps and the open/close cycling command given by their samples (a record read from a CSV: the input
-is linear between samples), and a 0.5-mm screw backlash (the two-body kernel) on the sampled cycling command
-(``--only``: the records whose name contains TEXT; ``--duration``: their length in s).
+``python -m jobs.bench_stops [--n 16] [--repeat 5] [--duration 5] [--only TEXT] [--json PATH]`` simulates, side
+by side in one run, the precise tier (:data:`~toggle_id.simulate.PRECISE`) and the Jacobian tier
+(:data:`~toggle_id.simulate.JACOBIAN`), each with ``stops`` = ``none``, ``sampled`` (the tiers' own: on an input
+given by its samples) and ``all``, on 5-s records: the two swept sines given in continuous time (a record
+simulated in memory), the same sweeps and the open/close cycling command given by their samples (a record read
+from a CSV: the input is linear between samples), and a 0.5-mm screw backlash (the two-body kernel) on the
+sampled cycling command (``--only``: the records whose name contains TEXT; ``--duration``: their length in s).
 For each it prints
 
 - ``ms/sim``: median wall time per simulation of ``n`` near-assigned individuals on one core;
@@ -29,10 +30,10 @@ import numpy as np
 from toggle_id.params import ASSIGNED, PARAM_NAMES
 from toggle_id.record import Record
 from jobs.bench import with_backlash
-from toggle_id.simulate import JACOBIAN, PRECISE, SolverSettings, simulate
+from toggle_id.simulate import JACOBIAN, PRECISE, STOPS, SolverSettings, simulate
 
 REFERENCE = SolverSettings(rtol=1e-13, atol_q=1e-15, atol_w=1e-12, atol_i=1e-9, hmax=2e-4, max_steps=5_000_000,
-                           method="dopri5", stops=True)
+                           method="dopri5", stops="all")
 FD_STEP = 1e-4
 
 
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rng = np.random.default_rng(1)
     tiers = {"PRECISE": PRECISE, "JACOBIAN": JACOBIAN}
     rows: list[dict] = []
-    print(f"{'record':36s} {'tier':9s} {'stops':5s} {'ms/sim':>7s} {'steps':>7s} {'max err um':>10s} "
+    print(f"{'record':36s} {'tier':9s} {'stops':7s} {'ms/sim':>7s} {'steps':>7s} {'max err um':>10s} "
           f"{'fd noise median':>15s} {'worst':>8s} {'(param)':>9s}")
     for rname, (rec, lash) in chosen.items():
         theta = with_backlash(ASSIGNED[None], lash)
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         points = fd_points(theta)
         ref_fd = simulate(points, rec, REFERENCE, parallel=True).x_B
         for tname, base in tiers.items():
-            for stops in (False, True):
+            for stops in STOPS:
                 s = dataclasses.replace(base, stops=stops,
                                         fallback=dataclasses.replace(base.fallback, stops=stops))
                 simulate(near[:2], rec, s)
@@ -104,7 +105,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                      "fd_noise_median": float(np.median(noise)), "fd_noise_worst": float(noise[worst]),
                      "fd_noise_worst_param": PARAM_NAMES[worst], "fell_back": int(res.fell_back.sum())}
                 rows.append(r)
-                print(f"{rname:36s} {tname:9s} {str(stops):5s} {r['ms_per_sim']:7.2f} {r['mean_steps']:7.0f} "
+                print(f"{rname:36s} {tname:9s} {stops:7s} {r['ms_per_sim']:7.2f} {r['mean_steps']:7.0f} "
                       f"{r['max_err_um']:10.2g} {r['fd_noise_median']:15.2g} {r['fd_noise_worst']:8.2g} "
                       f"{r['fd_noise_worst_param']:>9s}", flush=True)
     print("one core per timed simulation; fd noise relative to each column's norm (forward differences, step 1e-4)")

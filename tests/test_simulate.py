@@ -407,18 +407,20 @@ def test_the_machine_line_reads_steal_from_the_cpu_counters():
 def test_bench_stops_prints_its_table_and_the_stops_remove_the_jitter(tmp_path, capsys):
     """``python -m jobs.bench_stops`` on 1-s sampled cycling records: one row per record, tier and setting, and on
     each record the precise tier with its stops has every forward-difference column within 1 % of the exact one,
-    closer than stepping freely (6.5× a column's norm at worst there, measured)."""
+    closer than stepping freely (6.5× a column's norm at worst there, measured); ``sampled`` and ``all`` are one
+    thing on a sampled input."""
     from jobs.bench_stops import main
 
     rows = main(["--n", "1", "--repeat", "1", "--duration", "1", "--only", "cycling, sampled",
                  "--json", str(tmp_path / "stops.json")])
     out = capsys.readouterr().out
-    assert "fd noise" in out and len(rows) == 8
+    assert "fd noise" in out and len(rows) == 12
     assert json.loads((tmp_path / "stops.json").read_text()) == rows
     for rec in ("cycling, sampled", "cycling, sampled, backlash 0.5 mm"):
         got = {(r["tier"], r["stops"]): r for r in rows if r["record"] == rec}
-        assert set(got) == {(t, s) for t in ("PRECISE", "JACOBIAN") for s in (False, True)}
+        assert set(got) == {(t, s) for t in ("PRECISE", "JACOBIAN") for s in ("none", "sampled", "all")}
         assert all(np.isfinite(r["ms_per_sim"]) and r["mean_steps"] > 0 for r in got.values())
-        assert got["PRECISE", True]["fd_noise_worst"] < 1e-2 < got["PRECISE", False]["fd_noise_worst"], rec
+        assert got["PRECISE", "sampled"]["fd_noise_worst"] < 1e-2 < got["PRECISE", "none"]["fd_noise_worst"], rec
+        assert got["PRECISE", "sampled"]["mean_steps"] == got["PRECISE", "all"]["mean_steps"]  # the same steps
     with pytest.raises(SystemExit, match="no record name contains"):
         main(["--only", "no such record"])

@@ -32,6 +32,7 @@ STATUS_NAMES = {STATUS_OK: "ok", STATUS_MODEL_FAILURE: "model failure", STATUS_S
 N_THETA = K.N_THETA
 #: Integration methods: Rodas4 throughout, DOPRI5 throughout, or DOPRI5 in free motion and Rodas4 while clamped.
 METHODS = {"rodas4": K.METHOD_RODAS4, "dopri5": K.METHOD_DOPRI5, "mixed": K.METHOD_MIXED}
+STOPS = {"none": K.STOPS_NONE, "sampled": K.STOPS_SAMPLED, "all": K.STOPS_ALL}
 
 
 _COUNT_LOCK = threading.Lock()
@@ -63,18 +64,20 @@ class SolverSettings:
     hmax: float = 5e-2
     max_steps: int = 50_000
     method: str = "rodas4"
-    #: end a step at every output sample and, for a sampled input, at every input sample (shifted by the dead
-    #: time): no step straddles a kink of the linearly interpolated input, and every output is a step's end,
-    #: not an interpolation. For the precise tiers (``python -m jobs.bench_stops``): on a sampled input far
-    #: smoother in the parameters (the steps' jitter had made finite differences noise); on a swept sine more
-    #: steps, smoother too.
-    stops: bool = False
+    #: where a step ends at every output sample and, for a sampled input, at every input sample (shifted by the
+    #: dead time), so that no step straddles a kink of the linearly interpolated input and every output is a
+    #: step's end, not an interpolation (see :data:`STOPS`): ``none``, ``sampled`` (on an input given by its
+    #: samples, a record read from a file; the precise tiers: far smoother in the parameters and no dearer) or
+    #: ``all`` (a swept sine too: 12-22x smoother there, but 36 % dearer; ``python -m jobs.bench_stops``)
+    stops: str = "none"
     #: rows that exhaust ``max_steps`` are integrated again with these settings (None: they fail)
     fallback: "SolverSettings | None" = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ConfigError(f"unknown integration method {self.method!r}; known: {', '.join(METHODS)}")
+        if self.stops not in STOPS:
+            raise ConfigError(f"unknown stops {self.stops!r}; known: {', '.join(STOPS)}")
         if not (self.rtol > 0 and self.atol_q > 0 and self.atol_w > 0 and self.atol_i > 0):
             raise ConfigError("solver tolerances must be positive")
         if not (self.h0 > 0 and self.hmax > 0 and self.max_steps >= 1):
@@ -82,33 +85,34 @@ class SolverSettings:
 
     def as_array(self) -> np.ndarray:
         return np.array([self.rtol, self.atol_q, self.atol_w, self.atol_i, self.h0, self.hmax,
-                         float(self.max_steps), float(METHODS[self.method]), float(self.stops)], dtype=float)
+                         float(self.max_steps), float(METHODS[self.method]), float(STOPS[self.stops])], dtype=float)
 
 
 #: Fast tier (the GA): Rodas4, x_B within 0.3 µm of the references (about 580 steps for a 5-s record).
-#: Precise tier (polish, finite-difference sensitivities, residuals): DOPRI5 at tight tolerances with steps
-#: that stop at the samples, x_B within 1e-5 µm of the references and smooth in the parameters: a forward
-#: difference at a relative step of 1e-4 lies within ~1e-3 of the exact one on every column (4e-3 with a
-#: backlash), where stepping freely across the samples left up to 14× a column's norm on a sampled input — the
-#: input's kinks and the interpolated outputs made the step selection jitter (``python -m jobs.bench_stops``). A stiff
+#: Precise tier (polish, finite-difference sensitivities, residuals): DOPRI5 at tight tolerances, x_B within
+#: 1e-5 µm of the references; on a record given by its samples its steps stop at them, so it is smooth in the
+#: parameters there too: a forward difference at a relative step of 1e-4 lies within ~1e-3 of the exact one on
+#: every column (4e-3 with a backlash), where stepping freely across the samples left up to 14× a column's norm —
+#: the input's kinks and the interpolated outputs made the step selection jitter (``python -m jobs.bench_stops``;
+#: on a continuous swept sine it steps freely: within 1 % at worst, 36 % cheaper than with stops). A stiff
 #: candidate (large D or K_l, small L_q) makes DOPRI5 crawl at its stability limit: past 20 000 steps
-#: (a normal 5-s record takes ~13 000-16 000) the row is redone by Rodas4 at rtol 1e-9 (as exact, less smooth).
+#: (a normal 5-s record takes 10 000-16 000) the row is redone by Rodas4 at rtol 1e-9 (as exact, less smooth).
 FAST = SolverSettings()
 PRECISE_STIFF = SolverSettings(rtol=1e-9, atol_q=1e-11, atol_w=1e-8, atol_i=1e-5, hmax=2e-3, max_steps=500_000,
-                               method="rodas4", stops=True)
+                               method="rodas4", stops="sampled")
 PRECISE = SolverSettings(rtol=1e-10, atol_q=1e-12, atol_w=1e-9, atol_i=1e-6, hmax=2e-3, max_steps=20_000,
-                         method="dopri5", stops=True, fallback=PRECISE_STIFF)
+                         method="dopri5", stops="sampled", fallback=PRECISE_STIFF)
 #: Jacobian tier (finite-difference Jacobians of PRECISE polishes, beside PRECISE residuals, where a setting's
-#: ``fd_tier`` asks for it): DOPRI5 100× looser than PRECISE, about 60 % of its cost, steps stopping at the
-#: samples too; its forward differences at a relative step of 1e-4 lie within ~2 % of the exact ones on the
-#: sweeps and ~20 % on the cycling command (without the stops: 8 %, and many times a column's norm on a sampled
-#: input). Its fixed point lies
+#: ``fd_tier`` asks for it): DOPRI5 100× looser than PRECISE, about half its cost, steps stopping at a sampled
+#: input's samples too; its forward differences at a relative step of 1e-4 lie within ~2 % of the exact ones on
+#: the sampled sweeps and ~20 % on the cycling command (stepping freely: many times a column's norm there, 8 % on
+#: a continuous sweep). Its fixed point lies
 #: off the optimum along sloppy directions, which moved discovery verdicts (README): the defaults use it only
 #: in the fast method's finalists.
 JACOBIAN_STIFF = SolverSettings(rtol=1e-7, atol_q=1e-9, atol_w=1e-6, atol_i=1e-3, hmax=2e-3, max_steps=500_000,
-                                method="rodas4", stops=True)
+                                method="rodas4", stops="sampled")
 JACOBIAN = SolverSettings(rtol=1e-8, atol_q=1e-10, atol_w=1e-7, atol_i=1e-4, hmax=2e-3, max_steps=20_000,
-                          method="dopri5", stops=True, fallback=JACOBIAN_STIFF)
+                          method="dopri5", stops="sampled", fallback=JACOBIAN_STIFF)
 #: relative forward-difference step of a Jacobian in the :data:`JACOBIAN` tier
 JACOBIAN_REL_STEP = 1e-3
 TIERS = {"fast": FAST, "precise": PRECISE}

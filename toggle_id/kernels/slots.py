@@ -30,9 +30,11 @@ OK, MODEL_FAILURE, SOLVER_FAILURE, INVALID_PARAMS = 0, 1, 2, 3
 
 # ---- integrator settings array -----------------------------------------------------------------------------
 # S_METHOD: 0 = DOPRI5 in both modes, 1 = DOPRI5 free / Rodas4 clamped, 2 = Rodas4 in both modes;
-# S_STOPS: 1.0 = end a step at every sample (see toggle_id.kernels.stepping._next_stop), 0.0 = step freely
+# S_STOPS: where steps end at every sample (toggle_id.kernels.stepping._next_stop): 0 = nowhere, 1 = on an input
+# given by its samples, 2 = on any input
 S_RTOL, S_ATOL_Q, S_ATOL_W, S_ATOL_I, S_H0, S_HMAX, S_MAXSTEPS, S_METHOD, S_STOPS = range(9)
 METHOD_DOPRI5, METHOD_MIXED, METHOD_RODAS4 = 0, 1, 2
+STOPS_NONE, STOPS_SAMPLED, STOPS_ALL = 0, 1, 2
 
 # ---- per-individual constants (see _derived) ---------------------------------------------------------------
 (PC_M0, PC_M3, PC_M5, PC_MB, PC_MC, PC_ZKT, PC_Z2BM, PC_FMU, PC_IEPS, PC_CB, PC_FLOAD, PC_KL, PC_D, PC_K3,
