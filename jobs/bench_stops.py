@@ -24,6 +24,7 @@ import argparse
 import dataclasses
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -110,8 +111,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                       f"{r['fd_noise_worst_param']:>9s}", flush=True)
     print("one core per timed simulation; fd noise relative to each column's norm (forward differences, step 1e-4)")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump(rows, fh, indent=1)
+        Path(args.json).write_text(json.dumps(rows, indent=1), encoding="utf-8")
     return rows
 
 
