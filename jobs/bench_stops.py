@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from jobs.bench import with_backlash
 from toggle_id.params import ASSIGNED, PARAM_NAMES
 from toggle_id.record import Record
-from jobs.bench import with_backlash
 from toggle_id.simulate import JACOBIAN, PRECISE, STOPS, SolverSettings, simulate
 
 REFERENCE = SolverSettings(rtol=1e-13, atol_q=1e-15, atol_w=1e-12, atol_i=1e-9, hmax=2e-4, max_steps=5_000_000,
