@@ -74,9 +74,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--only", type=str, default="", help="only the records whose name contains this text")
     ap.add_argument("--json", type=str, default=None, help="also write the table as JSON")
     args = ap.parse_args(argv)
-    chosen = {k: v for k, v in records(args.duration).items() if args.only in k}
+    every = records(args.duration)
+    chosen = {k: v for k, v in every.items() if args.only in k}
     if not chosen:
-        raise SystemExit(f"bench_stops: no record name contains {args.only!r}; names: {', '.join(records(1.0))}")
+        raise SystemExit(f"bench_stops: no record name contains {args.only!r}; names: {', '.join(every)}")
     rng = np.random.default_rng(1)
     tiers = {"PRECISE": PRECISE, "JACOBIAN": JACOBIAN}
     rows: list[dict] = []

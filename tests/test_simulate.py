@@ -199,17 +199,11 @@ def test_precise_tier_is_smooth_on_a_sampled_input():
     samples, kinked at each), the forward difference of x_B in each of the 15 parameters lies within 1 % (of the
     column's norm) of a far tighter integration's: the precise tier's steps stop at the samples. Stepping freely
     across them, the worst column was off by 14 times its norm (m_2; ``python -m jobs.bench_stops``)."""
+    from jobs.bench_stops import REFERENCE, fd_noise, fd_points
+
     rec = Record.from_cycling()
-    tight = replace(PRECISE, rtol=1e-13, atol_q=1e-15, atol_w=1e-12, atol_i=1e-9, hmax=2e-4, max_steps=5_000_000,
-                    fallback=None)
-    n = len(ASSIGNED)
-    X = np.repeat(ASSIGNED[None, :], n + 1, axis=0)
-    X[1:] += np.diag(1e-4 * np.abs(ASSIGNED))
-    cols = {}
-    for name, tier in (("precise", PRECISE), ("tight", tight)):
-        x = simulate(X, rec, tier, parallel=True).x_B
-        cols[name] = x[1:] - x[0]
-    err = np.linalg.norm(cols["precise"] - cols["tight"], axis=1) / np.linalg.norm(cols["tight"], axis=1)
+    X = fd_points(ASSIGNED[None, :])
+    err = fd_noise(simulate(X, rec, PRECISE, parallel=True).x_B, simulate(X, rec, REFERENCE, parallel=True).x_B)
     assert np.all(err < 1e-2), dict(zip(PARAM_NAMES, np.round(err, 4)))
 
 

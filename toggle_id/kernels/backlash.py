@@ -51,10 +51,8 @@ from .slots import (
     S_RTOL,
     S_STOPS,
     SOLVER_FAILURE,
-    STOPS_ALL,
-    STOPS_SAMPLED,
 )
-from .stepping import _dense, _first_sample, _illinois, _next_stop, _pi_control
+from .stepping import _dense, _first_sample, _illinois, _next_stop, _pi_control, _stops_on
 from .tableaus import (
     _A21,
     _A31,
@@ -234,7 +232,7 @@ def simulate_lash(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                      settings[S_ATOL_W] * R])
     hmax = settings[S_HMAX]
     max_steps = int(settings[S_MAXSTEPS])
-    stops = settings[S_STOPS] == STOPS_ALL or (settings[S_STOPS] == STOPS_SAMPLED and not use_sweep)
+    stops = _stops_on(settings[S_STOPS], use_sweep)
     pc = _derived(th, geo, sweep, use_sweep, t_out[0], t_out[1] - t_out[0])
     q_L = math.acos(geo[G_XBL] / (geo[G_R1] + geo[G_R3]))
     xoff = pc[PC_XOFF]

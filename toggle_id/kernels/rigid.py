@@ -37,10 +37,8 @@ from .slots import (
     S_RTOL,
     S_STOPS,
     SOLVER_FAILURE,
-    STOPS_ALL,
-    STOPS_SAMPLED,
 )
-from .stepping import _dense, _first_sample, _illinois, _next_stop, _pi_control
+from .stepping import _dense, _first_sample, _illinois, _next_stop, _pi_control, _stops_on
 from .tableaus import (
     _A21,
     _A31,
@@ -264,7 +262,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     hmax = settings[S_HMAX]
     max_steps = int(settings[S_MAXSTEPS])
     method = int(settings[S_METHOD])
-    stops = settings[S_STOPS] == STOPS_ALL or (settings[S_STOPS] == STOPS_SAMPLED and not use_sweep)
+    stops = _stops_on(settings[S_STOPS], use_sweep)
     pc = _derived(th, geo, sweep, use_sweep, t_out[0], t_out[1] - t_out[0])
     q_L = math.acos(geo[G_XBL] / (geo[G_R1] + geo[G_R3]))  # contact iff q ≤ q_L (x_B ≥ x_B^L)
     xoff = pc[PC_XOFF]

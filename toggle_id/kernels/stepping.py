@@ -9,7 +9,7 @@ import math
 import numba as nb
 
 from .geometry import _geometry, _x_of_q
-from .slots import PC_IDT, PC_T0, PC_TAUD
+from .slots import PC_IDT, PC_T0, PC_TAUD, STOPS_ALL, STOPS_SAMPLED
 
 
 @nb.njit(cache=True, inline="always")
@@ -42,6 +42,12 @@ def _illinois(a, b, ga, gb, side, th_, gm):
     if side == 1:
         ga *= 0.5
     return a, th_, ga, gm, 1
+
+
+@nb.njit(cache=True, inline="always")
+def _stops_on(mode, use_sweep):
+    """Whether steps stop at the samples under the settings' S_STOPS ``mode`` for this kind of input."""
+    return mode == STOPS_ALL or (mode == STOPS_SAMPLED and not use_sweep)
 
 
 @nb.njit(cache=True, inline="always")
