@@ -71,6 +71,10 @@ def test_settings_validate_and_reject_bad_values():
         discover_settings({"discover": {"nominal": "magic"}})
     with pytest.raises(ConfigError, match="alternatives"):
         discover_settings({"discover": {"alternatives": ["gradient_descent"]}})
+    for bad in (-1, 1.5, True, "two"):
+        with pytest.raises(ConfigError, match="restarts"):
+            discover_settings({"discover": {"restarts": bad}})
+    assert discover_settings({"discover": {"restarts": 0}}) is not None
     assert D.DiscoverSettings.from_dict({"alternatives": ["fast"], "routes": "always"}).routes == "always"
 
 

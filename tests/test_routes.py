@@ -6,7 +6,7 @@ import numpy as np
 
 from toggle_id.discovery.engine import Outcome
 from toggle_id.discovery.model import Fit
-from toggle_id.discovery.routes import Route, choose, left_in, same_basin
+from toggle_id.discovery.routes import Route, choose, left_in, more_routes, same_basin
 
 N = 4000
 RNG = np.random.default_rng(7)
@@ -69,3 +69,50 @@ def test_baselines_are_one_basin_when_their_errors_agree_to_the_tolerance():
     b = Fit(np.zeros(3), ("p",), 1.0015e-12 * N)  # RMS 1 µm against 1.00075 µm
     c = Fit(np.zeros(3), ("p",), 1.01e-12 * N)
     assert same_basin(a, b, N, 1e-3) and not same_basin(a, c, N, 1e-3) and same_basin(a, c, N, 1e-2)
+
+
+class _Plant:
+    """A stub plant: its nominal fit is the baseline RMS it polishes to (µm); structure is left above 1.5 µm."""
+
+    def __init__(self, rms_um: float) -> None:
+        self.rms_um = rms_um
+        self.baseline_fit: Fit | None = None
+
+    def baseline(self) -> Fit:
+        self.baseline_fit = Fit(np.zeros(3), ("p",), (self.rms_um * 1e-6) ** 2 * N)
+        return self.baseline_fit
+
+
+def _stub_loop(plant: _Plant) -> Outcome:
+    diag = {"verdict": {"structure_left": plant.rms_um > 1.5}}
+    return Outcome(plant.baseline_fit, [], [], [], (diag, None, None))
+
+
+def _more(first_um: float, alternatives: list, restarts: list) -> list[Route]:
+    plant = _Plant(first_um)
+    plant.baseline()
+    routes = [Route("two_stage", plant, _stub_loop(plant))]
+    more_routes(routes, alternatives, restarts, _Plant, _stub_loop, N, 1e-3, lambda msg: None)
+    return routes
+
+
+def test_restarts_run_only_from_a_lower_baseline_and_only_while_the_record_is_unexplained():
+    made: list[str] = []
+
+    def fit(label: str, rms_um: float):
+        return label, lambda: made.append(label) or rms_um
+
+    # a GA seed in the 8-µm basin (rec17's), the fast fit in another, then restarts: one higher (skipped), one
+    # in the first route's basin (skipped), one lower that explains the record; the last one is never made
+    routes = _more(8.05, [fit("fast", 9.1)], [fit("seed1", 14.6), fit("seed2", 8.0505), fit("seed3", 1.0),
+                                             fit("seed4", 0.9)])
+    assert made == ["fast", "seed1", "seed2", "seed3"]
+    assert [r.label for r in routes] == ["two_stage", "fast", "seed1", "seed2", "seed3"]
+    assert routes[1].outcome is not None and routes[1].skipped is None  # an alternative runs from a higher basin
+    assert "no lower than route two_stage's (8.05 µm)" in routes[2].skipped and routes[2].outcome is None
+    assert "basin of route two_stage" in routes[3].skipped
+    assert routes[4].outcome is not None and not routes[4].structure_left
+    # the first route explained the record: alternatives still run (as they always have), restarts are not made
+    made.clear()
+    routes = _more(1.0, [fit("fast", 9.1)], [fit("seed1", 0.5)])
+    assert made == ["fast"] and [r.label for r in routes] == ["two_stage", "fast"]

@@ -40,6 +40,9 @@ def discover_settings(cfg: Mapping) -> DiscoverSettings:
     if isinstance(alternatives, str) or not all(m in ("one_stage", "two_stage", "fast") for m in alternatives):
         raise ConfigError(f"discover.alternatives must be a list of identification methods (one_stage, two_stage, "
                           f"fast), got {alternatives!r}")
+    restarts = node.get("restarts", DiscoverJobSettings.restarts)
+    if isinstance(restarts, bool) or not isinstance(restarts, int) or restarts < 0:
+        raise ConfigError(f"discover.restarts must be a whole number of further seeds (0 or more), got {restarts!r}")
     if node.get("noise_std") is None:
         noise = (cfg.get("identifiability") or {}).get("noise_std_m")
         if noise is not None:
@@ -56,6 +59,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     settings = discover_settings(cfg)
     nominal_mode = (cfg.get("discover") or {}).get("nominal", DiscoverJobSettings.nominal)
     method = cfg.get("method", "two_stage")
+    seed = int(cfg.get("seed", 0))
     fixed = dict(cfg.get("fixed") or {})
     for nm in fixed:
         if nm not in ALL_INDEX:
@@ -91,10 +95,10 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         if validation is not None:
             datasets += mlflow_run.log_records(tracker, [validation], run_dir, "validation", enabled=log_datasets)
         curve = RmseCurve(record, on_point=mlflow_run.curve_logger(tracker, run.run_id), t0=t0)
-        def fit_nominal(fit_method: str, name: str, **extra) -> IdentificationResult:
+        def fit_nominal(fit_method: str, name: str, seed: int = seed, **extra) -> IdentificationResult:
             """One nominal fit as its own MLflow child run (the job's own, or a further route's)."""
-            with tracker.run(name, tags={"stage": "nominal", "route": fit_method}, nested=True):
-                res = identify(record, method=fit_method, ga=ga, seed=int(cfg.get("seed", 0)),
+            with tracker.run(name, tags={"stage": "nominal", "route": fit_method, "seed": str(seed)}, nested=True):
+                res = identify(record, method=fit_method, ga=ga, seed=seed,
                                make_evaluator=make_eval, fixed=fixed, bounds=dict(cfg.get("bounds") or {}),
                                settings=tier, polish=polish_cfg, identifiability=False, fast=fast_settings(cfg),
                                progress=lambda total, desc: console.progress(total, desc, enabled=show), **extra)
@@ -109,6 +113,9 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
         # further routes' nominal fits (toggle_id/discovery/routes.py): made only when the loop asks for them
         alt_methods = (cfg.get("discover") or {}).get("alternatives", DiscoverJobSettings.alternatives)
         alternatives = [(m, lambda m=m: fit_nominal(m, f"nominal_{m}")) for m in alt_methods if m != label]
+        n_restarts = (cfg.get("discover") or {}).get("restarts", DiscoverJobSettings.restarts)
+        restarts = [(f"{label}_seed{s}", lambda s=s: fit_nominal(method, f"nominal_seed{s}", seed=s))
+                    for s in range(seed + 1, seed + 1 + n_restarts)] if nominal_result is not None else []
 
         def on_refit(rf: Refit) -> None:
             with tracker.run(f"refit_{rf.iteration}_{rf.name}", tags={"effect": rf.name,
@@ -122,7 +129,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                                      **{f"param.{k}": v for k, v in rf.params.items()}})
 
         res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, reference=base_start,
-                       validation=validation, label=label, alternatives=alternatives,
+                       validation=validation, label=label, alternatives=alternatives, restarts=restarts,
                        on_refit=on_refit,
                        progress=(lambda msg: print(msg, flush=True)) if show else None)
         curve.add("discovery", curve.simulations + res.n_simulations, rmse_m=res.rmse_after_m)

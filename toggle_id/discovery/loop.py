@@ -22,7 +22,7 @@ from .toggle_plant import TogglePlant
 from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
-from .routes import Route, choose, route_line, same_basin
+from .routes import Route, choose, more_routes, route_line
 from .residual import level_varies, line_text, noise_lines, periodic_text, prediction_report, residual_report
 from .noise import fit_noise
 from .validation import Judge
@@ -48,7 +48,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              starts: Sequence[np.ndarray | Mapping[str, float]] = (),
              reference: np.ndarray | Mapping[str, float] | None = None, validation: Record | None = None,
              on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None,
-             label: str = "nominal", alternatives: Sequence[tuple[str, object]] = ()) -> DiscoveryResult:
+             label: str = "nominal", alternatives: Sequence[tuple[str, object]] = (),
+             restarts: Sequence[tuple[str, object]] = ()) -> DiscoveryResult:
     """Run the discovery loop on ``record`` (see the package docstring).
 
     nominal: the nominal fit (an :class:`IdentificationResult`, an extended/physical vector or a name → value
@@ -64,7 +65,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     on_refit: called with every :class:`Refit` (e.g. to log an MLflow child run); progress: one-line messages.
     label: where ``nominal`` came from (e.g. ``two_stage``); alternatives: further nominal fits, as (label, fit)
         pairs — a fit as ``nominal``, or a callable without arguments that makes it (run only when needed) —
-        from which the loop runs again when ``settings.routes`` says so (:mod:`.routes`).
+        from which the loop runs again when ``settings.routes`` says so (:mod:`.routes`); restarts: further
+        nominal fits of ``label``'s method from other seeds, as such pairs: a route only from a baseline lower than
+        every route's so far, and only while no route has explained the record (:func:`.routes.more_routes`).
     """
     settings = (settings or DiscoverSettings()).validate()
     say = progress or (lambda msg: log.info(msg))
@@ -99,23 +102,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
 
     first = plant_from(theta, [_with(_nominal_theta(st), fixed) for st in starts])
     routes = [Route(label, first, loop(first), nominal)]
-    if alternatives and (settings.routes == "always" or (settings.routes == "unexplained"
-                                                         and routes[0].structure_left)):
-        for alt_label, alt in alternatives:
-            say(f"route {alt_label}: the loop again from the {alt_label} nominal fit"
-                + (" (structure is left after the first route)" if routes[0].structure_left else ""))
-            alt_nominal = alt() if callable(alt) else alt
-            route = Route(alt_label, plant_from(_with(_nominal_theta(alt_nominal), fixed), []), nominal=alt_nominal)
-            base = route.plant.baseline()
-            seen = next((r for r in routes if r.outcome is not None
-                         and same_basin(base, r.plant.baseline_fit, n, settings.route_rtol)), None)
-            if seen is not None:
-                route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) lies in the basin of route "
-                                 f"{seen.label} ({seen.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
-                say(f"route {alt_label} skipped: {route.skipped}")
-            else:
-                route.outcome = loop(route.plant)
-            routes.append(route)
+    if settings.routes == "always" or (settings.routes == "unexplained" and routes[0].structure_left):
+        more_routes(routes, alternatives, restarts, lambda th: plant_from(_with(_nominal_theta(th), fixed), []),
+                    loop, n, settings.route_rtol, say)
     pick, compared = choose(routes, judge.residual, n, settings.noise_max_order, settings.ambiguity_alpha)
     route_report = [r.to_dict(n, i == pick) for i, r in enumerate(routes)]
     if len(routes) > 1:

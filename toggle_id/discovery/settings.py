@@ -216,7 +216,7 @@ class DiscoverSettings:
         """Settings from a config node; unknown keys are a ConfigError."""
         node = dict(node or {})
         known = {f for f in cls.__dataclass_fields__}
-        extra = sorted(set(node) - known - {"nominal", "base", "alternatives"})
+        extra = sorted(set(node) - known - {"nominal", "base", "alternatives", "restarts"})
         if extra:
             raise ConfigError(f"discover: unknown setting(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
         kw = {k: v for k, v in node.items() if k in known}
@@ -240,3 +240,7 @@ class DiscoverJobSettings(DiscoverSettings):
     #: fit's nominal optima can lie in different basins, and an effect refitted from one explains what it cannot
     #: from the other
     alternatives: tuple[str, ...] = ("fast",)
+    #: further nominal fits of the job's own method from the seeds after its own (seed + 1, ...): routes only
+    #: while no route has explained the record, and only from a baseline lower than every route's so far
+    #: (:func:`.routes.more_routes`; the nominal fit of a record that lacks an effect is a multistart problem)
+    restarts: int = 2
