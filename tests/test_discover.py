@@ -430,6 +430,32 @@ def test_discover_job_runs_the_fast_fit_as_a_second_route_when_asked(tmp_path, j
 
 
 @pytest.mark.integration
+def test_discover_job_restarts_its_ga_from_the_next_seed_while_the_record_is_unexplained(tmp_path, job_env):
+    """No candidate can explain a Coulomb torque, so structure is left: the job fits its GA again from seed 1 (its
+    own MLflow child run) and reports it as a route, run or skipped by its baseline; a small GA keeps this cheap."""
+    from conftest import run_job
+    from mlflow import MlflowClient
+
+    proc = run_job("jobs.run", "+experiment=discover", f"hydra.run.dir={tmp_path / 'run'}", "evaluator=serial",
+                   "data.duration=0.5", "data.effects.tau_c=5.0", "discover.candidates=[]", "discover.alternatives=[]",
+                   "discover.restarts=1", "discover.catch_all=false", "ga.population=16", "ga.generations=3",
+                   "polish.max_nfev=5", "progress=false", cwd=tmp_path, env=job_env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    d = json.loads((tmp_path / "run" / "discovery.json").read_text())
+    routes = d["routes"]
+    assert [r["label"] for r in routes] == ["two_stage", "two_stage_seed1"] and routes[0]["structure_left"]
+    second = routes[1]
+    if second["skipped"]:
+        assert second["baseline_rmse_m"] >= routes[0]["baseline_rmse_m"] or "basin of route" in second["skipped"]
+    else:
+        assert second["baseline_rmse_m"] < routes[0]["baseline_rmse_m"] and "rmse_after_m" in second
+    client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
+    runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
+    seeds = {r.info.run_name: r.data.tags.get("seed") for r in runs if r.data.tags.get("stage") == "nominal"}
+    assert seeds == {"nominal": "0", "nominal_seed1": "1"}
+
+
+@pytest.mark.integration
 def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, capsys):
     """The benchmark's command line, in this process (the job it times is the one the test above runs as a user
     would): one run, its line and the median printed, the rows written."""
