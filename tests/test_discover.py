@@ -108,6 +108,23 @@ def test_magnitude_grid_spans_the_domain_on_the_allowed_sides():
     assert np.all(g > 0) and g.max() <= 0.05  # tau_d ≥ 0: the negative LM estimate is clipped away
 
 
+def test_candidates_within_the_score_tests_resolution_of_the_top_one_all_lead():
+    from toggle_id.discovery.scoring import CandidateScore
+    from toggle_id.discovery.toggle_plant import score_leaders
+
+    def cand(name, score, profile):
+        return CandidateScore(name, score, 0.0, {}, None, 1.0, 1.0, profile_score=profile)
+
+    # rec08's first iteration: the saturation and the stiffness differ by 0.13 (far below χ²(1)'s 3.84 at 0.05)
+    scored = [cand("torque_constant_saturation", 276.835, 276.0), cand("contact_nonlinear_stiffness", 276.972, 274.0),
+              cand("voltage_saturation", 34.6, 2.33), cand("cogging_torque", 2.64, 2.62)]
+    assert score_leaders(scored, 0.05) == {"torque_constant_saturation", "contact_nonlinear_stiffness"}
+    assert score_leaders(scored, 0.0) == {"contact_nonlinear_stiffness"}  # the top statistic alone
+    # the larger of the two statistics counts: a profile far above the score test leads too
+    assert score_leaders([cand("a", 10.0, 50.0), cand("b", 48.0, 1.0), cand("c", 45.0, 1.0)], 0.05) == {"a", "b"}
+    assert score_leaders([], 0.05) == set()
+
+
 def test_score_test_at_the_truth_names_an_offset_and_estimates_it():
     """At the true nominal parameters the residual of an offset is the offset: the score test puts
     sensor_offset far ahead with its first-order magnitude; an effect that is not there (backlash) is not
