@@ -249,17 +249,25 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     # itself a reason to look
     leaders = score_leaders([c for c in scores if c.name in scouts and np.isfinite(scouts[c.name].sse)],
                             settings.ambiguity_alpha)
+    stat = {c.name: max(c.profile_score, c.score) for c in scores}
     for i, sc in enumerate(order):
-        best = min((rf.fit.rmse(n) ** 2 * n for rf in refits if rf.accepted), default=None)
+        leading = min((rf for rf in refits if rf.accepted), key=lambda rf: rf.sse1, default=None)
+        best = leading.fit.rmse(n) ** 2 * n if leading is not None else None
+        realised = leading.F * leading.k if leading is not None else None
         # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
-        # (no effect is accepted while a candidate that explains more has not been refitted), and while a scout
-        # comes within reach of it (a rival the record may not tell apart from it); with none accepted yet, while
+        # (no effect is accepted while a candidate that explains more has not been refitted), while a scout
+        # comes within reach of it (a rival the record may not tell apart from it), and while a candidate's score
+        # statistic exceeds what the best accepted refit realised (its F·k, the same χ² units, under its own noise
+        # model: approximate): a scout's 8 evaluations can show little of a smooth effect the nominal
+        # parameters first absorbed (rec15: the slider's viscous friction, score 57.9, scout 2.061 µm, refit
+        # 1.737 µm, where the accepted cogging realised F·k = 30 at 2.062 µm); with none accepted yet, while
         # a scout's short polish is significant as least squares (no effect is dismissed on its scout alone: a
         # short polish may show little of what a converged refit explains)
         if not np.isfinite(sc.sse):
             break
         if i >= settings.top_k and sc.name not in leaders:
-            if best is not None and sc.sse >= best + tie_band(best, n, settings.ambiguity_alpha):
+            if (best is not None and sc.sse >= best + tie_band(best, n, settings.ambiguity_alpha)
+                    and not stat.get(sc.name, 0.0) > realised):
                 continue
             k_sc = len(freed_with(base.free, EFFECTS_BY_NAME[sc.name], held)) - len(base.free)
             if best is None and not f_test(base.sse, sc.sse, k_sc, n, len(base.free) + k_sc)[1] < settings.alpha:
