@@ -123,6 +123,10 @@ def test_candidates_within_the_score_tests_resolution_of_the_top_one_all_lead():
     # the larger of the two statistics counts: a profile far above the score test leads too
     assert score_leaders([cand("a", 10.0, 50.0), cand("b", 48.0, 1.0), cand("c", 45.0, 1.0)], 0.05) == {"a", "b"}
     assert score_leaders([], 0.05) == set()
+    # statistics at the noise's level all lie within the band: only the top one leads (a backlash's test record)
+    noise = [cand("dead_time", 2.85, 3.1), cand("backlash", 2.51, 2.72), cand("coulomb_friction_motor", 1.82, 2.32)]
+    assert score_leaders(noise, 0.05, screen=3.84) == {"dead_time"}
+    assert score_leaders(scored, 0.05, screen=3.84) == {"torque_constant_saturation", "contact_nonlinear_stiffness"}
 
 
 def test_score_test_at_the_truth_names_an_offset_and_estimates_it():

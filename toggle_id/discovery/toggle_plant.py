@@ -248,7 +248,7 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     # or delay effect may show little of what its converged refit explains, and the two rankings disagreeing is
     # itself a reason to look
     leaders = score_leaders([c for c in scores if c.name in scouts and np.isfinite(scouts[c.name].sse)],
-                            settings.ambiguity_alpha)
+                            settings.ambiguity_alpha, screen)
     stat = {c.name: max(c.profile_score, c.score) for c in scores}
     for i, sc in enumerate(order):
         leading = min((rf for rf in refits if rf.accepted), key=lambda rf: rf.sse1, default=None)
@@ -314,11 +314,12 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             "base": base, "rivals": rivals}
 
 
-def score_leaders(scored: Sequence[CandidateScore], alpha: float) -> set[str]:
+def score_leaders(scored: Sequence[CandidateScore], alpha: float, screen: float = 0.0) -> set[str]:
     """The candidates the score test ranks first: the top statistic (the larger of a candidate's profile and
-    score-test χ²) and every one within the test's own resolution of it — a difference below the χ²(1) critical
-    value at ``alpha`` (0: the top one alone). To first order the record cannot tell such candidates apart, so
-    none of them is dismissed on its 8-evaluation scout. Measured on adversarial record rec08 (a torque constant
+    score-test χ²) and every significant one (statistic above ``screen``) within the test's own resolution of it —
+    a difference below the χ²(1) critical value at ``alpha`` (0: the top one alone). To first order the record
+    cannot tell such candidates apart, so none of them is dismissed on its 8-evaluation scout; statistics at the
+    noise's level all lie within that band of each other and tell nothing (a backlash scores 0 at b_l = 0). Measured on adversarial record rec08 (a torque constant
     that saturates): the saturation and a cubic contact stiffness score 276.8 and 277.0; the stiffness's scout
     reached 0.998 µm, the saturation's 3.023 µm, and with the top statistic alone only the stiffness was refitted
     and accepted, where both refitted tie (the record cannot tell them apart)."""
@@ -327,7 +328,7 @@ def score_leaders(scored: Sequence[CandidateScore], alpha: float) -> set[str]:
         return set()
     top = max(stat.values())
     band = float(stats.chi2.isf(alpha, 1)) if alpha > 0 else 0.0
-    return {nm for nm, v in stat.items() if v >= top - band}
+    return {nm for nm, v in stat.items() if v == top or (v >= top - band and v > screen)}
 
 
 def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
