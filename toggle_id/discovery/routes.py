@@ -108,13 +108,13 @@ def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], re
             route = Route(label, make_plant(nominal), nominal=nominal)
             base = route.plant.baseline()
             seen = next((r for r in ran if same_basin(base, r.plant.baseline_fit, n, rtol)), None)
-            lower = min(ran, key=lambda r: r.plant.baseline_fit.sse)
+            lowest = min(ran, key=lambda r: r.plant.baseline_fit.sse)
             if seen is not None:
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) lies in the basin of route "
                                  f"{seen.label} ({seen.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
-            elif kind == "restart" and base.sse >= lower.plant.baseline_fit.sse:
+            elif kind == "restart" and base.sse >= lowest.plant.baseline_fit.sse:
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) is no lower than route "
-                                 f"{lower.label}'s ({lower.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
+                                 f"{lowest.label}'s ({lowest.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
             if route.skipped:
                 say(f"route {label} skipped: {route.skipped}")
             else:

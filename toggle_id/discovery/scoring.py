@@ -43,6 +43,11 @@ class CandidateScore:
     scout_rmse_m: float | None = None
     profile_score_alt: float | None = None
 
+    @property
+    def statistic(self) -> float:
+        """The candidate's χ²(1) evidence at this point: the larger of its profile and score-test statistics."""
+        return max(self.profile_score, self.score)
+
     def to_dict(self) -> dict:
         return {"name": self.name, "score": self.score, "p_value": self.p_value, "probe": self.probe,
                 "magnitude_linear": self.magnitude_linear, "profile_score": self.profile_score,

@@ -231,7 +231,7 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         screened = [c for c in scores if any(c.name in pt.profiles for pt in points)]
     else:
         screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
-                    and (max(here[c.name].profile_score, here[c.name].score) > screen
+                    and (here[c.name].statistic > screen
                          or (c.name not in points[0].profiles
                              and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
     scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
@@ -249,9 +249,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     # itself a reason to look
     leaders = score_leaders([c for c in scores if c.name in scouts and np.isfinite(scouts[c.name].sse)],
                             settings.ambiguity_alpha, screen)
-    stat = {c.name: max(c.profile_score, c.score) for c in scores}
+    stat = {c.name: c.statistic for c in scores}
     for i, sc in enumerate(order):
-        leading = min((rf for rf in refits if rf.accepted), key=lambda rf: rf.sse1, default=None)
+        leading = min((rf for rf in refits if rf.accepted), key=lambda rf: rf.fit.rmse(n), default=None)
         best = leading.fit.rmse(n) ** 2 * n if leading is not None else None
         realised = leading.F * leading.k if leading is not None else None
         # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
@@ -323,7 +323,7 @@ def score_leaders(scored: Sequence[CandidateScore], alpha: float, screen: float 
     that saturates): the saturation and a cubic contact stiffness score 276.8 and 277.0; the stiffness's scout
     reached 0.998 µm, the saturation's 3.023 µm, and with the top statistic alone only the stiffness was refitted
     and accepted, where both refitted tie (the record cannot tell them apart)."""
-    stat = {c.name: max(c.profile_score, c.score) for c in scored}
+    stat = {c.name: c.statistic for c in scored}
     if not stat:
         return set()
     top = max(stat.values())
