@@ -129,6 +129,30 @@ def test_candidates_within_the_score_tests_resolution_of_the_top_one_all_lead():
     assert score_leaders(scored, 0.05, screen=3.84) == {"torque_constant_saturation", "contact_nonlinear_stiffness"}
 
 
+def test_beyond_top_k_a_scout_is_refitted_while_it_could_beat_or_tie_the_best_refit_or_its_score_exceeds_it():
+    from toggle_id.discovery.settings import DiscoverSettings
+    from toggle_id.discovery.toggle_plant import worth_refitting
+
+    n, st = 5001, DiscoverSettings(alpha=0.01, ambiguity_alpha=0.05)
+
+    def sse(rms_um):
+        return (rms_um * 1e-6) ** 2 * n
+
+    best, realised = sse(2.0), 30.0  # an accepted refit at 2 µm that realised F·k = 30
+
+    def worth(rms_um, statistic, **kw):
+        return worth_refitting(sse(rms_um), statistic, sse(2.178), 13, 1, n, st, **kw)
+
+    assert worth(1.9, 0.0, best_sse=best, realised=realised)  # its scout already explains more
+    assert worth(2.004, 0.0, best_sse=best, realised=realised)  # within the tie band: a possible rival
+    assert not worth(2.3, 20.0, best_sse=best, realised=realised)  # far above, and its score is below F·k
+    assert worth(2.3, 57.9, best_sse=best, realised=realised)  # rec15: the score says more than the scout shows
+    assert not worth(2.3, float("nan"), best_sse=best, realised=realised)
+    # none accepted yet: refitted while the scout's short polish is significant as least squares (F-test, k = 1)
+    assert worth(2.17, 0.0) and not worth(2.1779, 1e6)
+    assert not worth_refitting(sse(2.17), 0.0, sse(2.178), 13, 1, n, DiscoverSettings(alpha=1e-12))
+
+
 def test_score_test_at_the_truth_names_an_offset_and_estimates_it():
     """At the true nominal parameters the residual of an offset is the offset: the score test puts
     sensor_offset far ahead with its first-order magnitude; an effect that is not there (backlash) is not

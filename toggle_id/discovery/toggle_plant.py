@@ -254,23 +254,12 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         leading = min((rf for rf in refits if rf.accepted), key=lambda rf: rf.fit.rmse(n), default=None)
         best = leading.fit.rmse(n) ** 2 * n if leading is not None else None
         realised = leading.F * leading.k if leading is not None else None
-        # at least top_k refits; beyond them, refit while a scout explains more than the best accepted refit
-        # (no effect is accepted while a candidate that explains more has not been refitted), while a scout
-        # comes within reach of it (a rival the record may not tell apart from it), and while a candidate's score
-        # statistic exceeds what the best accepted refit realised (its F·k, the same χ² units, under its own noise
-        # model: approximate): a scout's 8 evaluations can show little of a smooth effect the nominal
-        # parameters first absorbed (rec15: the slider's viscous friction, score 57.9, scout 2.061 µm, refit
-        # 1.737 µm, where the accepted cogging realised F·k = 30 at 2.062 µm); with none accepted yet, while
-        # a scout's short polish is significant as least squares (no effect is dismissed on its scout alone: a
-        # short polish may show little of what a converged refit explains)
         if not np.isfinite(sc.sse):
             break
-        if i >= settings.top_k and sc.name not in leaders:
-            if (best is not None and sc.sse >= best + tie_band(best, n, settings.ambiguity_alpha)
-                    and not stat.get(sc.name, 0.0) > realised):
-                continue
+        if i >= settings.top_k and sc.name not in leaders:  # at least top_k refits, the leaders whatever their scouts
             k_sc = len(freed_with(base.free, EFFECTS_BY_NAME[sc.name], held)) - len(base.free)
-            if best is None and not f_test(base.sse, sc.sse, k_sc, n, len(base.free) + k_sc)[1] < settings.alpha:
+            if not worth_refitting(sc.sse, stat.get(sc.name, 0.0), base.sse, len(base.free), k_sc, n, settings,
+                                   best, realised):
                 continue
         eff = EFFECTS_BY_NAME[sc.name]
         start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
@@ -312,6 +301,25 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
               "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals}
     return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
             "base": base, "rivals": rivals}
+
+
+def worth_refitting(sse: float, statistic: float, base_sse: float, p_base: int, k: int, n: int,
+                    settings: DiscoverSettings, best_sse: float | None = None, realised: float | None = None) -> bool:
+    """Beyond the ``top_k`` refits and the score leaders, is a candidate whose scout reached ``sse`` refitted?
+
+    With a refit accepted this round (``best_sse`` its SSE, ``realised`` its F·k): yes while the scout explains
+    more than it or comes within the tie band of it (no effect is accepted while a candidate that explains more
+    has not been refitted; a rival the record may not tell apart), and while the candidate's score ``statistic``
+    exceeds what that refit realised (the same χ² units, each under its own noise model: approximate). A scout's 8
+    evaluations can show little of a smooth effect the nominal parameters first absorbed — adversarial record
+    rec15: the slider's viscous friction scored 57.9 with a scout at 2.061 µm and refitted to 1.737 µm, where the
+    accepted cogging torque had realised F·k = 30 at 2.062 µm. With none accepted yet: while the scout's short
+    polish is significant as least squares against the ``p_base``-parameter baseline (``k`` more parameters), so
+    that no effect is dismissed on its scout alone."""
+    if best_sse is not None:
+        return bool(sse < best_sse + tie_band(best_sse, n, settings.ambiguity_alpha)
+                    or (realised is not None and statistic > realised))
+    return bool(f_test(base_sse, sse, k, n, p_base + k)[1] < settings.alpha)
 
 
 def score_leaders(scored: Sequence[CandidateScore], alpha: float, screen: float = 0.0) -> set[str]:
