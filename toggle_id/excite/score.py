@@ -17,7 +17,7 @@ parameters, from A's nominal part and from the first-order Gauss–Newton point;
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -132,9 +132,15 @@ def refit_separation(record: Record, rival: Rival, y_a: np.ndarray, *, max_nfev:
 def spectrum(record: Record, theta: np.ndarray, noise_std: float, names: Sequence[str] = P.PARAM_NAMES,
              others: Sequence[Record] = ()) -> dict:
     """Singular values (m per unit log-parameter, descending), numerical rank and identifiable parameters of x_B's
-    sensitivities at ``theta`` on ``record`` (stacked with ``others``: several experiments fitted jointly)."""
+    sensitivities at ``theta`` on ``record`` (stacked with ``others``: several experiments fitted jointly).
+
+    Every input is taken at its samples, as a candidate input is: a record simulated in memory from its swept sine
+    is integrated freely, and there the Jacobian's own error (what the numerical rank is resolved against) is far
+    larger than with steps that stop at the samples — measured on the default record, rank 5 resolved (s6 = 1.3e-6
+    m) where its sampled input resolves 8 — so the record and a proposal would be compared on different footing."""
     Js, Es = [], []
     for rec in (record, *others):
+        rec = rec if rec.sweep is None else replace(rec, sweep=None)
         y, status = responses(rec, theta)
         if not np.all(np.isfinite(y[0])):
             return {"error": f"simulation failed ({status[0]})"}
