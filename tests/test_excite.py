@@ -178,6 +178,18 @@ def test_spectrum_and_resolved_singular_values():
     assert resolved_sv({"error": "x"}, 1) == 0.0
 
 
+def test_a_swept_record_is_compared_at_its_samples_as_a_candidate_is():
+    """A record simulated in memory from its swept sine integrates freely; its spectrum is taken from the same
+    input at its samples (linearly interpolated, steps stopping at them), where the candidates' are."""
+    from dataclasses import replace
+
+    rec = Record.from_sweep("simulation", duration=1.0)
+    assert rec.sweep is not None
+    sampled = spectrum(replace(rec, sweep=None), THETA, 1e-6)
+    assert spectrum(rec, THETA, 1e-6) == sampled
+    assert len(sampled["singular_values"]) == 15 and sampled["rank"] >= 1
+
+
 def test_search_is_seeded_and_rejects_with_a_status():
     settings = ExciteSettings.from_dict({"duration": 1.0, "n_random": 2, "n_refine": 2, "parameters": False,
                                          "families": ["steps", "cycling"], "seed": 5})
