@@ -96,7 +96,18 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         "validation_localisation": _validation(report, "text") if _validation(report, "structure_left") else None,
         "localisation": (report.get("localisation") or {}).get("text")
         if isinstance(report.get("localisation"), dict) and report["localisation"].get("structure_left") else None,
+        "commit": code_label(report.get("code")),
     }
+
+
+def code_label(code) -> str | None:
+    """The short commit of a report's ``code`` (``+dirty`` when the checkout had uncommitted changes), else its
+    package version; None for a report made before reports said which code made them."""
+    if not isinstance(code, dict):
+        return None
+    if code.get("git_commit"):
+        return str(code["git_commit"])[:7] + ("+dirty" if code.get("git_dirty") else "")
+    return f"version {code['version']}" if code.get("version") else None
 
 
 def _fmt(v, spec=".4g") -> str:
@@ -150,6 +161,13 @@ def results_markdown(rows: list[dict], summary: dict) -> str:
              if r.get("localisation")]
     where += [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}), its validation record: "
               f"{r['validation_localisation']}" for r in rows if r.get("validation_localisation")]
+    commits: dict[str, list[str]] = {}
+    for r in rows:
+        if r["verdict"] != "error":
+            commits.setdefault(r.get("commit") or "not recorded", []).append(r["record"])
+    if commits:
+        text += ["", "Code: " + ("; ".join(f"{c} ({', '.join(recs)})" for c, recs in commits.items())
+                                 if len(commits) > 1 else f"{next(iter(commits))} (every record)") + "."]
     if where:
         text += ["", "Where the residual concentrates (records with structure left):", *where]
     return "\n".join(text)

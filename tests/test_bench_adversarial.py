@@ -186,6 +186,27 @@ def test_result_rows_read_the_new_keys_when_present_and_do_without_them():
         (1, 1, 1, 1, 1)
     md = V.results_markdown(rows, s)
     assert "Exact effect set on 1 of 1 in-library records (1 of them with the RMS after ≤ 1.5 σ); nothing accepted on 1 of 1" in md
+    assert "Code: not recorded (every record)." in md  # reports made before they said which code made them
+
+
+def test_the_table_says_which_code_made_each_row():
+    made = {"effects_added": [], "code": {"version": "0.1.0", "git_commit": "0123456789abcdef", "git_dirty": False}}
+    dirty = {"effects_added": [], "code": {"version": "0.1.0", "git_commit": "fedcba9876543210", "git_dirty": True}}
+    a = V.result_row(_entry("noise", name="rec01"), made, 1.0, "r")
+    b = V.result_row(_entry("noise", name="rec02"), dirty, 1.0, "r")
+    assert a["commit"] == "0123456" and b["commit"] == "fedcba9+dirty"
+    assert V.code_label({"version": "0.1.0"}) == "version 0.1.0" and V.code_label(None) is None
+    assert "Code: 0123456 (every record)." in V.results_markdown([a], V.summarise([a]))
+    assert "Code: 0123456 (rec01); fedcba9+dirty (rec02)." in V.results_markdown([a, b], V.summarise([a, b]))
+
+
+def test_code_version_names_this_checkout_or_only_the_version():
+    from toggle_id.provenance import code_version
+
+    code = code_version()
+    assert set(code) <= {"version", "git_commit", "git_dirty"} and "version" in code
+    if "git_commit" in code:  # a checkout of the project (CI, a user's clone); an installed copy has the version only
+        assert code["git_commit"] is None or len(code["git_commit"]) == 40
 
 
 def test_a_record_judged_before_on_the_same_file_is_not_run_again(tmp_path: Path):
@@ -214,6 +235,8 @@ def test_run_judges_one_record_with_the_discover_job(tmp_path):
     assert row["record"] == S.NAMES["noise_white"] and row["verdict"] == "exact" and row["accepted"] == []
     assert row["rmse_after_um"] == pytest.approx(1.0, rel=0.15) and Path(row["report"]).is_file()
     assert "nothing accepted on 1 of 1" in (tmp_path / "results.md").read_text()
+    report = json.loads(Path(row["report"]).read_text())
+    assert report["code"]["version"] and row["commit"] == V.code_label(report["code"])  # which code made it
     wall = row["wall_s"]
     assert B.main(args) == 0  # resumed: not run again
     assert json.loads((tmp_path / "results.json").read_text())["rows"][0]["wall_s"] == wall

@@ -21,6 +21,7 @@ from ..checkpoint import atomic_write_json, atomic_write_text
 from ..effects import ALL_INDEX
 from ..errors import ConfigError
 from ..ga import GAConfig
+from ..provenance import code_version
 from ..tracking import Tracker, absolute_uri, flatten
 
 if TYPE_CHECKING:
@@ -201,10 +202,11 @@ def make_tracker(cfg: Mapping, project_root: str | Path) -> Tracker:
 
 def publish_report(tracker: Tracker, run_dir: Path, text: str, report: dict, json_name: str = "result.json",
                    text_name: str = "table.txt") -> Path:
-    """Print the summary, write it and the JSON report atomically into the run dir, log both to MLflow;
-    return the report's absolute path."""
+    """Print the summary, write it and the JSON report atomically into the run dir (with the code that made it,
+    ``code``), log both to MLflow; return the report's absolute path."""
     print(text, flush=True)
     atomic_write_text(run_dir / text_name, text + "\n")
+    report.setdefault("code", code_version())
     path = atomic_write_json(run_dir / json_name, report)
     tracker.log_artifact(path)
     tracker.log_artifact(run_dir / text_name)

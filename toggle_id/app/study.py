@@ -20,6 +20,7 @@ from ..console import markdown_table
 from ..errors import ConfigError
 from ..plant import GEOMETRY
 from ..problem import FitProblem, joint
+from ..provenance import code_version
 from ..record import SWEEPS
 from ..sensitivity import identifiability_report
 from ..simulate import PRECISE
@@ -82,7 +83,8 @@ def run_study(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".")
         path = atomic_write_json(run_dir / "result.json", {"job": "identifiability", "noise_m": noise,
                                                          "clamp_index": k_c, "scenarios": out,
                                                          "seconds": time.perf_counter() - t0,
-                                                         "config": jsonable_config(cfg)})
+                                                         "config": jsonable_config(cfg),
+                                                         "code": code_version()})
         tracker.log_artifact(run_dir / "identifiability.md")
         tracker.log_artifact(path)
         tracker.set_tags({"mlflow.note.content": f"identifiability study on {record.name}: " + "; ".join(

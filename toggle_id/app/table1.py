@@ -16,6 +16,7 @@ from ..curve import RmseCurve
 from ..errors import ConfigError
 from ..identify import identify
 from ..mlflow_run import curve_logger
+from ..provenance import code_version
 from ..stages import METHODS
 from .common import (evaluator_factory, flat_config, identify_kwargs, jsonable_config, make_tracker, ray_session,
                      validate_config)
@@ -70,7 +71,8 @@ def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
         figures.save(fig, run_dir / "table1_errors.png")
         report = {"job": "table1", "methods": methods, "seeds": seeds, "wall_seconds": time.perf_counter() - t0,
                   "runs": [{"method": r["method"], "seed": r["seed"], **r["result"].to_dict()} for r in runs],
-                  "truth": {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)}, "config": jsonable_config(cfg)}
+                  "truth": {n: float(truth[i]) for i, n in enumerate(P.PARAM_NAMES)}, "config": jsonable_config(cfg),
+                  "code": code_version()}
         path = atomic_write_json(run_dir / "result.json", report)
         for f in ("table1.md", "table1.csv", "table1_runs.csv", "table1_errors.png", "result.json"):
             tracker.log_artifact(run_dir / f)
