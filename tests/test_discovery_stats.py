@@ -413,3 +413,24 @@ def test_a_hysteresis_of_the_load_is_found_by_the_current_signed_by_the_directio
     assert loc["structure_left"] and loc["strongest"] == "i_q_dir"
     assert loc["families"]["i_q_dir"]["p_value"] < 1e-3 * loc["families"]["i_q"]["p_value"]
     assert "model current i_q, signed by the direction of motion" in loc["text"]
+
+
+def test_a_signal_and_its_signed_bins_pointing_at_one_place_are_said_once():
+    from toggle_id.discovery.localise import _parts
+
+    def fam(label, peak, level, lo=0.042, hi=0.0483):
+        return {"peak_at": peak, "range": [lo, hi], "peak_level_m": level, "p_value": 1e-9,
+                "text": f"a bump near {label} ≈ {peak * 1e3:.3g} mm, residual level {level * 1e6:+.3g} µm"}
+
+    families = {"x_B": fam("slider B position", 0.0467, -17.7e-6),
+                "x_B_dir": fam("slider B position, signed by the direction of motion", 0.0467, -17.7e-6),
+                "xdot_B": fam("slider B velocity", -0.0006, -4.2e-6), "v_in_lags": {"p_value": 1e-9}}
+    parts = _parts(families, ["x_B_dir", "x_B", "xdot_B", "v_in_lags"])
+    assert parts == [families["x_B"]["text"] + " (the same with the direction of motion's sign)",
+                     families["xdot_B"]["text"]]
+    # elsewhere, or of another size: both are said
+    families["x_B_dir"] = fam("slider B position, signed by the direction of motion", 0.0467, -8.0e-6)
+    assert len(_parts(families, ["x_B_dir", "x_B"])) == 2
+    families["x_B_dir"] = fam("slider B position, signed by the direction of motion", 0.0301, -17.7e-6, 0.028, 0.032)
+    assert len(_parts(families, ["x_B_dir", "x_B"])) == 2
+    assert _parts(families, ["x_B_dir"]) == [families["x_B_dir"]["text"]]  # the signed one alone

@@ -146,11 +146,36 @@ def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.nda
     if strongest is None:
         text = "no structure left: the whitened residual is not predicted by position, velocity, current or input"
     else:
-        parts = [families[k].get("text", f"{k} (p = {families[k]['p_value']:.2g})") for k in sig
-                 if k != "v_in_lags"] or ["correlated with the past input"]
+        parts = _parts(families, sig) or ["correlated with the past input"]
         text = "structure left: " + "; ".join(parts[:3])
     return {"structure_left": strongest is not None, "alpha": alpha, "level_per_family": level, "bins": bins,
             "families": families, "strongest": strongest, "significant": sig, "text": text}
+
+
+def _same_place(a: Mapping, b: Mapping) -> bool:
+    """Two families of one signal (its bins, and its bins signed by the direction of motion) that point at the same
+    bins with the same size of level: on this record they say one thing."""
+    la, lb = abs(a.get("peak_level_m", 0.0)), abs(b.get("peak_level_m", 0.0))
+    return (a.get("peak_at") == b.get("peak_at") and a.get("range") == b.get("range")
+            and max(la, lb) > 0 and abs(la - lb) <= 0.1 * max(la, lb))
+
+
+def _parts(families: Mapping[str, dict], significant: list[str]) -> list[str]:
+    """The significant families' descriptions, strongest first (the lagged input apart), a signal's signed family
+    folded into its own where both point at the same place: which of the two, the record does not tell."""
+    parts = []
+    for k in significant:
+        if k == "v_in_lags":
+            continue
+        fam = families[k]
+        base, twin = (k[:-4], None) if k.endswith("_dir") else (None, f"{k}_dir")
+        if base in significant and _same_place(fam, families[base]):
+            continue  # said by the signal's own family, below or above
+        text = fam.get("text", f"{k} (p = {fam['p_value']:.2g})")
+        if twin in significant and _same_place(fam, families[twin]):
+            text += " (the same with the direction of motion's sign)"
+        parts.append(text)
+    return parts
 
 
 #: Families of :func:`noise_level`: key → (signal, taken as a magnitude, label, display scale, display unit).
