@@ -327,10 +327,11 @@ def score_leaders(scored: Sequence[CandidateScore], alpha: float, screen: float 
     score-test χ²) and every significant one (statistic above ``screen``) within the test's own resolution of it —
     a difference below the χ²(1) critical value at ``alpha`` (0: the top one alone). To first order the record
     cannot tell such candidates apart, so none of them is dismissed on its 8-evaluation scout; statistics at the
-    noise's level all lie within that band of each other and tell nothing (a backlash scores 0 at b_l = 0). Measured on adversarial record rec08 (a torque constant
-    that saturates): the saturation and a cubic contact stiffness score 276.8 and 277.0; the stiffness's scout
-    reached 0.998 µm, the saturation's 3.023 µm, and with the top statistic alone only the stiffness was refitted
-    and accepted, where both refitted tie (the record cannot tell them apart)."""
+    noise's level all lie within that band of each other and tell nothing (a backlash scores 0 at b_l = 0).
+    Measured on adversarial record rec08 (a torque constant that saturates): the saturation and a cubic contact
+    stiffness score 276.8 and 277.0; the stiffness's scout reached 0.998 µm, the saturation's 3.023 µm, and with the
+    top statistic alone only the stiffness was refitted and accepted, where both refitted tie (the record cannot
+    tell them apart)."""
     stat = {c.name: c.statistic for c in scored}
     if not stat:
         return set()
