@@ -202,17 +202,7 @@ def test_bases():
     assert L.shape == (10, 3) and L[5, 1] == L[3, 0]
 
 
-@pytest.fixture
-def one_blas_thread():
-    """One BLAS thread: the structure test's least squares on tall, thin bases (5001 x ~12) take ~20x longer on a
-    multi-threaded OpenBLAS (the same finding as the polish's, README); the statistics are the same."""
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(1, "blas"):
-        yield
-
-
-def test_structure_test_rejects_at_its_level_for_coloured_noise_and_finds_a_bump(one_blas_thread):
+def test_structure_test_rejects_at_its_level_for_coloured_noise_and_finds_a_bump():
     sig = trajectory()
     hits = {0.0: 0, 0.9: 0}
     for rho in hits:
@@ -404,7 +394,7 @@ def test_a_line_in_the_noise_is_named_with_its_frequency_and_amplitude_and_colou
     assert [round(x["frequency_hz"], 1) for x in spectral_lines(loud + 0.5 * tone, 1000.0, 0.01)["lines"]] == [49.8]
 
 
-def test_a_hysteresis_of_the_load_is_found_by_the_current_signed_by_the_direction_of_motion(one_blas_thread):
+def test_a_hysteresis_of_the_load_is_found_by_the_current_signed_by_the_direction_of_motion():
     """A friction that grows with the load (the clamp's pins) makes the residual change sign with the direction of
     motion where the current is large: the bins of the current alone average it out, the signed bins do not."""
     sig = trajectory()
@@ -434,3 +424,26 @@ def test_a_signal_and_its_signed_bins_pointing_at_one_place_are_said_once():
     families["x_B_dir"] = fam("slider B position, signed by the direction of motion", 0.0301, -17.7e-6, 0.028, 0.032)
     assert len(_parts(families, ["x_B_dir", "x_B"])) == 2
     assert _parts(families, ["x_B_dir"]) == [families["x_B_dir"]["text"]]  # the signed one alone
+
+
+def test_localisation_runs_with_one_blas_thread_and_gives_the_pool_back(monkeypatch):
+    """locate's projections on tall, thin bases run under one BLAS thread (several times faster on a multi-threaded
+    pool); the pool is as before afterwards."""
+    from threadpoolctl import threadpool_info
+
+    import toggle_id.discovery.localise as localise
+
+    def blas_threads() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    seen, real = [], localise.structure_test
+
+    def spy(*args, **kwargs):
+        seen.append(blas_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(localise, "structure_test", spy)
+    before = blas_threads()
+    sig = trajectory(1001)
+    localise.locate(None, 1e-6 * np.random.default_rng(0).standard_normal(1001), sig)
+    assert seen == [[1] * len(before)] and blas_threads() == before

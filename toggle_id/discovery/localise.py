@@ -9,6 +9,9 @@ points the engineer to the physics outside the library.
 
 The verdict uses the physical families (position, velocities, current, input, lagged input), with a Bonferroni
 correction over them; time is shown, not tested: structure in time alone is what coloured noise looks like.
+
+The public functions run BLAS with one thread: their least squares on tall, thin bases (5001 × ~12) are several
+times slower on a multi-threaded pool (the polish's finding, :mod:`toggle_id.polish`).
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ from collections.abc import Mapping
 import numpy as np
 from scipy import stats
 
+from ..polish import one_blas_thread
 from .noise import NoiseModel
 from .stats import lagged_basis, piecewise_basis, structure_test
 
@@ -94,6 +98,7 @@ def family_bases(signals: Mapping[str, np.ndarray], bins: int = 12, lags: int = 
     return bases, centres, edges_of
 
 
+@one_blas_thread
 def structure_energy(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12, lags: int = 50,
                      lag_step: int = 5) -> float:
     """Σ over the tested families of ‖P_B r‖²: the energy of the raw residual ``r`` (m²) that functions of
@@ -115,6 +120,7 @@ def structure_energy(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: 
     return total
 
 
+@one_blas_thread
 def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
            alpha: float = 0.01, lags: int = 50, lag_step: int = 5, J: np.ndarray | None = None,
            robust: bool = False) -> dict:
@@ -189,6 +195,7 @@ LEVEL_FAMILIES = {"speed": ("xdot_B", True, "slider B speed", 1e3, "mm/s"),
                   "t": ("t", False, "time", 1.0, "s")}
 
 
+@one_blas_thread
 def noise_level(noise: NoiseModel, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
                 alpha: float = 0.01) -> dict:
     """Does the noise's level vary along the record, and with what? Report-only.
