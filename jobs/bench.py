@@ -23,6 +23,11 @@ in the driver first (the default, ``RayEvaluator(setup_here=True)``) against eve
 side; seconds until the workers are ready and for their first evaluation, interleaved ``--repeat`` times (each
 run takes minutes).
 
+``--shared-cores`` instead times the parallel kernels in processes that share the cores, as the test suite's
+workers and jobs run side by side do: batches of 16 near-assigned PRECISE simulations of a 1-s and of a 5-s record
+(a discover fit's finite-difference Jacobian) in one process alone and in two at once, with OpenMP's default wait policy and with
+``toggle_id.simulate.SHARED_CORES_ENV`` (threads that sleep while they wait), interleaved ``--repeat`` times.
+
 Timings on a shared machine are noisy: read medians, and compare figures taken in the same run.
 """
 from __future__ import annotations
@@ -255,6 +260,53 @@ def cold_rows(repeat: int, workers: int = 2) -> list[dict]:
     return rows
 
 
+_SHARED = """
+import json, sys, time
+from jobs.bench import near_assigned
+from toggle_id.record import Record
+from toggle_id.simulate import PRECISE, simulate
+rec, th = Record.from_sweep("simulation", float(sys.argv[2])), near_assigned(16)
+simulate(th, rec, PRECISE, parallel=True)
+n, t0 = int(sys.argv[1]), time.perf_counter()
+for _ in range(n):
+    simulate(th, rec, PRECISE, parallel=True)
+print(json.dumps({"batches_per_s": n / (time.perf_counter() - t0)}))
+"""
+
+
+def shared_cores_rows(repeat: int, seconds: float = 2.0) -> list[dict]:
+    """Batches per second of the parallel kernels (16 PRECISE simulations each, of a 1-s and of a 5-s record) in one
+    process alone and in two side by side, with OpenMP's default wait policy and with
+    :data:`toggle_id.simulate.SHARED_CORES_ENV`; ``repeat`` interleaved runs of about ``seconds`` each (medians; the
+    total of the two processes for "two at once")."""
+    from toggle_id.simulate import SHARED_CORES_ENV, share_cores
+
+    base = {k: v for k, v in os.environ.items() if k not in SHARED_CORES_ENV}
+    policies = (("OpenMP default", base), ("SHARED_CORES_ENV", share_cores(dict(base))))
+    rates: dict[tuple[float, str, int], list[float]] = {}
+    for _ in range(repeat):
+        for duration, batches in ((1.0, int(45 * seconds)), (5.0, int(9 * seconds))):
+            for label, env in policies:
+                for procs in (1, 2):
+                    rates.setdefault((duration, label, procs), []).append(
+                        _side_by_side(procs, env, batches, duration))
+    return [{"case": f"{duration:g}-s record, {label}, {procs} process{'es' if procs > 1 else ''}", "n": len(r),
+             "batches_per_s": float(np.median(r)), "runs": r} for (duration, label, procs), r in rates.items()]
+
+
+def _side_by_side(procs: int, env: dict, batches: int, duration: float) -> float:
+    """Total batches per second of ``procs`` processes running :data:`_SHARED` at once."""
+    running = [subprocess.Popen([sys.executable, "-c", _SHARED, str(batches), str(duration)], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(procs)]
+    total = 0.0
+    for proc in running:
+        out, err = proc.communicate()
+        if proc.returncode != 0:
+            raise RuntimeError(f"shared-cores run failed: {err.strip().splitlines()[-1:]}")
+        total += json.loads(out.strip().splitlines()[-1])["batches_per_s"]
+    return total
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=1000, help="individuals per population")
@@ -267,9 +319,20 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--cold", action="store_true", help="time a local Ray evaluator's start on a cold numba "
                                                         "cache instead, on a record read as from a file")
     ap.add_argument("--workers", type=int, default=2, help="Ray workers of --cold")
+    ap.add_argument("--shared-cores", action="store_true", help="time the parallel kernels in one process and in two "
+                                                                "side by side, with and without SHARED_CORES_ENV")
     args = ap.parse_args(argv)
     if args.repeat is None:
         args.repeat = 1 if args.cold else 5
+    if args.shared_cores:
+        rows = shared_cores_rows(args.repeat)
+        print(f"{'case':52s} {'runs':>4s} {'batches/s':>10s}  (16 PRECISE simulations a batch; the processes' total)")
+        for r in rows:
+            print(f"{r['case']:52s} {r['n']:4d} {r['batches_per_s']:10.2f}")
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as fh:
+                json.dump(rows, fh, indent=1)
+        return rows
     if args.cold:
         rows = cold_rows(args.repeat, args.workers)
         print(f"{'case':44s} {'runs':>4s} {'ready s':>8s} {'1st eval s':>10s} {'total s':>8s}")

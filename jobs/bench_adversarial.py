@@ -41,11 +41,13 @@ from jobs.adversarial_set import (
     select,
 )
 from jobs.adversarial_verdicts import result_row, results_markdown, summarise
+from toggle_id.simulate import share_cores
 
 
-def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, timeout: float, log=print) -> dict:
+def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, timeout: float, log=print, *,
+            shared_cores: bool = False) -> dict:
     """Run the discover job on one record (skipped if it already succeeded on the same CSV with the same
-    overrides); its result row."""
+    overrides); its result row. ``shared_cores``: other jobs run beside it (``--jobs`` > 1)."""
     if entry.get("validation"):  # the machine's second record: predicted, never fitted
         extra = [*extra, f"validation.path={(out / entry['validation']['file']).resolve()}"]
     run_dir = out / "runs" / entry["name"]
@@ -70,6 +72,8 @@ def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, ti
            f"data.path={(out / entry['file']).resolve()}", "seed=0", "progress=false", *tracking,
            f"hydra.run.dir={run_dir.resolve()}", *extra]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+    if shared_cores:  # jobs side by side: see toggle_id.simulate.SHARED_CORES_ENV
+        share_cores(env)
     log(f"{entry['name']}: running the discover job …")
     t0 = time.perf_counter()
     try:
@@ -108,7 +112,8 @@ def run_all(out: Path, manifest: dict, names: list[str], extra: list[str], mlflo
         rows = [run_one(e, out, extra, mlflow_uri, timeout, log) for e in entries]
     else:
         with ThreadPoolExecutor(max_workers=jobs) as pool:
-            rows = list(pool.map(lambda e: run_one(e, out, extra, mlflow_uri, timeout, log), entries))
+            rows = list(pool.map(lambda e: run_one(e, out, extra, mlflow_uri, timeout, log, shared_cores=True),
+                                 entries))
     done = {}
     for r in manifest["records"]:  # every record with a result so far, this run's or an earlier one's
         p = out / "runs" / r["name"] / "result_row.json"

@@ -3,6 +3,7 @@ calibration table covers it, and how the discover runs are judged and resumed.""
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -219,6 +220,31 @@ def test_a_record_judged_before_on_the_same_file_is_not_run_again(tmp_path: Path
     (done / "result_row.json").write_text(json.dumps({"record": entry["name"], "verdict": "exact",
                                                       "csv_sha256": "abc", "overrides": ["discover.nominal=base"]}))
     assert B.run_one(entry, tmp_path, ["discover.nominal=base"], None, 1.0, log=lambda *_: None)["verdict"] == "exact"
+
+
+def test_jobs_side_by_side_share_the_cores(tmp_path: Path, monkeypatch):
+    """With ``--jobs`` > 1 each discover job gets toggle_id.simulate.SHARED_CORES_ENV (a user's setting kept); alone,
+    the environment as it is."""
+    from toggle_id.simulate import SHARED_CORES_ENV
+
+    seen = []
+
+    def fake_run(cmd, env, **kwargs):
+        seen.append({k: env.get(k) for k in SHARED_CORES_ENV})
+        return subprocess.CompletedProcess(cmd, 1, "", "not run")
+
+    monkeypatch.setattr(B.subprocess, "run", fake_run)
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    manifest = {"records": [{**_entry("noise", name=n), "file": f"{n}.csv"} for n in ("rec01", "rec02", "rec03")]}
+    rows, _ = B.run_all(tmp_path, manifest, ["rec01", "rec02"], [], None, 2, 1.0, log=lambda *_: None)
+    assert [r["verdict"] for r in rows] == ["error", "error"] and seen == [SHARED_CORES_ENV] * 2
+    seen.clear()
+    B.run_one(manifest["records"][2], tmp_path, [], None, 1.0, log=lambda *_: None)
+    assert seen == [{k: None for k in SHARED_CORES_ENV}]
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    seen.clear()
+    B.run_all(tmp_path, manifest, ["rec01"], [], None, 2, 1.0, log=lambda *_: None)
+    assert seen == [{"OMP_WAIT_POLICY": "ACTIVE"}]
 
 
 @pytest.mark.slow

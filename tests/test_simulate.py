@@ -418,3 +418,25 @@ def test_bench_stops_prints_its_table_and_the_stops_remove_the_jitter(tmp_path, 
         assert got["PRECISE", "sampled"]["mean_steps"] == got["PRECISE", "all"]["mean_steps"]  # the same steps
     with pytest.raises(SystemExit, match="no record name contains"):
         main(["--only", "no such record"])
+
+
+def test_share_cores_sets_the_wait_policy_where_the_user_has_not():
+    from toggle_id.simulate import SHARED_CORES_ENV, share_cores
+
+    env = {"PATH": "/bin"}
+    assert share_cores(env) is env and env == {"PATH": "/bin", **SHARED_CORES_ENV}
+    assert share_cores({"OMP_WAIT_POLICY": "ACTIVE"}) == {"OMP_WAIT_POLICY": "ACTIVE"}
+
+
+def test_the_shared_cores_benchmark_runs_processes_side_by_side():
+    """``python -m jobs.bench --shared-cores`` in small: two processes at once, each a few batches of a short record;
+    the total of their rates."""
+    import os
+
+    from jobs.bench import _side_by_side
+    from toggle_id.simulate import share_cores
+
+    env = share_cores({**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    assert _side_by_side(2, env, 2, 0.2) > 0
+    with pytest.raises(RuntimeError, match="shared-cores run failed"):
+        _side_by_side(1, env, 2, -1.0)
