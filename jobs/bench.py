@@ -25,8 +25,9 @@ run takes minutes).
 
 ``--shared-cores`` instead times the parallel kernels in processes that share the cores, as the test suite's
 workers and jobs run side by side do: batches of 16 near-assigned PRECISE simulations of a 1-s and of a 5-s record
-(a discover fit's finite-difference Jacobian) in one process alone and in two at once, with OpenMP's default wait policy and with
-``toggle_id.simulate.SHARED_CORES_ENV`` (threads that sleep while they wait), interleaved ``--repeat`` times.
+(a discover fit's finite-difference Jacobian) in one process alone and in two at once, with OpenMP's default wait
+policy and with ``toggle_id.simulate.SHARED_CORES_ENV`` (threads that sleep while they wait), interleaved
+``--repeat`` times.
 
 Timings on a shared machine are noisy: read medians, and compare figures taken in the same run.
 """
