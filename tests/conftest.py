@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     # the workers share the cores, each running the parallel kernels (and the jobs it starts inherit this): see
-    # toggle_id.simulate.SHARED_CORES_ENV (the default suite 4 min 45 s -> 4 min 20 s, 2026-11-27)
+    # toggle_id.simulate.SHARED_CORES_ENV (the default suite 4 min 45 s -> 4 min 25 s, 2026-11-27)
     from toggle_id.simulate import share_cores
 
     share_cores(os.environ)
