@@ -308,6 +308,13 @@ def _side_by_side(procs: int, env: dict, batches: int, duration: float) -> float
     return total
 
 
+def _write_json(path: str | None, rows: list[dict]) -> None:
+    """The table as JSON at ``path`` (``--json``; nothing when None)."""
+    if path:
+        with open(path, "w", encoding="utf-8") as fh:
+            json.dump(rows, fh, indent=1)
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=1000, help="individuals per population")
@@ -330,9 +337,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         print(f"{'case':52s} {'runs':>4s} {'batches/s':>10s}  (16 PRECISE simulations a batch; the processes' total)")
         for r in rows:
             print(f"{r['case']:52s} {r['n']:4d} {r['batches_per_s']:10.2f}")
-        if args.json:
-            with open(args.json, "w", encoding="utf-8") as fh:
-                json.dump(rows, fh, indent=1)
+        _write_json(args.json, rows)
         return rows
     if args.cold:
         rows = cold_rows(args.repeat, args.workers)
@@ -341,9 +346,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             print(f"{r['case']:44s} {r['n']:4d} {r['median_s']:8.1f} {r['first_evaluation_s']:10.1f} "
                   f"{r['ready_plus_first_s']:8.1f}")
         print(f"{args.workers} workers; medians; a fresh NUMBA_CACHE_DIR per run; other jobs on the machine count")
-        if args.json:
-            with open(args.json, "w", encoding="utf-8") as fh:
-                json.dump(rows, fh, indent=1)
+        _write_json(args.json, rows)
         return rows
     if args.polish:
         rows = polish_rows(args.repeat)
@@ -352,9 +355,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             print(f"{r['case']:32s} {r['n']:3d} {r['median_s']:9.3f} {r['cpu_s']:7.2f} {r['nfev']:5d}  {r['sse']:.6g}")
         print(f"speed-up with one BLAS thread: {rows[0]['median_s'] / rows[1]['median_s']:.2f}x (medians); largest "
               f"|log ratio| between the two results: {rows[0]['max_log_diff_of_results']:.2g}")
-        if args.json:
-            with open(args.json, "w", encoding="utf-8") as fh:
-                json.dump(rows, fh, indent=1)
+        _write_json(args.json, rows)
         return rows
 
     before = cpu_times()
@@ -429,9 +430,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         print(f"{r['case']:52s} {r['n']:5d} {r['median_s']:9.4f} {r['sims_per_s']:9.1f} {cps:10.1f}  {'; '.join(notes)}")
     print("wall-clock figures depend on other jobs on the machine; sims/CPU-s is per core (this process's CPU time)")
     print(f"CPU steal during the run: {steal_text(before)} (time the hypervisor gave to other machines)")
-    if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump(rows, fh, indent=1)
+    _write_json(args.json, rows)
     return rows
 
 

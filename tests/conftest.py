@@ -31,6 +31,14 @@ def run_job(module: str, *args: str, cwd: Path, env: dict | None = None, timeout
                           text=True, timeout=timeout)
 
 
+
+def blas_threads() -> list[int]:
+    """The thread count of every BLAS library loaded in this process (threadpoolctl)."""
+    from threadpoolctl import threadpool_info
+
+    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
 # ------------------------------------------------------------------------------------------ jobs in this process
 @dataclass
 class JobOutcome:

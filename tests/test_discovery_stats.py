@@ -429,12 +429,9 @@ def test_a_signal_and_its_signed_bins_pointing_at_one_place_are_said_once():
 def test_localisation_runs_with_one_blas_thread_and_gives_the_pool_back(monkeypatch):
     """locate's projections on tall, thin bases run under one BLAS thread (several times faster on a multi-threaded
     pool); the pool is as before afterwards."""
-    from threadpoolctl import threadpool_info
+    from conftest import blas_threads
 
     import toggle_id.discovery.localise as localise
-
-    def blas_threads() -> list[int]:
-        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
 
     seen, real = [], localise.structure_test
 

@@ -177,10 +177,7 @@ def test_bad_input_raises_config_error(kwargs, msg):
 def test_one_blas_thread_inside_the_polish_only_and_the_same_result():
     """scipy iterates with one BLAS thread (the tall, thin SVDs of its steps); the pool is restored afterwards and
     the result is that of the pool as it is."""
-    from threadpoolctl import threadpool_info
-
-    def blas_threads() -> list[int]:
-        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    from conftest import blas_threads
 
     before = blas_threads()
     inside = []
@@ -201,14 +198,11 @@ def test_one_blas_thread_inside_the_polish_only_and_the_same_result():
 def test_the_discovery_loops_run_with_one_blas_thread():
     """The toggle and EMPS loops (many small, tall least-squares problems) run under one BLAS thread; the pool is
     restored after them."""
-    from threadpoolctl import threadpool_info
+    from conftest import blas_threads
 
     from toggle_id.discovery.loop import discover
     from toggle_id.emps.loop import run_emps_loop
     from toggle_id.polish import one_blas_thread
-
-    def blas_threads() -> list[int]:
-        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
 
     before = blas_threads()
     assert one_blas_thread(blas_threads)() == [1] * len(before)
