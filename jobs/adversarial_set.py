@@ -16,7 +16,8 @@ The set (:data:`SPECS`):
   — one per exact symmetry of x_B, so the fit is the same) to the noiseless record with the effect; the torque
   constant's saturation on two commands at ≈ 3σ, simulated by the independent scipy plant of
   ``tests/outside_plant.py`` (it was outside the library when the set was made);
-* two pairs of effects (each effect at its own single-effect calibration on the pair's record);
+* three pairs of effects (each effect at its own single-effect calibration on the pair's record; the third,
+  added 2026-11-28, a threshold effect — the drive's voltage saturation — with a cogging torque, cycling);
 * no effect: white noise, AR(1) noise with ρ = 0.5 and ρ = 0.9 (σ = 1 µm), a 1-µm encoder without Gaussian noise;
 * two effects outside the library, each on two commands, simulated by that independent plant (a friction bump
   localised on the slider's stroke; a drag quadratic in the slider's speed), calibrated to ≈ 3σ after the
@@ -115,6 +116,8 @@ SPECS: tuple[Spec, ...] = (
          target=3.0),
     Spec("outside_scale_factor_experiment", "outside", "experiment", 409, calibrate=("e_s",), outside="scale_factor",
          target=3.0),
+    Spec("pair_saturation_cogging", "pair", "cycling", 203, ("voltage_saturation", "cogging_torque"),
+         {"n_cog": 6.0, "phi_cog": 0.5}, ("s_sat", "a_cog")),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -151,10 +154,12 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "outside_scale_simulation": {"a_s": (1.29053e-05, 3.049)},  # refit RMS 2.88 um (the refit absorbs most of it)
     "outside_pin_friction_cycling": {"pin_mu": (0.00353614, 3.001)},  # refit RMS 2.83 um
     "outside_scale_factor_experiment": {"e_s": (0.00065988, 3.054)},  # refit RMS 2.89 um
+    "pair_saturation_cogging": {"s_sat": (0.0453869, 1.996), "a_cog": (0.0231944, 2.056)},  # each alone: refit RMS
+    # 1.73, 1.80 um; the saturation is steep here (s_sat 0.0475 leaves 28.8 um)
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
-COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179}
+COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179, "pair_saturation_cogging": 2.592}
 
 #: First guesses of the calibration (a magnitude of about the right order on the 5-s records).
 GUESS = {"tau_c": 1.5, "F_s": 150.0, "c_B": 3000.0, "tau_d": 5e-4, "b_l": 2e-5, "a_cog": 0.1, "F_load": 150.0,
