@@ -24,7 +24,9 @@ The set (:data:`SPECS`):
   nominal refit; and two more, one command each (added 2026-11-27): a periodic error of the linear scale (the
   sensor reads x_B + a·sin(2π·x_B/p + φ), p = 5 mm; the paper's simulation sweep) and pin friction that grows
   with the clamping force (the cycling command, which opens and closes the clamp four times); and one more (added
-  2026-11-27, fourth session): a scale that reads x_B·(1 + e), a scale factor error (the experiment sweep).
+  2026-11-27, fourth session): a scale that reads x_B·(1 + e), a scale factor error (the experiment sweep); and a
+  threshold effect (added 2026-11-28): a dead band of the drive, which ignores commands below v_db (the paper's
+  simulation sweep, which crosses zero at every half period).
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
@@ -66,7 +68,8 @@ HELD = ("K_l", "K_i", "m_C")
 class Spec:
     """One record of the set. ``key`` is for the manifest only; ``fixed`` holds effect parameters that only shape
     an effect (not calibrated); ``calibrate`` names the magnitudes calibrated (one per effect); ``outside`` is
-    ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction`` or ``scale_factor`` (tests/outside_plant.py)."""
+    ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction``, ``scale_factor`` or ``deadband``
+    (tests/outside_plant.py)."""
 
     key: str
     category: str  # library | pair | noise | outside
@@ -118,6 +121,8 @@ SPECS: tuple[Spec, ...] = (
          target=3.0),
     Spec("pair_saturation_cogging", "pair", "cycling", 203, ("voltage_saturation", "cogging_torque"),
          {"n_cog": 6.0, "phi_cog": 0.5}, ("s_sat", "a_cog")),
+    Spec("outside_deadband_simulation", "outside", "simulation", 410, calibrate=("v_db",), outside="deadband",
+         target=3.0),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -156,6 +161,7 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "outside_scale_factor_experiment": {"e_s": (0.00065988, 3.054)},  # refit RMS 2.89 um
     "pair_saturation_cogging": {"s_sat": (0.0453869, 1.996), "a_cog": (0.0231944, 2.056)},  # each alone: refit RMS
     # 1.73, 1.80 um; the saturation is steep here (s_sat 0.0475 leaves 28.8 um)
+    "outside_deadband_simulation": {"v_db": (0.00265909, 3.063)},  # refit RMS 2.89 um (the sweep: 0.05 V about +0.01 V)
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
@@ -164,7 +170,7 @@ COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179,
 #: First guesses of the calibration (a magnitude of about the right order on the 5-s records).
 GUESS = {"tau_c": 1.5, "F_s": 150.0, "c_B": 3000.0, "tau_d": 5e-4, "b_l": 2e-5, "a_cog": 0.1, "F_load": 150.0,
          "k3": 1e12, "x_off": 1.5e-5, "F_b": 20.0, "i_sat": 3000.0, "c_q": 5000.0, "a_s": 2e-6, "pin_mu": 0.005,
-         "e_s": 5e-4}
+         "e_s": 5e-4, "v_db": 2e-3}
 
 
 # ------------------------------------------------------------------------------------------ truths and records
@@ -225,7 +231,8 @@ def outside_of(spec: Spec, magnitudes: dict[str, float]):
     make = {"bump": lambda: Outside(bump=(m["F_b"], BUMP_AT, BUMP_WIDTH)),
             "saturation": lambda: Outside(i_sat=m["i_sat"]), "drag": lambda: Outside(drag=m["c_q"]),
             "scale": lambda: Outside(scale=(m["a_s"], SCALE_PITCH, SCALE_PHASE)),
-            "pin_friction": lambda: Outside(pin_mu=m["pin_mu"]), "scale_factor": lambda: Outside(scale_factor=m["e_s"])}
+            "pin_friction": lambda: Outside(pin_mu=m["pin_mu"]), "scale_factor": lambda: Outside(scale_factor=m["e_s"]),
+            "deadband": lambda: Outside(deadband=m["v_db"])}
     return make[spec.outside]() if spec.outside else Outside()
 
 

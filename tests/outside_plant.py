@@ -23,7 +23,10 @@ with physics outside the discovery library (``toggle_id/effects.py``):
 * **pin friction under the clamping load** (``pin_mu``, dimensionless): an extra force
   −pin_mu·|F_i|·tanh(ẋ_B/ε) on slider B while it is in contact — the toggle's pins and the platen's guides carry
   the clamping force F_i, and their friction grows with it, so the clamp's force–stroke curve becomes a
-  hysteresis loop (the library's contact terms are a spring and a damper).
+  hysteresis loop (the library's contact terms are a spring and a damper);
+* **drive dead band** (``deadband = v_db``, V): the drive ignores commands smaller than v_db and passes the rest
+  shifted towards zero, sign(v_in)·max(|v_in| − v_db, 0) — a threshold effect of the power stage or of an analogue
+  input's offset compensation (the library's drive effects are a delay and a saturation at large commands).
 
 All are off by default; then this is the nominal plant of docs/model.md.
 """
@@ -100,7 +103,7 @@ def x_B_of_q(q):
 @dataclass(frozen=True)
 class Outside:
     """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
-    A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless)."""
+    A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless), ``deadband`` V."""
 
     bump: tuple[float, float, float] | None = None
     i_sat: float | None = None
@@ -108,6 +111,7 @@ class Outside:
     scale: tuple[float, float, float] | None = None
     pin_mu: float | None = None
     scale_factor: float | None = None
+    deadband: float | None = None
 
     def to_dict(self) -> dict:
         out: dict = {}
@@ -123,7 +127,15 @@ class Outside:
             out["pin_friction_under_load"] = {"pin_mu": float(self.pin_mu)}
         if self.scale_factor is not None:
             out["scale_factor_error"] = {"e": float(self.scale_factor)}
+        if self.deadband is not None:
+            out["drive_dead_band"] = {"v_db": float(self.deadband)}
         return out
+
+    def drive(self, v: float) -> float:
+        """The command the drive acts on (its dead band, if any)."""
+        if self.deadband is None:
+            return v
+        return math.copysign(max(abs(v) - self.deadband, 0.0), v)
 
 
 class Plant:
@@ -165,7 +177,7 @@ class Plant:
             F_f -= self.out.pin_mu * abs(F_i) * math.tanh(vB / EPS)
         Q = F_C * dx_C + (F_f - F_i) * dx_B
         wdot = (Q - 0.5 * _dmass(q, p) * w * w) / _mass(q, p)
-        idot = (p["K_i"] * self.v_in(t) - p["R_s"] * i_q - POLES * p["lambda_d"] * Z * vC) / p["L_q"]
+        idot = (p["K_i"] * self.out.drive(self.v_in(t)) - p["R_s"] * i_q - POLES * p["lambda_d"] * Z * vC) / p["L_q"]
         return [w, wdot, idot]
 
     def run(self, t_out: np.ndarray, rtol: float = 1e-11, atol=(1e-13, 1e-10, 1e-8), max_step: float = 1e-3,

@@ -21,14 +21,14 @@ from toggle_id.simulate import PRECISE, extend, simulate
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
     cats = [s.category for s in S.SPECS]
     assert len(S.SPECS) >= 18
-    assert cats.count("library") == 12 and cats.count("pair") == 3 and cats.count("outside") == 7
+    assert cats.count("library") == 12 and cats.count("pair") == 3 and cats.count("outside") == 8
     # a threshold effect among two at once (the drive's voltage saturation beside a cogging torque)
     assert any("voltage_saturation" in s.effects for s in S.SPECS if s.category == "pair")
     assert {s.effects[0] for s in S.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
     noise = {(s.noise_m, s.noise_ar, s.quantum_m) for s in S.SPECS if s.category == "noise"}
     assert noise == {(1e-6, 0.0, 0.0), (1e-6, 0.5, 0.0), (1e-6, 0.9, 0.0), (0.0, 0.0, 1e-6)}
     assert {s.outside for s in S.SPECS if s.category == "outside"} == {"bump", "drag", "scale", "pin_friction",
-                                                                        "scale_factor"}
+                                                                        "scale_factor", "deadband"}
     assert len(set(S.NAMES.values())) == len(S.SPECS) and S.NAMES["torque_saturation_simulation"] == "rec08"
     assert {s.command for s in S.SPECS} == {"simulation", "experiment", "cycling"}
     # every calibrated magnitude is there, with a measured ratio near its target

@@ -93,6 +93,23 @@ def test_pin_friction_acts_only_under_the_clamping_load():
     assert np.max(np.abs(x - x0)[first:]) > 2e-6  # in the clamp and after it
 
 
+def test_the_drive_dead_band_ignores_small_commands_and_shifts_the_rest_towards_zero():
+    band = Outside(deadband=2e-3)
+    assert [band.drive(v) for v in (5e-3, -5e-3, 1.5e-3, -1.5e-3, 0.0)] == pytest.approx([3e-3, -3e-3, 0, 0, 0])
+    assert Outside().drive(1.5e-3) == 1.5e-3
+    rec = Record.from_sweep("simulation", 1.0)
+    small = Record(rec.t, 1.9e-3 * np.sin(2 * np.pi * 3.0 * rec.t), x_B0=rec.x_B0, name="inside the band")
+    x, i, info = simulate_outside(ASSIGNED, small, band)
+    assert info["status"] == 0
+    np.testing.assert_array_equal(i, 0.0)  # no current, no motion: the command never leaves the band
+    np.testing.assert_array_equal(x, x[0])
+    moved, _, _ = simulate_outside(ASSIGNED, small)
+    assert np.ptp(moved) > 1e-6  # without the band the same command moves the slider
+    x0, _, _ = simulate_outside(ASSIGNED, rec)
+    x, _, info = simulate_outside(ASSIGNED, rec, band)
+    assert info["status"] == 0 and np.max(np.abs(x - x0)) > 2e-6  # on the paper's sweep, clearly
+
+
 def test_leaving_the_assembly_range_is_a_failed_simulation():
     rec = Record.from_cycling(duration=2.0)
     theta = ASSIGNED.copy()
