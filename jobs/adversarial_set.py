@@ -123,6 +123,7 @@ SPECS: tuple[Spec, ...] = (
          {"n_cog": 6.0, "phi_cog": 0.5}, ("s_sat", "a_cog")),
     Spec("outside_deadband_simulation", "outside", "simulation", 410, calibrate=("v_db",), outside="deadband",
          target=3.0),
+    Spec("outside_deadband_cycling", "outside", "cycling", 411, calibrate=("v_db",), outside="deadband", target=3.0),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -162,6 +163,7 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "pair_saturation_cogging": {"s_sat": (0.0453869, 1.996), "a_cog": (0.0231944, 2.056)},  # each alone: refit RMS
     # 1.73, 1.80 um; the saturation is steep here (s_sat 0.0475 leaves 28.8 um)
     "outside_deadband_simulation": {"v_db": (0.00265909, 3.063)},  # refit RMS 2.89 um (the sweep: 0.05 V about +0.01 V)
+    "outside_deadband_cycling": {"v_db": (0.000109861, 3.019)},  # refit RMS 2.85 um (the command crosses zero)
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
