@@ -268,8 +268,9 @@ def test_on_the_plant_a_load_force_standing_in_for_a_drag_is_compensating_and_a_
 
 @pytest.mark.parametrize("n_cog, odd", [(6.0, False), (6.04, False), (5.93, False), (3.29, True), (2.5, True)])
 def test_a_cogging_torque_that_repeats_a_fraction_of_times_per_revolution_is_no_motors(n_cog, odd):
-    """When structure is left, an accepted cogging torque with n_cog off a whole number stands in for something
-    else (rec23 of the adversarial set: a scale error of 5-mm pitch took a cogging torque at n_cog 3.29)."""
+    """An accepted cogging torque with n_cog off a whole number stands in for something else (rec23 of the
+    adversarial set: a scale error of 5-mm pitch took a cogging torque at n_cog 3.29; rec28: a dead band of the drive
+    took one at n_cog 1.54, and the noise model the rest)."""
     from toggle_id.discovery.toggle_plant import implausible
     from toggle_id.simulate import extend
     from toggle_id.params import ASSIGNED

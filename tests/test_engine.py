@@ -301,8 +301,8 @@ class _StubPlant:
     stage = "iteration"
     has_validation = False
 
-    def __init__(self, sse: dict, energy: dict, keep: frozenset = frozenset()) -> None:
-        self.sse, self.energy, self.kept, self.log = sse, energy, keep, []
+    def __init__(self, sse: dict, energy: dict, keep: frozenset = frozenset(), odd: frozenset = frozenset()) -> None:
+        self.sse, self.energy, self.kept, self.odd, self.log = sse, energy, keep, odd, []
 
     def fit(self, names) -> _Fit:
         return _Fit(frozenset(names), self.sse[frozenset(names)])
@@ -348,6 +348,9 @@ class _StubPlant:
     def structure_energy(self, fit, details=None):
         return self.energy[fit.effects]
 
+    def implausible(self, current, added):
+        return [dict(a, reason="no machine's") for a in added if a["name"] in self.odd]
+
     def explains(self, current, added, details, everyone):
         return added, []
 
@@ -392,6 +395,23 @@ def test_an_effect_that_leaves_the_structure_is_compensating_and_leaves_the_fina
     assert out.compensating[0]["structure_explained"]["fraction"] == pytest.approx(0.1)
     assert out.final.effects == frozenset() and out.with_compensating.effects == frozenset("a")
     assert out.structure == {"energy": 2.0} and any("compensating" in m for m in plant.log)
+
+
+def test_an_effect_no_machine_has_is_compensating_even_when_no_structure_is_left():
+    """The structure test finds nothing left with a in the model (the noise model may have taken what a could not
+    explain), but a's fitted values are no machine's: a is compensating and the final model is the one without it,
+    whose structure is judged again. Without the objection a is added."""
+    sse = {frozenset(): 10.0, frozenset("a"): 5.0, frozenset("ab"): 4.9, frozenset("b"): 9.0}
+    energy = {frozenset(): 2.0, frozenset("a"): 0.1, frozenset("ab"): 0.1, frozenset("b"): 2.0}
+    plant = _StubPlant(sse, energy, odd=frozenset("a"))
+    out = _run(plant)
+    assert out.added == [] and [c["name"] for c in out.compensating] == ["a"]
+    assert out.compensating[0]["reason"] == "no machine's" and "_reduced" not in out.compensating[0]
+    assert out.final.effects == frozenset() and out.with_compensating.effects == frozenset("a")
+    assert out.structure == {"energy": 2.0}
+    assert any(m.startswith("a lower the error") for m in plant.log)
+    plain = _run(_StubPlant(sse, energy))
+    assert [a["name"] for a in plain.added] == ["a"] and plain.compensating == []
 
 
 @pytest.mark.parametrize("plant", ["toggle", "emps"])

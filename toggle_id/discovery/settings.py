@@ -56,10 +56,10 @@ class DiscoverSettings:
       on top of the final model; if they are supported, an accepted effect they make unnecessary is compensating,
       not added (:mod:`.catchall`). catch_all_keep: an effect is still needed beside them if its removal is
       significant in sample and costs at least this fraction of the error reduction it brings to the final model.
-      cogging_whole_tol: when structure is left, an accepted cogging torque whose n_cog lies farther than this
-      from a whole number is compensating: a motor's cogging repeats a whole number of times per revolution (its
-      slots and poles), so a fitted fraction stands in for something else that repeats with a position
-      (:func:`.toggle_plant.implausible`).
+      cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
+      compensating, whether structure is left or not: a motor's cogging repeats a whole number of times per
+      revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
+      position (:func:`.toggle_plant.implausible`).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's

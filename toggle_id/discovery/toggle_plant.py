@@ -134,14 +134,19 @@ class TogglePlant:
             return structure_energy_of(self.model, details[1], details[2], self.s)
         return residual_structure_energy(self.model, fit.theta, self.s)
 
-    def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict]
-                 ) -> tuple[list[dict], list[dict]]:
-        """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
-        makes unnecessary is compensating; so is one whose fitted values no machine has (:func:`implausible`)."""
+    def implausible(self, current: Fit, added: Sequence[dict]) -> list[dict]:
+        """The accepted effects whose fitted values no machine has (:func:`implausible`), each with its reason."""
         odd = [dict(a, reason=why) for a in added
                if (why := implausible(a["name"], current.theta, self.s.cogging_whole_tol))]
         for a in odd:
             self.say(f"{a['name']}: {a['reason']}")
+        return odd
+
+    def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict]
+                 ) -> tuple[list[dict], list[dict]]:
+        """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
+        makes unnecessary is compensating; so is one whose fitted values no machine has (:meth:`implausible`)."""
+        odd = self.implausible(current, added)
         added = [a for a in added if a["name"] not in {o["name"] for o in odd}]
         states = details[2]
         if not (self.s.catch_all and states and added):

@@ -293,6 +293,9 @@ class EmpsPlant:
         ok = np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())
         return structure_energy(r, signals, bins=self.bins) if ok else float("inf")
 
+    def implausible(self, current: OEFitResult, added: Sequence[dict]) -> list[dict]:
+        return []  # every fitted value in the EMPS library's feasible domain is some machine's
+
     def explains(self, current: OEFitResult, added: list[dict], details: dict, everyone: Sequence[dict]
                  ) -> tuple[list[dict], list[dict]]:
         return added, []
