@@ -20,8 +20,7 @@ position residual — an accepted effect that removed less than ``explain_fracti
 listed as compensating, not added; and an accepted effect that the record cannot tell apart from another that
 passed the same round (:mod:`toggle_id.discovery.ties`: Vuong's test, judged again on the final model when it was
 found in an earlier round, and by the model with both) is reported with it as *ambiguous*, neither named as added.
-The report gives the three lists — ``effects_added``, ``compensating`` and ``rejected``, each item with its
-``Evidence.to_dict()`` — and where the structure left concentrates.
+The report: the three lists (``effects_added``, ``compensating``, ``rejected``), and where structure concentrates.
 """
 from __future__ import annotations
 
@@ -185,11 +184,11 @@ def added_item(entry: dict, ev: Evidence) -> dict:
 
 class EmpsPlant:
     """The EMPS axis as a plant of the discovery engine (:class:`toggle_id.discovery.engine.Plant`): a round refits
-    every remaining candidate whose ``requires`` are in the model (each refit costs well under a second) and judges
-    each against the current model (:func:`~.fit.judge_effect`); an effect another refines may not be removed; the
-    structure test is :func:`localise`. The benchmark's validation record is predicted at the end, never used to
-    choose between effects. Keeps every refit's entry (``tried``, with its Evidence in ``evidence``) and the
-    rounds' ranking noise models (``rounds``)."""
+    every remaining candidate whose ``requires`` are in the model (well under a second each) and judges each against
+    the current model (:func:`~.fit.judge_effect`); an effect another refines may not be removed; the structure test
+    is :func:`localise`; every fitted value in the library's domain is some machine's. The validation record is
+    predicted at the end, never used to choose. Keeps every refit's entry (``tried``, its Evidence in ``evidence``)
+    and the rounds' ranking noise models (``rounds``)."""
 
     stage = "round"
     has_validation = False
@@ -198,9 +197,7 @@ class EmpsPlant:
                  judge_kw: Mapping, sim_kw: Mapping, bins: int, alpha: float, ambiguity_alpha: float) -> None:
         self.record, self.names, self.nominal = record, list(names), nominal
         self.fit_kw, self.judge_kw, self.sim_kw, self.bins, self.alpha = fit_kw, judge_kw, sim_kw, bins, alpha
-        self.ambiguity_alpha = ambiguity_alpha
-        self.free: list[str] = list(nominal.free)
-        self.tried: list[dict] = []
+        self.ambiguity_alpha, self.free, self.tried = ambiguity_alpha, list(nominal.free), []
         self.evidence: dict[int, Evidence] = {}  # id(entry of ``tried``) → its Evidence
         self.rounds: list[dict] = []
 
@@ -294,7 +291,7 @@ class EmpsPlant:
         return structure_energy(r, signals, bins=self.bins) if ok else float("inf")
 
     def implausible(self, current: OEFitResult, added: Sequence[dict]) -> list[dict]:
-        return []  # every fitted value in the EMPS library's feasible domain is some machine's
+        return []
 
     def explains(self, current: OEFitResult, added: list[dict], details: dict, everyone: Sequence[dict]
                  ) -> tuple[list[dict], list[dict]]:
