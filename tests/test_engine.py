@@ -409,7 +409,7 @@ def test_an_effect_no_machine_has_is_compensating_even_when_no_structure_is_left
     assert out.compensating[0]["reason"] == "no machine's" and "_reduced" not in out.compensating[0]
     assert out.final.effects == frozenset() and out.with_compensating.effects == frozenset("a")
     assert out.structure == {"energy": 2.0}
-    assert any(m.startswith("a lower the error") for m in plant.log)
+    assert any(m.startswith("a lowers the error") for m in plant.log)
     plain = _run(_StubPlant(sse, energy))
     assert [a["name"] for a in plain.added] == ["a"] and plain.compensating == []
 

@@ -249,9 +249,9 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
             added, more = plant.explains(current, added, details, everyone)
             compensating += more
     if compensating:
-        plant.say(("structure remains; " if left else "")
-                  + ", ".join(c["name"] for c in compensating) + " lower the error but "
-                  "do not explain it (listed as compensating, not added)")
+        plant.say(("structure remains; " if left else "") + ", ".join(c["name"] for c in compensating)
+                  + (" lowers the error but does not" if len(compensating) == 1 else " lower the error but do not")
+                  + " explain it (listed as compensating, not added)")
         with_compensating = current
         current = plant.demote(current, compensating, added)
         left, details = plant.structure(current)
