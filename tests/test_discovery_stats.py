@@ -426,6 +426,23 @@ def test_a_signal_and_its_signed_bins_pointing_at_one_place_are_said_once():
     assert _parts(families, ["x_B_dir"]) == [families["x_B_dir"]["text"]]  # the signed one alone
 
 
+@pytest.mark.parametrize("levels, words", [
+    ([0, 0, 0, 0, 9, 10, 9, 0, 0, 0, 0, 0], "a bump near slider B position ≈ 55 mm (bins 40–70 mm)"),
+    ([0, 0, 0, 0, 0, 0, 0, 0, 0, 3, 6, 10], "grows with slider B position above 100 mm"),
+    ([10, 6, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0], "grows towards low slider B position, below 20 mm"),
+    # large at both ends and in between: no place to name (rec28 of the adversarial set was called "a bump" over
+    # the whole stroke)
+    ([-9, 0, 0, 0, 0, -10, 0, 0, 0, 0, 0, -7], "spread over the whole range of slider B position (0–120 mm), "
+                                               "largest near 55 mm"),
+])
+def test_the_localisation_names_a_place_only_where_there_is_one(levels, words):
+    from toggle_id.discovery.localise import _describe
+
+    edges = np.linspace(0.0, 0.12, 13)
+    d = _describe("x_B", edges, 1e-6 * np.asarray(levels, float))
+    assert d["text"].startswith(words + ", residual level")
+
+
 def test_localisation_runs_with_one_blas_thread_and_gives_the_pool_back(monkeypatch):
     """locate's projections on tall, thin bases run under one BLAS thread (several times faster on a multi-threaded
     pool); the pool is as before afterwards."""

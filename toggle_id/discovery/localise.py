@@ -69,6 +69,9 @@ def _describe(name: str, edges: np.ndarray, levels: np.ndarray) -> dict:
         where = f"grows with {label} above {lo * scale:.3g} {unit}"
     elif at_low and not at_high and big.size >= 2:
         where = f"grows towards low {label}, below {hi * scale:.3g} {unit}"
+    elif at_low and at_high and big.size >= 2:  # no bump: large deviations at both ends of the signal's range
+        where = (f"spread over the whole range of {label} ({lo * scale:.3g}–{hi * scale:.3g} {unit}), largest near "
+                 f"{centres[j] * scale:.3g} {unit}")
     else:
         where = f"a bump near {label} ≈ {centres[j] * scale:.3g} {unit} (bins {lo * scale:.3g}–{hi * scale:.3g} {unit})"
     return {"where": where, "peak_at": float(centres[j]), "range": [lo, hi], "peak_level_m": float(dev[j]),
