@@ -77,7 +77,8 @@ def test_the_knots_span_the_records_speed_and_position():
 
 
 def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_sse: dict[str, float],
-         margin: float = 1.0, reading_sse: float | None = None):
+         margin: float = 1.0, reading_sse: float | None = None, added: tuple[str, ...] = ("constant_load_force",
+                                                                                          "cogging_torque")):
     """catch_all on a final model of SSE 10 with a constant load force and a cogging torque accepted; the fit with
     the generic force reaches ``generic_sse``, with the generic reading error beside it ``reading_sse`` (default:
     the same); without effect a, ``without_sse[a]`` with the generic terms and ``alone_sse[a]`` without them. The
@@ -99,7 +100,7 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
         return Fit(out, tuple(free), sse)
 
     monkeypatch.setattr(catchall, "fit_free", fake_fit)
-    added = [{"name": "constant_load_force"}, {"name": "cogging_torque"}]
+    added = [{"name": nm} for nm in added]
     said = []
 
     def without(fit, a):
@@ -200,8 +201,23 @@ def test_the_report_gives_the_forces_shape_its_figure_and_a_sentence_of_the_conc
     text = _conclusion([], before, after, True, DiscoverSettings(), comp,
                        catch={**needed, "shape": ramp, "sensor_trend": catchall.trend_of(ramp)})
     assert "as a scale error of 0.0005 would" in text and "rises 23.8 µm over the 48 mm measured" in text
-    assert "unknown shape" not in _conclusion([], before, after, True, DiscoverSettings(), comp,
+    # not supported: the missing thing is no function of the slider's state (and nothing is said when no
+    # structure is left)
+    text = _conclusion([], before, after, True, DiscoverSettings(), comp, catch={**report, "supported": False})
+    assert "Neither a force on slider B nor an error of the position reading" in text and "takes the error" not in text
+    assert "no function of the slider's position and speed" in text and "catch_all.png" not in text
+    quiet = {**after, "verdict": {"structure_left": False}}
+    assert "unknown shape" not in _conclusion([], before, quiet, False, DiscoverSettings(), comp,
                                               catch={**report, "supported": False})
+
+
+def test_with_nothing_accepted_the_catch_all_reports_what_kind_of_thing_is_missing(monkeypatch):
+    """An unexplained record (structure left, no effect accepted, rec28 of the adversarial set): the generic terms
+    are fitted for the report alone — no effect to judge, none refitted without."""
+    kept, comp, report, said = _run(monkeypatch, 2.0, {}, {}, added=())
+    assert kept == [] and comp == [] and report["effects"] == {}
+    assert report["supported"] and report["rmse_m"] == pytest.approx(np.sqrt(2.0 / 100))
+    assert "catch-all: a generic slider force" in said[0]
 
 
 def test_the_trend_of_the_reading_error_is_its_straight_line_part():

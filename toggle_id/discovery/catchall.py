@@ -168,7 +168,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
                        settings.baseline_nfev, settings.fd_rel_step)
         return without(replace(off, free=generic.free), a)
 
-    for attempt in range(len(added) + 1):
+    reduced: dict[str, Fit] = {}
+    for attempt in range(len(added) + 1 if added else 0):  # none added: the report alone (what is missing acts like)
         reduced = {a["name"]: taken_out(a) for a in added}
         # nested models: the fit with every effect can do what one without an effect did; a polish stuck above it
         # is continued from there, and the effects are taken out of that better fit again

@@ -114,6 +114,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     baseline, current, added, compensating, eliminated = (plant.baseline_fit, out.final, out.added, out.compensating,
                                                           out.eliminated)
     diag_after, r_after, _ = out.structure
+    if diag_after.get("verdict", {}).get("structure_left"):
+        plant.describe_missing(out.final, out.structure)
     noise0, first_scores, iterations, all_refits = plant.noise0, plant.first_scores, plant.iterations, plant.all_refits
     with_compensating, catch_report = out.with_compensating, plant.catch_report
     compensating += compensating_refits(all_refits, compensating, added)

@@ -132,6 +132,12 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                      f"position) takes the error to {catch['rmse_m'] * 1e6:.4g} µm, and an error of the position "
                      "reading of any shape adds nothing significant beside it: what is missing acts, at least in "
                      "part, like a force on the slider (its fitted shape: catch_all.png).")
+    elif catch and in_record:
+        text += (f" Neither a force on slider B nor an error of the position reading, both of unknown shape (generic, "
+                 f"piecewise linear in the slider's speed and position), is supported ({catch['rmse_m'] * 1e6:.4g} µm "
+                 f"with them; {catch['evidence'].get('reason', '')}): what is missing is no function of the slider's "
+                 "position and speed — look at what they do not fix: the command and the drive, a memory of the "
+                 "motion (a hysteresis, a lag), or time.")
     part = (predicted or {}).get("parameter_uncertainty") or {}
     if predicted is not None and predicted.get("structure_left") and part and not part["rest_structure_left"]:
         text += (f" The validation record {predicted.get('record', '')} is not predicted to its noise (RMS "

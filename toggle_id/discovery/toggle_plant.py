@@ -159,6 +159,15 @@ class TogglePlant:
                                                    self.say)
         return added, odd + more
 
+    def describe_missing(self, current: Fit, details: tuple) -> None:
+        """With structure left in the final model and no catch-all report yet (nothing was accepted for it to check),
+        the catch-all's fits alone: whether what is missing acts like a force on the slider or an error of the
+        reading, or like neither (report-only; :attr:`catch_report`)."""
+        states = details[2] if details else None
+        if self.s.catch_all and states and self.catch_report is None:
+            self.catch_report = catch_all(self.model, self.referee, current, [], states, lambda fit, a: fit, self.s,
+                                          self.say)[2]
+
     def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
         """The final model without the compensating effects: the baseline when none explains, else refitted."""
         if not added:
