@@ -22,6 +22,10 @@ gap) — does nothing the generic force does not do, and is listed as *compensat
 An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
 the generic terms explain nothing more — the missing physics is then neither a force on slider B nor an error of
 the reading, and the check decides nothing. The generic terms are never part of the reported model.
+
+With nothing accepted and structure left, the same fits run for the report alone: whether what is missing acts
+like a force on the slider or an error of the reading, or — not supported — like neither: then it is no function
+of the slider's position and speed (a command or drive effect, a memory of the motion, something in time).
 """
 from __future__ import annotations
 
