@@ -196,6 +196,10 @@ def test_the_report_gives_the_forces_shape_its_figure_and_a_sentence_of_the_conc
     text = _conclusion([], before, after, True, DiscoverSettings(), comp, catch=needed)
     assert "error of the position reading, both of unknown shape" in text and "reading error's part" in text
     assert "scale error" not in text  # h is flat here: no trend to describe
+    assert "a hint, not a finding" not in text
+    held_out = {**needed, "reading_error": {**needed["reading_error"],
+                                            "evidence": {"checks": {"cross_validation": False}}}}
+    assert "a hint, not a finding" in _conclusion([], before, after, True, DiscoverSettings(), comp, catch=held_out)
     xs = np.asarray(report["shape"]["xs_m"])
     ramp = {**report["shape"], "h_m": list(5e-4 * (xs - xs[0]) + 2e-6 * np.sin(xs / 1e-3))}
     text = _conclusion([], before, after, True, DiscoverSettings(), comp,

@@ -118,6 +118,9 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                      f"{catch['rmse_m'] * 1e6:.4g} µm (the reading error's part beyond a constant, which a sensor "
                      f"offset shares: RMS {reading:.3g} µm): what is missing acts, at least in part, like one of them "
                      "(their fitted shapes: catch_all.png).")
+            if not catch["reading_error"].get("evidence", {}).get("checks", {}).get("cross_validation", True):
+                text += (" The reading error beside the force does not predict the record's held-out time blocks "
+                         "better: take its part as a hint, not a finding.")
             trend = catch.get("sensor_trend") or {}
             if trend.get("r2", 0.0) >= TREND_R2:
                 sh = catch["shape"]["xs_m"]
