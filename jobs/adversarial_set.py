@@ -25,8 +25,9 @@ The set (:data:`SPECS`):
   sensor reads x_B + a·sin(2π·x_B/p + φ), p = 5 mm; the paper's simulation sweep) and pin friction that grows
   with the clamping force (the cycling command, which opens and closes the clamp four times); and one more (added
   2026-11-27, fourth session): a scale that reads x_B·(1 + e), a scale factor error (the experiment sweep); and a
-  threshold effect (added 2026-11-28): a dead band of the drive, which ignores commands below v_db (the paper's
-  simulation sweep, which crosses zero at every half period).
+  dead band of the drive, which ignores commands below v_db and lowers the rest by v_db, on two commands (added
+  2026-11-28): the paper's simulation sweep, which stays between 0.04 and 0.06 V (there it is an offset of the
+  command), and the cycling command, which crosses zero and rests there (there it is a threshold).
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group

@@ -414,6 +414,28 @@ def test_an_effect_no_machine_has_is_compensating_even_when_no_structure_is_left
     assert [a["name"] for a in plain.added] == ["a"] and plain.compensating == []
 
 
+def test_with_structure_left_an_effect_no_machine_has_is_taken_out_before_any_refit_without_it():
+    """Structure is left and a's fitted values are no machine's: a is compensating for that reason, and the final
+    model is not refitted without a to weigh its structure energy (that work would be thrown away)."""
+    sse = {frozenset(): 10.0, frozenset("a"): 5.0, frozenset("ab"): 4.9, frozenset("b"): 9.0}
+    energy = {frozenset(): 2.0, frozenset("a"): 1.0, frozenset("ab"): 1.0, frozenset("b"): 2.0}
+    plant = _StubPlant(sse, energy, odd=frozenset("a"))
+    refits = []
+    backward = plant.without
+
+    def without(current, a, added, rival=None):
+        refits.append((current.effects, a["name"]))
+        return backward(current, a, added, rival)
+
+    plant.without = without
+    out = _run(plant)
+    assert out.added == [] and [c["name"] for c in out.compensating] == ["a"]
+    assert out.compensating[0]["reason"] == "no machine's"
+    assert (frozenset("a"), "a") in refits  # backward elimination's (b was dropped there)
+    assert refits.count((frozenset("a"), "a")) == 1  # and no second one for the structure energy
+    assert any(m.startswith("structure remains; a lowers the error") for m in plant.log)
+
+
 @pytest.mark.parametrize("plant", ["toggle", "emps"])
 def test_both_plants_have_every_method_the_engine_calls(plant):
     """The engine's Plant protocol, member by member, with as many parameters (a method lost from the class body —

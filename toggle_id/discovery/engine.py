@@ -144,8 +144,8 @@ class Plant(Protocol):
     (an item that may not be removed: another refines it), :meth:`structure` ((structure left?, the plant's
     details) of a fit's residual), :meth:`structure_energy`,
     :meth:`implausible` (the accepted items whose fitted values no machine has, each with its ``reason``),
-    :meth:`explains` (a last check of the explaining effects, given all that were accepted, e.g. the catch-all
-    force; may demote more),
+    :meth:`explains` (a last check of the explaining effects, given all that were accepted, the implausible ones
+    already taken out: e.g. the catch-all force; may demote more),
     :meth:`demote` (the model without the compensating effects), :meth:`validation_residual` (the residual on a
     second record, never fitted, where :attr:`has_validation`) and :meth:`say`. :attr:`stage`: the key of an item's
     forward step (``iteration``, ``round``)."""
@@ -226,23 +226,22 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
                                                 plant.summary, noise_max_order, ambiguity_alpha, plant.say)
 
     left, details = plant.structure(current)
-    compensating: list[dict] = []
     with_compensating = None
-    if added and not left:
-        # the structure is gone, but an effect whose fitted values no machine has explains nothing: it stood in for
-        # something outside the library, and the noise model took the rest (rec28 of the adversarial set)
-        compensating = plant.implausible(current, added)
-        added = [a for a in added if a["name"] not in {c["name"] for c in compensating}]
+    everyone = list(added)
+    # an effect whose fitted values no machine has explains nothing, whether structure is left or not: it stands in
+    # for something outside the library (with none left, the noise model took the rest: rec28 of the adversarial set)
+    compensating = plant.implausible(current, added) if added else []
+    added = [a for a in added if a["name"] not in {c["name"] for c in compensating}]
     if left and added:
         # structure is left: an effect explains only if it removed most of the structure energy it was added for
         e_with = plant.structure_energy(current, details)
-        everyone = list(added)
         for a in added:  # the final model without each effect (backward elimination has most)
             if a.get("_reduced") is None:
                 a["_reduced"] = plant.without(current, a, everyone)
-        added, compensating = split_explaining(added, e_with, lambda a: plant.structure_energy(a["_reduced"]),
-                                               explain_fraction)
-        for d in [d for d in compensating if plant.keep(d, added)]:
+        added, more = split_explaining(added, e_with, lambda a: plant.structure_energy(a["_reduced"]),
+                                       explain_fraction)
+        compensating += more
+        for d in [d for d in more if plant.keep(d, added)]:
             compensating.remove(d)  # an effect that an explaining one refines stays with it
             added.append({k: v for k, v in d.items() if k != "reason"})
         if added:

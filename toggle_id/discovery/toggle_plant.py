@@ -145,19 +145,17 @@ class TogglePlant:
     def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict]
                  ) -> tuple[list[dict], list[dict]]:
         """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
-        makes unnecessary is compensating; so is one whose fitted values no machine has (:meth:`implausible`)."""
-        odd = self.implausible(current, added)
-        added = [a for a in added if a["name"] not in {o["name"] for o in odd}]
+        makes unnecessary is compensating (the engine took out those no machine has first: :meth:`implausible`)."""
         states = details[2]
         if not (self.s.catch_all and states and added):
-            return added, odd
+            return added, []
 
         def without(fit: Fit, a: dict) -> Fit:
             return _without(self.model, fit, a["name"], everyone, self.held, self.s)
 
         added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
                                                    self.say)
-        return added, odd + more
+        return added, more
 
     def describe_missing(self, current: Fit, details: tuple) -> None:
         """With structure left in the final model and no catch-all report yet (nothing was accepted for it to check),
