@@ -360,6 +360,12 @@ class _StubPlant:
     def validation_residual(self, fit):
         raise AssertionError("no validation record")
 
+    def validation_structure(self, fit):
+        return self.validation_energy[fit.effects] > 0.5
+
+    def validation_structure_energy(self, fit):
+        return self.validation_energy[fit.effects]
+
     def say(self, msg):
         self.log.append(msg)
 
@@ -434,6 +440,31 @@ def test_with_structure_left_an_effect_no_machine_has_is_taken_out_before_any_re
     assert (frozenset("a"), "a") in refits  # backward elimination's (b was dropped there)
     assert refits.count((frozenset("a"), "a")) == 1  # and no second one for the structure energy
     assert any(m.startswith("structure remains; a lowers the error") for m in plant.log)
+
+
+def test_an_effect_that_removes_little_of_the_validation_records_structure_is_compensating():
+    """No structure is left on the fitted record with a (the noise model may have taken the rest), but the second
+    record, never fitted, is left with structure, and a removed only 20 % of it: a is compensating and leaves the
+    final model. Where a removed most of the second record's structure, a is added; without a second record the
+    second record is never looked at."""
+    sse = {frozenset(): 10.0, frozenset("a"): 5.0, frozenset("ab"): 4.9, frozenset("b"): 9.0}
+    energy = {frozenset(): 2.0, frozenset("a"): 0.1, frozenset("ab"): 0.1, frozenset("b"): 2.0}
+    plant = _StubPlant(sse, energy)
+    plant.has_validation = True
+    plant.validation_residual = lambda fit: np.zeros(3)  # no tie to settle
+    plant.validation_energy = {frozenset(): 5.0, frozenset("a"): 4.0, frozenset("ab"): 4.0, frozenset("b"): 5.0}
+    out = _run(plant)
+    assert out.added == [] and [c["name"] for c in out.compensating] == ["a"]
+    assert out.compensating[0]["validation_structure_explained"]["fraction"] == pytest.approx(0.2)
+    assert "validation record's structure energy" in out.compensating[0]["reason"]
+    assert out.final.effects == frozenset() and out.with_compensating.effects == frozenset("a")
+    plant.validation_energy = {frozenset(): 5.0, frozenset("a"): 1.0, frozenset("ab"): 1.0, frozenset("b"): 5.0}
+    out = _run(plant)
+    assert [a["name"] for a in out.added] == ["a"] and out.compensating == []
+    assert out.added[0]["validation_structure_explained"]["fraction"] == pytest.approx(0.8)
+    plant.has_validation = False
+    plant.validation_energy = None  # would fail if looked at
+    assert [a["name"] for a in _run(plant).added] == ["a"]
 
 
 @pytest.mark.parametrize("plant", ["toggle", "emps"])

@@ -16,7 +16,8 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
   accepted effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
   (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
   current and input express); otherwise it lowers the error without explaining it and is listed as
-  *compensating*, never as added;
+  *compensating*, never as added. The same holds on a second record of the machine (never fitted) when its
+  prediction is left with structure beyond what the parameters' uncertainty allows;
 - **ambiguity** (:mod:`.ties`): two supported effects whose fits the record cannot tell apart (Vuong's test of
   the non-nested models) are reported together, neither as added. A tie found while other effects were still
   missing is judged again on the final model; one Vuong's test leaves is judged by the model with both effects
@@ -84,22 +85,40 @@ def explained_fraction(energy_without: float, energy_with: float) -> float:
 
 
 def split_explaining(added: Sequence[dict], energy_with: float, energy_without: Callable[[dict], float],
-                     explain_fraction: float) -> tuple[list[dict], list[dict]]:
+                     explain_fraction: float, on_validation: bool = False) -> tuple[list[dict], list[dict]]:
     """(explaining, compensating) of the accepted effects ``added`` when structure is left in the residual of the
     model with all of them (structure energy ``energy_with``); ``energy_without(a)``: that of the model without
-    ``a``. Each item gets ``structure_explained`` {fraction, energy_without_m2, energy_with_m2}; a compensating
+    ``a``. Each item gets ``structure_explained`` {fraction, energy_without_m2, energy_with_m2} (with
+    ``on_validation``: ``validation_structure_explained``, the energies on the validation record); a compensating
     one also a ``reason``."""
+    key = "validation_structure_explained" if on_validation else "structure_explained"
     keep, demoted = [], []
     for a in added:
         e0 = float(energy_without(a))
         frac = explained_fraction(e0, energy_with)
-        a["structure_explained"] = {"fraction": frac, "energy_without_m2": e0, "energy_with_m2": float(energy_with),
-                                    "measure": "raw residual energy in the structure test's bases"}
+        a[key] = {"fraction": frac, "energy_without_m2": e0, "energy_with_m2": float(energy_with),
+                  "measure": "raw residual energy in the structure test's bases"}
         (keep if frac >= explain_fraction else demoted).append(a)
-    compensating = [dict(a, reason=f"lowers the error, but removes only {a['structure_explained']['fraction']:.0%} "
-                                   f"of the structure energy (position, velocity, current and input bins), and "
-                                   f"structure remains") for a in demoted]
+    where = "the validation record's structure energy" if on_validation else "the structure energy"
+    compensating = [dict(a, reason=f"lowers the error, but removes only {a[key]['fraction']:.0%} of {where} "
+                                   f"(position, velocity, current and input bins), and structure remains"
+                                   + (" there" if on_validation else "")) for a in demoted]
     return keep, compensating
+
+
+def _split(plant: Plant, current: Any, added: list[dict], everyone: Sequence[dict], e_with: float,
+           energy: Callable[[Any], float], explain_fraction: float, on_validation: bool = False
+           ) -> tuple[list[dict], list[dict]]:
+    """:func:`split_explaining` of ``added`` by the structure ``energy`` of the model ``current`` (``e_with``) and of
+    the model refitted without each effect; an effect that an explaining one refines stays with it."""
+    for a in added:  # the final model without each effect (backward elimination has most)
+        if a.get("_reduced") is None:
+            a["_reduced"] = plant.without(current, a, everyone)
+    added, more = split_explaining(added, e_with, lambda a: energy(a["_reduced"]), explain_fraction, on_validation)
+    for d in [d for d in more if plant.keep(d, added)]:
+        more.remove(d)
+        added.append({k: v for k, v in d.items() if k != "reason"})
+    return added, more
 
 
 # ------------------------------------------------------------------------------------------ the loop itself
@@ -147,8 +166,9 @@ class Plant(Protocol):
     :meth:`explains` (a last check of the explaining effects, given all that were accepted, the implausible ones
     already taken out: e.g. the catch-all force; may demote more),
     :meth:`demote` (the model without the compensating effects), :meth:`validation_residual` (the residual on a
-    second record, never fitted, where :attr:`has_validation`) and :meth:`say`. :attr:`stage`: the key of an item's
-    forward step (``iteration``, ``round``)."""
+    second record, never fitted, where :attr:`has_validation`), :meth:`validation_structure` (structure left in
+    it beyond what the parameters' uncertainty allows?) and :meth:`validation_structure_energy`, and :meth:`say`.
+    :attr:`stage`: the key of an item's forward step (``iteration``, ``round``)."""
 
     stage: str
     has_validation: bool
@@ -170,6 +190,8 @@ class Plant(Protocol):
                  ) -> tuple[list[dict], list[dict]]: ...
     def demote(self, current: Any, demoted: Sequence[dict], added: Sequence[dict]) -> Any: ...
     def validation_residual(self, fit: Any) -> np.ndarray | None: ...
+    def validation_structure(self, fit: Any) -> bool: ...
+    def validation_structure_energy(self, fit: Any) -> float: ...
     def say(self, msg: str) -> None: ...
 
 
@@ -205,7 +227,8 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
     ``backward``), ties judged again on the final model, by the model with both effects (when ``encompassing``) and
     on a second record when the plant has one (all when ``ambiguity_alpha`` > 0), and, when structure is left, the
     split of the accepted effects into explaining and compensating (at ``explain_fraction``; the compensating ones
-    taken out of the final model)."""
+    taken out of the final model) — on the fitted record, then on the second record when its prediction is left
+    with structure."""
     eliminated: list[dict] = []
     if backward and added:
         current, added, eliminated = backward_eliminate(
@@ -234,18 +257,20 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
     added = [a for a in added if a["name"] not in {c["name"] for c in compensating}]
     if left and added:
         # structure is left: an effect explains only if it removed most of the structure energy it was added for
-        e_with = plant.structure_energy(current, details)
-        for a in added:  # the final model without each effect (backward elimination has most)
-            if a.get("_reduced") is None:
-                a["_reduced"] = plant.without(current, a, everyone)
-        added, more = split_explaining(added, e_with, lambda a: plant.structure_energy(a["_reduced"]),
-                                       explain_fraction)
+        added, more = _split(plant, current, added, everyone, plant.structure_energy(current, details),
+                             plant.structure_energy, explain_fraction)
         compensating += more
-        for d in [d for d in more if plant.keep(d, added)]:
-            compensating.remove(d)  # an effect that an explaining one refines stays with it
-            added.append({k: v for k, v in d.items() if k != "reason"})
         if added:
             added, more = plant.explains(current, added, details, everyone)
+            compensating += more
+    if plant.has_validation and added and plant.validation_structure(current):
+        # a real effect predicts a record it was not fitted on: where the second record is left with structure, an
+        # effect explains only if it removed most of that structure too (on the fitted record the noise model may
+        # have taken the rest, and a stand-in can predict the second record a little better: rec28)
+        e_with = plant.validation_structure_energy(current)
+        if np.isfinite(e_with):
+            added, more = _split(plant, current, added, everyone, e_with, plant.validation_structure_energy,
+                                 explain_fraction, on_validation=True)
             compensating += more
     if compensating:
         plant.say(("structure remains; " if left else "") + ", ".join(c["name"] for c in compensating)

@@ -23,7 +23,8 @@ from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
 from .routes import Route, choose, more_routes, route_line
-from .residual import level_varies, line_text, noise_lines, periodic_text, prediction_report, residual_report
+from .residual import (level_varies, line_text, noise_lines, periodic_text, predicted_left, prediction_report,
+                       residual_report)
 from .noise import fit_noise
 from .validation import Judge
 
@@ -166,8 +167,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     predicted = (prediction_report(judge.validation, current.theta, settings, (model, current.free, r_final,
                                                                               noise_after))
                  if judge.validation else None)
-    if predicted is not None and predicted.get("structure_left") and (predicted.get("parameter_uncertainty") or {
-            "rest_structure_left": True})["rest_structure_left"]:
+    if predicted is not None and predicted_left(predicted):
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous, catch_report)

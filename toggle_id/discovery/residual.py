@@ -216,6 +216,13 @@ def prediction_report(vmodel: Model, theta: np.ndarray, settings: DiscoverSettin
     return out
 
 
+def predicted_left(predicted: dict) -> bool:
+    """Structure left in a :func:`prediction_report` beyond what the parameters' uncertainty explains (an error all
+    in their span is parameters that do not carry over to the other command, not missing physics)."""
+    part = predicted.get("parameter_uncertainty") or {"rest_structure_left": True}
+    return bool(predicted.get("structure_left") and part["rest_structure_left"])
+
+
 def parameter_part(model: Model, free: Sequence[str], r_e: np.ndarray, nm: NoiseModel, vmodel: Model,
                    theta: np.ndarray, r_v: np.ndarray, settings: DiscoverSettings) -> dict | None:
     """How much of the validation residual ``r_v`` the uncertainty of the parameters ``free`` fitted on ``model``'s

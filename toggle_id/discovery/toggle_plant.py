@@ -18,7 +18,8 @@ from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .refit import Refit, guard_null, refit_candidate, scout_candidate
-from .residual import residual_report, residual_structure_energy, structure_energy_of
+from .residual import (predicted_left, prediction_report, residual_report, residual_structure_energy,
+                       structure_energy_of)
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
 from .stats import f_test
@@ -178,6 +179,16 @@ class TogglePlant:
 
     def validation_residual(self, fit: Fit) -> np.ndarray:
         return self.referee.validation.residuals(fit.theta[None, :])[0]
+
+    def validation_structure(self, fit: Fit) -> bool:
+        """Structure left in the prediction of the validation record beyond what the uncertainty of the parameters
+        fitted on the record allows (:func:`.residual.prediction_report`, :func:`.residual.predicted_left`)."""
+        r = self.referee.residual(fit)
+        return predicted_left(prediction_report(self.referee.validation, fit.theta, self.s,
+                                                (self.model, fit.free, r, fit_noise(r, self.s.noise_max_order))))
+
+    def validation_structure_energy(self, fit: Fit) -> float:
+        return residual_structure_energy(self.referee.validation, fit.theta, self.s)
 
 
 def implausible(name: str, theta: np.ndarray, cogging_whole_tol: float) -> str | None:

@@ -51,19 +51,8 @@ from .fit import (
     significant_in_sample,
 )
 from .idim import idim_ls
-from .model import (
-    EFFECTS,
-    INDEX,
-    LOWER,
-    NOMINAL_NAMES,
-    OFF,
-    PUBLISHED,
-    PUBLISHED_THETA,
-    UPPER,
-    Effect,
-    position_rel_error_pct,
-    simulate_emps,
-)
+from .model import (EFFECTS, INDEX, LOWER, NOMINAL_NAMES, OFF, PUBLISHED, PUBLISHED_THETA, UPPER, Effect,
+                    position_rel_error_pct, simulate_emps)
 
 
 def _rank_passing(refits: Sequence[tuple[dict, OEFitResult, Effect]],
@@ -304,6 +293,8 @@ class EmpsPlant:
 
     def validation_residual(self, fit: OEFitResult) -> np.ndarray:
         raise NotImplementedError("the EMPS validation record is predicted, never used to choose")
+
+    validation_structure = validation_structure_energy = validation_residual
 
 
 @one_blas_thread
