@@ -51,7 +51,10 @@ class DiscoverSettings:
       at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
       an accepted effect still counts as an explanation if it removed at least this fraction of the structure
       energy of the model without it (:func:`.localise.structure_energy`: it explains most of what it was added
-      for); otherwise it is compensating. catch_all: when structure is left, fit a generic force on slider B
+      for); otherwise it is compensating. The same on the validation record, when it is left with structure and
+      its prediction error is more than validation_material times the fitted record's RMS error (below that it
+      is predicted to about its noise, and the structure there is the parameters' small mismatch: rec14's
+      second record, 1.035 times, would demote a real Coulomb torque that barely shows on it). catch_all: when structure is left, fit a generic force on slider B
       (any piecewise-linear function of its speed and position) and a generic error of the position reading
       on top of the final model; if they are supported, an accepted effect they make unnecessary is compensating,
       not added (:mod:`.catchall`); with none accepted, the report says what they reach. catch_all_keep: an
@@ -120,6 +123,7 @@ class DiscoverSettings:
     scout_all: bool = True
     backward: bool = True
     explain_fraction: float = 0.5
+    validation_material: float = 1.5
     catch_all: bool = True
     catch_all_keep: float = 0.1
     cogging_whole_tol: float = 0.1
@@ -176,6 +180,9 @@ class DiscoverSettings:
             raise ConfigError(f"discover.cv_folds must be an integer ≥ 2, got {self.cv_folds!r}")
         if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
             raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
+        if not (isinstance(self.validation_material, (int, float)) and not isinstance(self.validation_material, bool)
+                and float(self.validation_material) >= 1.0):
+            raise ConfigError(f"discover.validation_material must be a number ≥ 1, got {self.validation_material!r}")
         if not (isinstance(self.catch_all_keep, (int, float)) and not isinstance(self.catch_all_keep, bool)
                 and 0.0 <= float(self.catch_all_keep) < 1.0):
             raise ConfigError(f"discover.catch_all_keep must lie in [0, 1), got {self.catch_all_keep!r}")

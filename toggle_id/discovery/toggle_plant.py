@@ -180,14 +180,17 @@ class TogglePlant:
         return self.referee.validation.residuals(fit.theta[None, :])[0]
 
     def validation_structure(self, fit: Fit) -> bool:
-        """Structure left in the prediction of the validation record, and not all of it within the uncertainty of the
-        parameters fitted on the record (:func:`.residual.prediction_report`). An error in the span of the
-        parameters' sensitivities but beyond their uncertainty counts: on rec28 a stand-in left 7.70 µm there, 7.64
-        µm of it in that span (Mahalanobis 750 on 15 dof) — parameters that do not carry over, or an effect they
-        mimic on one command and not on the other."""
+        """Structure left in the prediction of the validation record, not all of it within the uncertainty of the
+        parameters fitted on the record (:func:`.residual.prediction_report`), and an error more than
+        ``validation_material`` times the fitted record's. An error in the span of the parameters' sensitivities
+        but beyond their uncertainty counts: on rec28 a stand-in left 7.70 µm there, 7.64 µm of it in that span
+        (Mahalanobis 750 on 15 dof) — parameters that do not carry over, or an effect they mimic on one command and
+        not on the other."""
         r = self.referee.residual(fit)
-        return bool(prediction_report(self.referee.validation, fit.theta, self.s,
-                                      (self.model, fit.free, r, fit_noise(r, self.s.noise_max_order)))["structure_left"])
+        pred = prediction_report(self.referee.validation, fit.theta, self.s,
+                                 (self.model, fit.free, r, fit_noise(r, self.s.noise_max_order)))
+        return bool(pred["structure_left"]
+                    and pred.get("rmse_m", np.inf) > self.s.validation_material * fit.rmse(self.model.n))
 
     def validation_structure_energy(self, fit: Fit) -> float:
         return residual_structure_energy(self.referee.validation, fit.theta, self.s)
