@@ -467,6 +467,39 @@ def test_an_effect_that_removes_little_of_the_validation_records_structure_is_co
     assert [a["name"] for a in _run(plant).added] == ["a"]
 
 
+@pytest.mark.parametrize("left,ratio,expected", [(True, 1.6, True), (True, 1.4, False), (False, 3.0, False)])
+def test_the_toggle_plant_judges_the_validation_records_structure_only_where_its_error_is_material(
+        monkeypatch, left, ratio, expected):
+    """The toggle plant applies the validation split where the second record's prediction is left with structure
+    (not all of it within the parameters' uncertainty: ``prediction_report``'s verdict) *and* its error is more than
+    ``validation_material`` (1.5) times the fitted record's: a second record predicted to about its noise (rec14's,
+    1.035 times) holds only the parameters' small mismatch."""
+    import toggle_id.discovery.toggle_plant as TP
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    seen = {}
+
+    def report(vmodel, theta, settings, fitted):
+        seen["fitted"] = fitted
+        return {"structure_left": left, "rmse_m": ratio * 1e-6}
+
+    monkeypatch.setattr(TP, "prediction_report", report)
+
+    class Fit:
+        theta, free = np.zeros(3), ("a",)
+
+        def rmse(self, n):
+            return 1e-6
+
+    plant = TP.TogglePlant.__new__(TP.TogglePlant)
+    plant.s = DiscoverSettings()
+    plant.model = type("M", (), {"n": 100})()
+    residual = staticmethod(lambda fit: np.random.default_rng(0).standard_normal(100))
+    plant.referee = type("J", (), {"validation": object(), "residual": residual})()
+    assert plant.validation_structure(Fit()) is expected
+    assert seen["fitted"][1] == ("a",)  # the parameters fitted on the record, for their uncertainty
+
+
 @pytest.mark.parametrize("plant", ["toggle", "emps"])
 def test_both_plants_have_every_method_the_engine_calls(plant):
     """The engine's Plant protocol, member by member, with as many parameters (a method lost from the class body —

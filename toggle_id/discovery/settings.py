@@ -54,7 +54,8 @@ class DiscoverSettings:
       for); otherwise it is compensating. The same on the validation record, when it is left with structure and
       its prediction error is more than validation_material times the fitted record's RMS error (below that it
       is predicted to about its noise, and the structure there is the parameters' small mismatch: rec14's
-      second record, 1.035 times, would demote a real Coulomb torque that barely shows on it). catch_all: when structure is left, fit a generic force on slider B
+      second record, 1.035 times, would demote a real Coulomb torque that barely shows on it). catch_all: when
+      structure is left, fit a generic force on slider B
       (any piecewise-linear function of its speed and position) and a generic error of the position reading
       on top of the final model; if they are supported, an accepted effect they make unnecessary is compensating,
       not added (:mod:`.catchall`); with none accepted, the report says what they reach. catch_all_keep: an
