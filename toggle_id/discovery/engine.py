@@ -16,8 +16,9 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
   accepted effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
   (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
   current and input express); otherwise it lowers the error without explaining it and is listed as
-  *compensating*, never as added. The same holds on a second record of the machine (never fitted) when its
-  prediction is left with structure, not all of it within what the parameters' uncertainty allows;
+  *compensating*, never as added. The same holds on a second record of the machine (never fitted) when the plant
+  finds its prediction left with a material error that holds structure, not all of it within what the parameters'
+  uncertainty allows;
 - **ambiguity** (:mod:`.ties`): two supported effects whose fits the record cannot tell apart (Vuong's test of
   the non-nested models) are reported together, neither as added. A tie found while other effects were still
   missing is judged again on the final model; one Vuong's test leaves is judged by the model with both effects
@@ -166,8 +167,9 @@ class Plant(Protocol):
     :meth:`explains` (a last check of the explaining effects, given all that were accepted, the implausible ones
     already taken out: e.g. the catch-all force; may demote more),
     :meth:`demote` (the model without the compensating effects), :meth:`validation_residual` (the residual on a
-    second record, never fitted, where :attr:`has_validation`), :meth:`validation_structure` (structure left in
-    it, not all within the parameters' uncertainty?) and :meth:`validation_structure_energy`, and :meth:`say`.
+    second record, never fitted, where :attr:`has_validation`), :meth:`validation_structure` (is a material error
+    with structure left in it, not all within the parameters' uncertainty?) and :meth:`validation_structure_energy`,
+    and :meth:`say`.
     :attr:`stage`: the key of an item's forward step (``iteration``, ``round``)."""
 
     stage: str
