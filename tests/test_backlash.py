@@ -14,10 +14,6 @@ from toggle_id.plant import kinematics, mass_matrix, mass_matrix_derivative
 from toggle_id.record import Record
 from toggle_id.simulate import FAST, PRECISE, STATUS_INVALID, extend, simulate
 
-#: one worker for the module: its first PRECISE simulation compiles the backlash integrators (~85 s cold), and two
-#: xdist workers compiling them at once cost the suite that time twice over
-pytestmark = pytest.mark.xdist_group("backlash_kernels")
-
 
 def _d(f, q, e=1e-6):
     """Fourth-order central difference of f at q (the stencil of plant.mass_matrix_derivative)."""
