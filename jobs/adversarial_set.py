@@ -27,7 +27,11 @@ The set (:data:`SPECS`):
   2026-11-27, fourth session): a scale that reads x_B·(1 + e), a scale factor error (the experiment sweep); and a
   dead band of the drive, which ignores commands below v_db and lowers the rest by v_db, on two commands (added
   2026-11-28): the paper's simulation sweep, which stays between 0.04 and 0.06 V (there it is an offset of the
-  command), and the cycling command, which crosses zero and rests there (there it is a threshold).
+  command), and the cycling command, which crosses zero and rests there (there it is a threshold);
+* library effects under the noise of the noise-only records (added 2026-11-28, twelfth session): a cogging torque
+  (the paper's simulation sweep) and a sensor offset (cycling) under AR(1) noise with ρ = 0.9, and a dead time
+  under the 1-µm encoder without Gaussian noise (the simulation sweep), each calibrated to about 2σ of its own noise
+  (σ = q/√12 ≈ 0.29 µm for the encoder).
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
@@ -125,6 +129,12 @@ SPECS: tuple[Spec, ...] = (
     Spec("outside_deadband_simulation", "outside", "simulation", 410, calibrate=("v_db",), outside="deadband",
          target=3.0),
     Spec("outside_deadband_cycling", "outside", "cycling", 411, calibrate=("v_db",), outside="deadband", target=3.0),
+    Spec("ar09_cogging_simulation", "library", "simulation", 112, ("cogging_torque",), {"n_cog": 6.0, "phi_cog": 0.5},
+         ("a_cog",), noise_ar=0.9),
+    Spec("ar09_sensor_offset_cycling", "library", "cycling", 113, ("sensor_offset",), calibrate=("x_off",),
+         noise_ar=0.9),
+    Spec("quantised_dead_time_simulation", "library", "simulation", 114, ("dead_time",), calibrate=("tau_d",),
+         noise_m=0.0, quantum_m=1e-6),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -165,6 +175,9 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     # 1.73, 1.80 um; the saturation is steep here (s_sat 0.0475 leaves 28.8 um)
     "outside_deadband_simulation": {"v_db": (0.00265909, 3.063)},  # refit RMS 2.89 um (the sweep: 0.05 V about +0.01 V)
     "outside_deadband_cycling": {"v_db": (0.000109861, 3.019)},  # refit RMS 2.85 um (the command crosses zero)
+    "ar09_cogging_simulation": {"a_cog": (0.031354, 2.002)},  # refit RMS 1.73 um (n_cog 6, phi_cog 0.5)
+    "ar09_sensor_offset_cycling": {"x_off": (3.37642e-06, 2.001)},  # refit RMS 1.73 um
+    "quantised_dead_time_simulation": {"tau_d": (0.000157261, 1.952)},  # refit RMS 0.484 um (σ = 1 µm/√12)
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
@@ -383,7 +396,8 @@ def calibrate_param(spec: Spec, param: str, theta: np.ndarray, duration: float =
     from toggle_id.params import INDEX
 
     rec = base_record(spec.command, duration)
-    target_rms = SIGMA * math.sqrt(spec.target ** 2 - 1.0)
+    sigma = effective_sigma(spec.noise_m, spec.quantum_m)
+    target_rms = sigma * math.sqrt(spec.target ** 2 - 1.0)
     upper = np.inf if spec.outside else float(effect_bounds([param])[1][0])
     floor = 1.0 / (theta[INDEX["K_i"]] * float(np.max(np.abs(rec.v_in)))) if param == "s_sat" else 0.0
     to_u, from_u = _search_coordinate(param, floor)
@@ -401,7 +415,7 @@ def calibrate_param(spec: Spec, param: str, theta: np.ndarray, duration: float =
         u = to_u(m)
         t0 = time.perf_counter()
         r = rms_of(m)
-        ratio = math.sqrt(r * r + SIGMA ** 2) / SIGMA
+        ratio = math.sqrt(r * r + sigma ** 2) / sigma
         evals.append({"value": m, "rms_fit_um": r * 1e6, "ratio": ratio})
         log(f"  {spec.key}: {param} = {m:.6g} -> refit RMS {r * 1e6:.4g} um, ratio {ratio:.3f} "
             f"({time.perf_counter() - t0:.0f} s)")
