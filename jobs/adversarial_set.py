@@ -31,7 +31,8 @@ The set (:data:`SPECS`):
 * library effects under the noise of the noise-only records (added 2026-11-28, twelfth session): a cogging torque
   (the paper's simulation sweep) and a sensor offset (cycling) under AR(1) noise with ρ = 0.9, and a dead time
   under the 1-µm encoder without Gaussian noise (the simulation sweep), each calibrated to about 2σ of its own noise
-  (σ = q/√12 ≈ 0.29 µm for the encoder).
+  (σ = q/√12 ≈ 0.29 µm for the encoder); and two at once under that AR(1) noise, a constant load force and a cogging
+  torque on the simulation sweep.
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
@@ -135,6 +136,8 @@ SPECS: tuple[Spec, ...] = (
          noise_ar=0.9),
     Spec("quantised_dead_time_simulation", "library", "simulation", 114, ("dead_time",), calibrate=("tau_d",),
          noise_m=0.0, quantum_m=1e-6),
+    Spec("pair_ar09_load_cogging", "pair", "simulation", 204, ("constant_load_force", "cogging_torque"),
+         {"n_cog": 6.0, "phi_cog": 0.5}, ("F_load", "a_cog"), noise_ar=0.9),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -178,10 +181,13 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "ar09_cogging_simulation": {"a_cog": (0.031354, 2.002)},  # refit RMS 1.73 um (n_cog 6, phi_cog 0.5)
     "ar09_sensor_offset_cycling": {"x_off": (3.37642e-06, 2.001)},  # refit RMS 1.73 um
     "quantised_dead_time_simulation": {"tau_d": (0.000157261, 1.952)},  # refit RMS 0.484 um (σ = 1 µm/√12)
+    "pair_ar09_load_cogging": {"F_load": (172.299, 2.006), "a_cog": (0.129997, 2.000)},  # each alone: refit RMS
+    # 1.74, 1.73 um
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
-COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179, "pair_saturation_cogging": 2.592}
+COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179, "pair_saturation_cogging": 2.592,
+                  "pair_ar09_load_cogging": 2.650}
 
 #: First guesses of the calibration (a magnitude of about the right order on the 5-s records).
 GUESS = {"tau_c": 1.5, "F_s": 150.0, "c_B": 3000.0, "tau_d": 5e-4, "b_l": 2e-5, "a_cog": 0.1, "F_load": 150.0,
