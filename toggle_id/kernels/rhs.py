@@ -272,8 +272,9 @@ def _command(t, pc, v):
 
 
 # Not inlined by Numba (its IR inlining would copy the whole right-hand side into each of the twelve stage calls of
-# the DOPRI5 and Rosenbrock steps): the kernels compile cold in 42 s instead of 98 s, with the same results bit for
-# bit and the same speed (``python -m jobs.bench``, 2026-11-28). The small terms it calls stay inlined.
+# the DOPRI5 and Rosenbrock steps): the kernels compile cold in about half the time (90–103 s → 42–58 s), with the
+# same results bit for bit and the same speed (``python -m jobs.bench``, 2026-11-28). The small terms it calls stay
+# inlined.
 @nb.njit(cache=True)
 def _rhs_u(q, w, iq, u, contact, pc, geo, tab, head):
     """dy/dt of the plant with all effect terms for the drive command u (V); ``contact`` is the mode decided
