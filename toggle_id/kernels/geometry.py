@@ -134,7 +134,7 @@ def _x_of_q(q, geo):
     return r1 * c + r3 * math.sqrt(max(0.0, 1.0 - ratio * ratio * (1.0 - c * c)))
 
 
-@nb.njit(cache=True)  # once per output sample: a call costs nothing measurable, inlining 6 s of compilation
+@nb.njit(cache=True)  # once per output sample: a call costs nothing measurable, and not inlined it compiles sooner
 def _x_near(qs, q0, c0, s0, geo):
     """x_B(qs) as :func:`_x_of_q`, with cos qs from cos q0 = c0, sin q0 = s0 and the Taylor series of cos δ and
     sin δ (δ = qs − q0, |δ| ≤ 0.1: truncation below 3e-13 relative), which saves a cosine per output sample."""
