@@ -31,8 +31,8 @@ The set (:data:`SPECS`):
 * library effects under the noise of the noise-only records (added 2026-11-28, twelfth session): a cogging torque
   (the paper's simulation sweep) and a sensor offset (cycling) under AR(1) noise with ρ = 0.9, and a dead time
   under the 1-µm encoder without Gaussian noise (the simulation sweep), each calibrated to about 2σ of its own noise
-  (σ = q/√12 ≈ 0.29 µm for the encoder); and two at once under that AR(1) noise, a constant load force and a cogging
-  torque on the simulation sweep.
+  (σ = q/√12 ≈ 0.29 µm for the encoder); two at once under that AR(1) noise, a constant load force and a cogging
+  torque on the simulation sweep; and a slider viscous friction under it at the faint end, ≈ 1.3σ (cycling).
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
@@ -138,6 +138,8 @@ SPECS: tuple[Spec, ...] = (
          noise_m=0.0, quantum_m=1e-6),
     Spec("pair_ar09_load_cogging", "pair", "simulation", 204, ("constant_load_force", "cogging_torque"),
          {"n_cog": 6.0, "phi_cog": 0.5}, ("F_load", "a_cog"), noise_ar=0.9),
+    Spec("ar09_viscous_cycling_faint", "library", "cycling", 115, ("viscous_friction_slider",), calibrate=("c_B",),
+         noise_ar=0.9, target=1.3),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -183,6 +185,7 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "quantised_dead_time_simulation": {"tau_d": (0.000157261, 1.952)},  # refit RMS 0.484 um (σ = 1 µm/√12)
     "pair_ar09_load_cogging": {"F_load": (172.299, 2.006), "a_cog": (0.129997, 2.000)},  # each alone: refit RMS
     # 1.74, 1.73 um
+    "ar09_viscous_cycling_faint": {"c_B": (1193.38, 1.304)},  # refit RMS 0.838 um (the faint end, 1.3σ)
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
