@@ -467,8 +467,9 @@ def calibrate(specs: list[Spec], duration: float = DURATION, log=print) -> dict[
             mags = {p: c["value"] for p, c in out[spec.key].items()}
             x, _ = clean_response(spec, theta, effect_values(spec, mags), mags, rec)
             r = refit_rms(spec, theta, rec, x)
+            sigma = effective_sigma(spec.noise_m, spec.quantum_m)  # as each effect's own calibration
             log(f"  {spec.key}: both effects on -> refit RMS {r * 1e6:.4g} um, ratio "
-                f"{math.sqrt(r * r + SIGMA ** 2) / SIGMA:.3f} (COMBINED_RATIO)")
+                f"{math.sqrt(r * r + sigma ** 2) / sigma:.3f} (COMBINED_RATIO)")
     return out
 
 
