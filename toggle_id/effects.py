@@ -54,6 +54,7 @@ class Effect:
     probe: tuple[dict, ...] = field(default_factory=tuple)
     breaks: tuple[str, ...] = ()
     grid: Callable[[np.ndarray, np.ndarray, int], np.ndarray] | None = None
+    acts_on: str = ""
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -77,13 +78,14 @@ def saturation_grid(theta: np.ndarray, v_in: np.ndarray, points: int) -> np.ndar
 
 EFFECTS: tuple[Effect, ...] = (
     Effect("coulomb_friction_motor", "Coulomb torque on the motor/screw side, −τ_c·sgn(ω_r)",
-           (EffectParam("tau_c", K.TAU_C, "N·m", 0.0, 20.0),), ({"tau_c": 0.1},)),
+           (EffectParam("tau_c", K.TAU_C, "N·m", 0.0, 20.0),), ({"tau_c": 0.1},),
+           acts_on="slider"),  # through the mechanism, a force on slider B of its position and direction
     Effect("stribeck_friction", "Stribeck excess friction on slider B, −F_s·exp(−(ẋ_B/v_s)²)·sgn(ẋ_B)",
            (EffectParam("F_s", K.F_S, "N", 0.0, 500.0), EffectParam("v_s", K.V_S, "m/s", 1e-4, 0.5, 0.01, True)),
            ({"F_s": 1.0, "v_s": 0.003}, {"F_s": 1.0, "v_s": 0.01}, {"F_s": 1.0, "v_s": 0.03},
-            {"F_s": 1.0, "v_s": 0.1})),
+            {"F_s": 1.0, "v_s": 0.1}), acts_on="slider"),
     Effect("viscous_friction_slider", "viscous friction on slider B, −c_B·ẋ_B",
-           (EffectParam("c_B", K.C_B, "N·s/m", 0.0, 1e4),), ({"c_B": 10.0},)),
+           (EffectParam("c_B", K.C_B, "N·s/m", 0.0, 1e4),), ({"c_B": 10.0},), acts_on="slider"),
     Effect("dead_time", "transport delay of the drive input, v_in(t − τ_d)",
            (EffectParam("tau_d", K.TAU_D, "s", 0.0, 0.05),), ({"tau_d": 1e-4},)),
     Effect("backlash", "dead band b_l in the screw–nut: rotor and linkage move apart while the flank force is "
@@ -97,14 +99,14 @@ EFFECTS: tuple[Effect, ...] = (
            tuple({"a_cog": 0.1, "n_cog": float(n), "phi_cog": ph} for n in (1, 2, 3, 4, 6, 8, 12, 16, 24)
                  for ph in (0.0, np.pi / 2))),
     Effect("constant_load_force", "constant external force on slider B, −F_load (positive opposes closing)",
-           (EffectParam("F_load", K.F_LOAD, "N", -2000.0, 2000.0),), ({"F_load": 1.0},)),
+           (EffectParam("F_load", K.F_LOAD, "N", -2000.0, 2000.0),), ({"F_load": 1.0},), acts_on="slider"),
     Effect("contact_nonlinear_stiffness", "hardening contact, F_i += k3·z³ while clamped",
-           (EffectParam("k3", K.K3, "N/m³", -1e15, 1e15),), ({"k3": 1e10},)),
+           (EffectParam("k3", K.K3, "N/m³", -1e15, 1e15),), ({"k3": 1e10},), acts_on="slider"),
     Effect("voltage_saturation", "drive output limit |K_i·v_in| ≤ 1/s_sat (s_sat = 0: no limit)",
            (EffectParam("s_sat", K.S_SAT, "1/V", 0.0, 1.0),),
            tuple({"s_sat": s} for s in (0.12, 0.15, 0.17, 0.2, 0.25, 0.35, 0.5)), grid=saturation_grid),
     Effect("sensor_offset", "constant offset of the measured x_B",
-           (EffectParam("x_off", K.X_OFF, "m", -5e-3, 5e-3),), ({"x_off": 1e-6},)),
+           (EffectParam("x_off", K.X_OFF, "m", -5e-3, 5e-3),), ({"x_off": 1e-6},), acts_on="reading"),
     Effect("torque_constant_saturation", "magnetic saturation of the motor: torque K_t·i_q/√(1 + c_kt·i_q²), so "
            "the torque constant falls at high current (i_sat = 1/√c_kt); the back-EMF is unchanged",
            (EffectParam("c_kt", K.C_KT, "1/A²", 0.0, 1e-4),), ({"c_kt": 1e-9},)),
