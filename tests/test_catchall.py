@@ -224,6 +224,36 @@ def test_with_nothing_accepted_the_catch_all_reports_what_kind_of_thing_is_missi
     assert "catch-all: a generic slider force" in said[0]
 
 
+@pytest.mark.parametrize("left, supported, reading, kinds", [
+    (False, True, False, set()), (True, False, False, set()), (True, True, False, {"slider"}),
+    (True, True, True, {"slider", "reading"})])
+def test_the_second_look_asks_the_catch_all_once_per_model_what_kind_of_term_is_missing(monkeypatch, left, supported,
+                                                                                       reading, kinds):
+    """The forward step's second look (toggle_plant.TogglePlant.missing_kinds): only with structure left; the kinds
+    of library effect the supported generic terms stand in for; the report-only fits reused by the final report when
+    the model is the same, never taken as the report of another model."""
+    from toggle_id.discovery import toggle_plant as TP
+
+    calls = []
+
+    def fake_catch_all(model, judge, current, added, states, without, settings, say):
+        calls.append(current)
+        return [], [], {"supported": supported, "reading_error": {"needed": reading}}
+
+    monkeypatch.setattr(TP, "catch_all", fake_catch_all)
+    plant = TP.TogglePlant(_Model(), None, DiscoverSettings(), extend(ASSIGNED)[0], [], (), (), [], None,
+                           lambda s: None, None)
+    fit, other = Fit(extend(ASSIGNED)[0], (), 1.0), Fit(extend(ASSIGNED)[0], (), 2.0)
+    plant._structure = fit, (left, ({}, None, STATES))
+    assert plant.missing_kinds(fit) == kinds
+    assert calls == ([fit] if left else []) and plant.catch_report is None  # no report of the final model yet
+    plant.describe_missing(fit, ({}, None, STATES))  # the same model: its fits reused
+    assert calls == [fit] and plant.catch_report["supported"] is supported
+    plant.catch_report = None
+    plant.describe_missing(other, ({}, None, STATES))  # another model: fitted anew
+    assert calls == [fit, other]
+
+
 def test_the_trend_of_the_reading_error_is_its_straight_line_part():
     xs = np.linspace(0.02, 0.066, K.N_GS)
     line = catchall.trend_of({"xs_m": list(xs), "h_m": list(-3e-6 + 4e-4 * xs)})

@@ -153,6 +153,58 @@ def test_beyond_top_k_a_scout_is_refitted_while_it_could_beat_or_tie_the_best_re
     assert not worth_refitting(sse(2.17), 0.0, sse(2.178), 13, 1, n, DiscoverSettings(alpha=1e-12))
 
 
+@pytest.mark.parametrize("kinds, refitted", [
+    (set(), []), ({"slider"}, ["viscous_friction_slider"]),
+    ({"slider", "reading"}, ["viscous_friction_slider", "sensor_offset"])])
+def test_with_nothing_supported_the_catch_alls_kind_of_term_sends_its_untried_effects_to_a_refit(
+        monkeypatch, kinds, refitted):
+    """rec33 of the adversarial set: a faint slider viscous friction scouts 8th and is never refitted; the refits
+    made fail. When the catch-all's generic force (or reading error) explains what is left, every library effect of
+    that kind the scouts left untried is refitted — not the others (a dead time), and nothing when none is asked."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.refit import Refit, Scout
+    from toggle_id.discovery.scoring import CandidateScore
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    n, base_sse = 1000, 1.0
+    rms = {"coulomb_friction_motor": 0.99, "stribeck_friction": 0.992, "constant_load_force": 0.994,
+           "dead_time": 0.996, "viscous_friction_slider": 0.998, "sensor_offset": 0.9985}  # scout SSE, in order
+    names = list(rms)
+    theta = extend(ASSIGNED)[0]
+
+    def assess(model, label, th, free, remaining, settings, noise):
+        sc = {nm: CandidateScore(nm, 300.0 if nm == names[0] else 1.0, 0.3, {}, None, 1.0, 1.0) for nm in names}
+        return SimpleNamespace(label=label, scores=sc, profiles=set(names), proj=SimpleNamespace(rank=len(free)))
+
+    def refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=None):
+        return Refit(eff.name, it, Fit(theta, base.free, 0.999), {}, base_sse, 0.999, 1, len(base.free) + 1, 0.5,
+                     0.48, 5.0, False, "F-test not significant", {})
+
+    monkeypatch.setattr(TP, "assess", assess)
+    monkeypatch.setattr(TP, "scout_candidate", lambda model, base, points, eff, settings, held: Scout(
+        eff.name, rms[eff.name], None, {}))
+    monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    asked = []
+
+    def second_look(fit):
+        asked.append(fit)
+        return kinds
+
+    said = []
+    st = DiscoverSettings(top_k=3, second_point=False, alpha=1e-12)  # no scout beyond the top 3 is worth a refit
+    out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
+                        [EFFECTS_BY_NAME[nm] for nm in names], st, 1, (), said.append, None, second_look)
+    assert [rf.name for rf in out["refits"]] == names[:3] + refitted
+    assert len(asked) == 1 and out["chosen"] is None  # asked once, of the model the refits were judged against
+    assert any("of any shape explains what is left (catch-all): refitting" in s for s in said) is bool(refitted)
+    # the dead time is no force nor a reading error: never sent by the catch-all
+    assert "dead_time" not in [rf.name for rf in out["refits"]]
+
+
 def test_score_test_at_the_truth_names_an_offset_and_estimates_it():
     """At the true nominal parameters the residual of an offset is the offset: the score test puts
     sensor_offset far ahead with its first-order magnitude; an effect that is not there (backlash) is not
