@@ -205,6 +205,35 @@ def test_with_nothing_supported_the_catch_alls_kind_of_term_sends_its_untried_ef
     assert "dead_time" not in [rf.name for rf in out["refits"]]
 
 
+def test_a_second_look_refit_starts_from_the_current_model_with_the_effect_fitted_alone(monkeypatch):
+    """toggle_plant.from_current: the effect's parameters alone polished at the current model, from the scout's
+    values and from its grid's best; the lower kept, the scout's search kept with it."""
+    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.refit import Scout
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    base = Fit(extend(ASSIGNED)[0], ("J_m", "R_s"), 4.0)
+    calls = []
+
+    def fake_fit(model, start, free, nfev, step, coarse=True, rounds=1):
+        calls.append((start.copy(), tuple(free)))
+        return Fit(start, tuple(free), abs(start[ALL_INDEX["c_B"]] - 1193.0))  # lower nearer the truth
+
+    monkeypatch.setattr(TP, "fit_free", fake_fit)
+    away = base.theta.copy()
+    away[ALL_INDEX["c_B"]], away[ALL_INDEX["J_m"]] = 1.0, 7.0  # the scout's point: another J_m
+    sc = Scout("viscous_friction_slider", 9.0, away, {"best_grid": {"c_B": 1000.0}}, 2.0)
+    got = TP.from_current(None, base, sc, DiscoverSettings())
+    assert [free for _, free in calls] == [("c_B",), ("c_B",)]
+    assert [st[ALL_INDEX["c_B"]] for st, _ in calls] == [1.0, 1000.0]
+    assert all(st[ALL_INDEX["J_m"]] == base.theta[ALL_INDEX["J_m"]] for st, _ in calls)  # the current model's
+    assert got.theta[ALL_INDEX["c_B"]] == 1000.0 and got.sse == 193.0 and got.search["from_current_model"]
+    assert got.search["best_grid"] == {"c_B": 1000.0} and got.seconds == 2.0
+    none = Scout("viscous_friction_slider", np.inf, None, {}, 0.0)
+    assert TP.from_current(None, base, none, DiscoverSettings()) is none  # nothing to start from
+
+
 def test_score_test_at_the_truth_names_an_offset_and_estimates_it():
     """At the true nominal parameters the residual of an offset is the offset: the score test puts
     sensor_offset far ahead with its first-order magnitude; an effect that is not there (backlash) is not
@@ -910,3 +939,35 @@ def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_mod
     monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=True))
     judge.judge_pair(small, large)  # white: the least-squares fits are compared as they are
     assert seen[0] == (small, large)
+
+
+def test_a_coloured_comparison_refits_the_smaller_model_also_from_the_larger_models_valley(monkeypatch):
+    """rec33: a refit whose effect went to nothing (c_B ≈ 1 N·s/m) while its nominal parameters moved to another
+    valley passed at F 126. The smaller model is refitted whitened also from the larger one's whitened fit with the
+    new parameters as the smaller has them: the valley is then the smaller model's too."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import validation as V
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    small = Fit(theta.copy(), ("mu",), sse=10.0)
+    large = Fit(theta.copy(), ("mu", "c_B"), sse=10.5)
+    large.theta[ALL_INDEX["c_B"]], large.theta[ALL_INDEX["mu"]] = 1.0, 0.9  # another valley of mu
+
+    def fake_fit_free(model, start, names, *a, **k):
+        # the whitened SSE is lower in the valley mu ≈ 0.9, whatever c_B
+        return Fit(start.copy(), tuple(names), sse=6.0 if start[ALL_INDEX["mu"]] == 0.9 else 9.0)
+
+    monkeypatch.setattr(V, "fit_free", fake_fit_free)
+    monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=False))
+    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False), DiscoverSettings())
+    monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (np.zeros(5), None))
+    seen = []
+    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)))
+    judge.judge_pair(small, large)
+    small_w, large_w = seen[0]
+    assert small_w.sse == 6.0 and large_w.sse == 6.0  # no gain left to the effect
+    assert small_w.free == ("mu",) and small_w.theta[ALL_INDEX["c_B"]] == theta[ALL_INDEX["c_B"]]  # its own c_B
+    assert small_w.theta[ALL_INDEX["mu"]] == 0.9

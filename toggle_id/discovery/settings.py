@@ -58,7 +58,9 @@ class DiscoverSettings:
       structure is left, fit a generic force on slider B
       (any piecewise-linear function of its speed and position) and a generic error of the position reading
       on top of the final model; if they are supported, an accepted effect they make unnecessary is compensating,
-      not added (:mod:`.catchall`); with none accepted, the report says what they reach. catch_all_keep: an
+      not added (:mod:`.catchall`); with none accepted, the report says what they reach, and when a forward step
+      supports no refit and they are supported, every library effect of their kind the scouts left untried (a
+      force on the slider, an error of the reading) is refitted first. catch_all_keep: an
       effect is still needed beside them if its removal is significant in sample and costs at least this fraction
       of the error reduction it brings to the final model.
       cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
