@@ -925,10 +925,10 @@ def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_mod
 
     monkeypatch.setattr(V, "fit_free", fake_fit_free)
     monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=False))
-    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False), DiscoverSettings())
+    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False, n=5000), DiscoverSettings())
     monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (np.zeros(5), None))
     seen = []
-    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)))
+    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)) or SimpleNamespace(checks={}))
     judge.judge_pair(small, large)
     small_w, large_w = seen[0]
     assert small_w.sse == 9.0 and large_w.sse == 7.0
@@ -962,12 +962,15 @@ def test_a_coloured_comparison_refits_the_smaller_model_also_from_the_larger_mod
 
     monkeypatch.setattr(V, "fit_free", fake_fit_free)
     monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=False))
-    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False), DiscoverSettings())
+    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False, n=5000), DiscoverSettings())
     monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (np.zeros(5), None))
     seen = []
-    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)))
+    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)) or SimpleNamespace(checks={}))
     judge.judge_pair(small, large)
     small_w, large_w = seen[0]
     assert small_w.sse == 6.0 and large_w.sse == 6.0  # no gain left to the effect
     assert small_w.free == ("mu",) and small_w.theta[ALL_INDEX["c_B"]] == theta[ALL_INDEX["c_B"]]  # its own c_B
     assert small_w.theta[ALL_INDEX["mu"]] == 0.9
+    # its least-squares fit above the smaller model's: whatever the whitened refits say, not the model reported
+    assert judge.judge_pair(small, large).checks == {"least_squares": False}
+    assert judge.judge_pair(small, Fit(large.theta, large.free, 9.0)).checks == {"least_squares": True}
