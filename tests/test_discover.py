@@ -974,3 +974,10 @@ def test_a_coloured_comparison_refits_the_smaller_model_also_from_the_larger_mod
     # its least-squares fit above the smaller model's: whatever the whitened refits say, not the model reported
     assert judge.judge_pair(small, large).checks == {"least_squares": False}
     assert judge.judge_pair(small, Fit(large.theta, large.free, 9.0)).checks == {"least_squares": True}
+    # and such a refit is not listed as lowering the error (compensating) either
+    from toggle_id.discovery.refit import Refit
+    rf = Refit("viscous_friction_slider", 1, large, {}, 10.0, 10.5, 1, 2, 84.8, 1e-20, -75.0, False, "", {},
+               evidence={"checks": {"f_test": True, "robust_f_test": True, "bic": True, "least_squares": False}})
+    assert not rf.lowers_error
+    rf.evidence["checks"]["least_squares"] = True
+    assert rf.lowers_error
