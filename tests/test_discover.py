@@ -206,9 +206,9 @@ def test_with_nothing_supported_the_catch_alls_kind_of_term_sends_its_untried_ef
 
 
 def test_a_second_look_refit_starts_from_the_current_model_with_the_effect_fitted_alone(monkeypatch):
-    """toggle_plant.from_current: the effect's parameters alone polished at the current model, from the scout's
+    """refit.from_current: the effect's parameters alone polished at the current model, from the scout's
     values and from its grid's best; the lower kept, the scout's search kept with it."""
-    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery import refit as TP
     from toggle_id.discovery.model import Fit
     from toggle_id.discovery.refit import Scout
     from toggle_id.discovery.settings import DiscoverSettings

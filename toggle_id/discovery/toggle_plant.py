@@ -17,7 +17,7 @@ from .ties import indistinguishable, tie_band
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
-from .refit import Refit, Scout, guard_null, refit_candidate, scout_candidate
+from .refit import Refit, from_current, guard_null, refit_candidate, scout_candidate
 from .residual import prediction_report, residual_report, residual_structure_energy, structure_energy_of
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
@@ -372,26 +372,6 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
               "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals}
     return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
             "base": base, "rivals": rivals}
-
-
-def from_current(model: Model, base: Fit, scout: Scout, settings: DiscoverSettings) -> Scout:
-    """A start for the refit of ``scout``'s effect from the current model ``base`` itself: its parameters alone
-    polished there (the model held) from the scout's values and from its grid's best, the lower kept — the way the
-    catch-all fits its generic terms. A scout starts from a point of the iteration's linearisation, which the
-    baseline may since have left (a re-polish by a guard), and its short polish there may not have found the effect:
-    on rec33 the viscous friction's refit from its scout ended at c_B ≈ 1 N·s/m (the truth 1193) and 1.334 µm, above
-    the baseline's 1.263 µm."""
-    eff = EFFECTS_BY_NAME[scout.name]
-    values = [scout.search.get("best_grid") or {}]
-    if scout.theta is not None:
-        values.insert(0, {nm: float(scout.theta[ALL_INDEX[nm]]) for nm in eff.names})
-    fits = [fit_free(model, _with(base.theta, v), eff.names, settings.scout_nfev, settings.fd_rel_step, coarse=False)
-            for v in values if v]
-    if not fits:
-        return scout
-    best = min(fits, key=lambda f: f.sse)
-    return Scout(scout.name, best.sse, best.theta, {**scout.search, "from_current_model": True,
-                                                    "from_current_sse_m2": best.sse}, scout.seconds)
 
 
 #: What a kind of effect (:attr:`~toggle_id.effects.Effect.acts_on`) is, for the log.
