@@ -898,6 +898,23 @@ def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest
     assert kept.accepted and "stronger_starts" not in kept.search and judged == [25.0]
 
 
+def _coloured_judge(monkeypatch, fake_fit_free):
+    """A Judge whose fits are ``fake_fit_free`` under a coloured noise model; the fits it would compare are
+    collected in the list returned beside it."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import validation as V
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    monkeypatch.setattr(V, "fit_free", fake_fit_free)
+    monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=False))
+    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False, n=5000), DiscoverSettings())
+    monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (np.zeros(5), None))
+    seen = []
+    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)) or SimpleNamespace(checks={}))
+    return judge, seen
+
+
 def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_models_whitened_fit(monkeypatch):
     """Under a coloured noise model both fits are refitted whitened; the larger one also from the smaller one's
     whitened fit with everything else as in the larger (nested), and the lower of its two refits is judged: from its
@@ -906,7 +923,6 @@ def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_mod
 
     from toggle_id.discovery import validation as V
     from toggle_id.discovery.model import Fit
-    from toggle_id.discovery.settings import DiscoverSettings
 
     theta = extend(ASSIGNED)[0]
     small = Fit(theta.copy(), ("mu",), sse=10.0)
@@ -923,12 +939,7 @@ def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_mod
             out.sse = 7.0 if start[ALL_INDEX["mu"]] == 0.3 else 9.5
         return out
 
-    monkeypatch.setattr(V, "fit_free", fake_fit_free)
-    monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=False))
-    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False, n=5000), DiscoverSettings())
-    monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (np.zeros(5), None))
-    seen = []
-    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)) or SimpleNamespace(checks={}))
+    judge, seen = _coloured_judge(monkeypatch, fake_fit_free)
     judge.judge_pair(small, large)
     small_w, large_w = seen[0]
     assert small_w.sse == 9.0 and large_w.sse == 7.0
@@ -945,11 +956,8 @@ def test_a_coloured_comparison_refits_the_smaller_model_also_from_the_larger_mod
     """rec33: a refit whose effect went to nothing (c_B ≈ 1 N·s/m) while its nominal parameters moved to another
     valley passed at F 126. The smaller model is refitted whitened also from the larger one's whitened fit with the
     new parameters as the smaller has them: the valley is then the smaller model's too."""
-    from types import SimpleNamespace
 
-    from toggle_id.discovery import validation as V
     from toggle_id.discovery.model import Fit
-    from toggle_id.discovery.settings import DiscoverSettings
 
     theta = extend(ASSIGNED)[0]
     small = Fit(theta.copy(), ("mu",), sse=10.0)
@@ -960,12 +968,7 @@ def test_a_coloured_comparison_refits_the_smaller_model_also_from_the_larger_mod
         # the whitened SSE is lower in the valley mu ≈ 0.9, whatever c_B
         return Fit(start.copy(), tuple(names), sse=6.0 if start[ALL_INDEX["mu"]] == 0.9 else 9.0)
 
-    monkeypatch.setattr(V, "fit_free", fake_fit_free)
-    monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=False))
-    judge = V.Judge(SimpleNamespace(noise="white", settings=None, parallel=False, n=5000), DiscoverSettings())
-    monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (np.zeros(5), None))
-    seen = []
-    monkeypatch.setattr(judge, "evidence", lambda s, lg, noise: seen.append((s, lg)) or SimpleNamespace(checks={}))
+    judge, seen = _coloured_judge(monkeypatch, fake_fit_free)
     judge.judge_pair(small, large)
     small_w, large_w = seen[0]
     assert small_w.sse == 6.0 and large_w.sse == 6.0  # no gain left to the effect
