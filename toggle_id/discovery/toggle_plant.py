@@ -343,8 +343,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                                    best, realised):
                 continue
         refit(sc)
-    untried = [sc for sc in order if np.isfinite(sc.sse) and EFFECTS_BY_NAME[sc.name].acts_on
-               and sc.name not in {rf.name for rf in refits}]
+    tried = {rf.name for rf in refits}
+    untried = [sc for sc in order if np.isfinite(sc.sse) and EFFECTS_BY_NAME[sc.name].acts_on and sc.name not in tried]
     if second_look is not None and untried and not any(rf.accepted for rf in refits):
         # nothing supported, and the scouts left effects untried: when a force on the slider (or an error of the
         # reading) of any shape explains what is left, every library effect of that kind is refitted before the

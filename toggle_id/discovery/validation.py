@@ -142,20 +142,19 @@ class Judge:
         noise = fit_noise(r1, self.s.noise_max_order) if np.all(np.isfinite(r1)) else NoiseModel()
         if noise.white:
             return self.evidence(small, large, noise)
+        nested = set(small.free) < set(large.free)
         before = self.model.noise
         self.model.noise = noise
         try:
             small_w = fit_free(self.model, small.theta, small.free, self.s.null_nfev, self.s.fd_rel_step)
             large_w = fit_free(self.model, large.theta, large.free, self.s.null_nfev, self.s.fd_rel_step)
-            if set(small.free) < set(large.free):
+            if nested:
                 # nested: each model from both fits (see the module docstring); the smaller from the larger's
                 # whitened fit with the new parameters as the smaller has them (off)
                 extra = {nm: small.theta[ALL_INDEX[nm]] for nm in large.free if nm not in small.free}
                 back = fit_free(self.model, _with(large_w.theta, extra), small.free, self.s.null_nfev,
                                 self.s.fd_rel_step)
                 small_w = min((small_w, back), key=lambda f: f.sse)
-                least_squares = f_test(small.sse, large.sse, len(large.free) - len(small.free), self.model.n,
-                                       len(large.free))[1] < self.s.alpha
                 # the larger model also from the smaller one's whitened fit with everything else as in
                 # ``large`` (its extra parameters, and the fixed ones that shape them: a nuisance parameter, the
                 # knots of a generic term) — the least-squares optimum of ``large`` can lie where the whitened one
@@ -167,8 +166,9 @@ class Judge:
         finally:
             self.model.noise = before
         ev = self.evidence(small_w, large_w, noise)
-        if set(small.free) < set(large.free):
-            ev.checks["least_squares"] = bool(least_squares)
+        if nested:  # the least-squares fits, whose parameters are reported, must show the gain too
+            ev.checks["least_squares"] = bool(f_test(small.sse, large.sse, len(large.free) - len(small.free),
+                                                     self.model.n, len(large.free))[1] < self.s.alpha)
         return ev
 
     def evidence(self, small: Fit, large: Fit, noise: NoiseModel | None = None) -> Evidence:
