@@ -975,12 +975,78 @@ def test_a_coloured_comparison_refits_the_smaller_model_also_from_the_larger_mod
     assert small_w.free == ("mu",) and small_w.theta[ALL_INDEX["c_B"]] == theta[ALL_INDEX["c_B"]]  # its own c_B
     assert small_w.theta[ALL_INDEX["mu"]] == 0.9
     # its least-squares fit above the smaller model's: whatever the whitened refits say, not the model reported
-    assert judge.judge_pair(small, large).checks == {"least_squares": False}
-    assert judge.judge_pair(small, Fit(large.theta, large.free, 9.0)).checks == {"least_squares": True}
+    assert judge.judge_pair(small, large).checks == {"reported_fits": False}
+    assert judge.judge_pair(small, Fit(large.theta, large.free, 9.0)).checks == {"reported_fits": True}
     # and such a refit is not listed as lowering the error (compensating) either
     from toggle_id.discovery.refit import Refit
     rf = Refit("viscous_friction_slider", 1, large, {}, 10.0, 10.5, 1, 2, 84.8, 1e-20, -75.0, False, "", {},
-               evidence={"checks": {"f_test": True, "robust_f_test": True, "bic": True, "least_squares": False}})
+               evidence={"checks": {"f_test": True, "robust_f_test": True, "bic": True, "reported_fits": False}})
     assert not rf.lowers_error
-    rf.evidence["checks"]["least_squares"] = True
+    rf.evidence["checks"]["reported_fits"] = True
     assert rf.lowers_error
+
+
+def test_the_reported_fits_check_compares_the_loops_fits_as_they_were_minimised():
+    """Both fits under one noise model (prediction-error fitting): their whitened SSEs; else the raw ones."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.validation import _loop_sse
+
+    ar = SimpleNamespace(a=(0.9,))
+    theta = extend(ASSIGNED)[0]
+    small = Fit(theta, ("mu",), 2.0, raw_sse=10.0, noise=ar)
+    large = Fit(theta, ("mu", "c_B"), 1.0, raw_sse=10.5, noise=ar)
+    assert _loop_sse(small, large) == (2.0, 1.0)
+    large.noise = SimpleNamespace(a=(0.8,))
+    assert _loop_sse(small, large) == (10.0, 10.5)
+
+
+@pytest.mark.parametrize("pem, white", [(True, False), (False, False), (True, True)])
+def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_residual(monkeypatch, pem, white):
+    """discover.prediction_error: under coloured noise the baseline is polished again under the AR model of its
+    residual, and after each accepted effect the noise model is estimated again from the current residual and the
+    model refitted under it before the step's scores, scouts and refits; each fit of the plant then minimises under
+    it. Off, or with white noise: least squares throughout, one polish."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.noise import WHITE, NoiseModel
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    ar = [NoiseModel(a=(0.9,), sigma2_e=0.19e-12, sigma2=1e-12, n=100), NoiseModel(a=(0.85,), sigma2_e=0.3e-12,
+                                                                                    sigma2=1e-12, n=100)]
+    estimates = iter([WHITE] * 3 if white else ar)
+    monkeypatch.setattr(TP, "fit_noise", lambda r, order: next(estimates))
+    monkeypatch.setattr(TP, "_baseline", lambda model, th, others, free, s, say: (Fit(th, tuple(free), 5.0), th))
+    model = SimpleNamespace(n=100, noise=WHITE, residuals=lambda th: np.zeros((1, 100)))
+    polished = []
+
+    def fake_fit_free(m, start, free, *a, **k):
+        polished.append(m.noise)
+        return Fit(start, tuple(free), 4.0, noise=m.noise)
+
+    monkeypatch.setattr(TP, "fit_free", fake_fit_free)
+    noises = []
+
+    def iteration(m, *a, **k):
+        noises.append(m.noise)
+        return {"refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": None,
+                "rivals": []}
+
+    monkeypatch.setattr(TP, "_iteration", iteration)
+    st = DiscoverSettings(prediction_error=pem, glitch_k=0.0)
+    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), st, theta, [], ("mu",), (), [], None,
+                           lambda s: None, None)
+    base = plant.baseline()
+    refit = pem and not white
+    assert (base.sse, polished) == ((4.0, [ar[0]]) if refit else (5.0, []))
+    plant.forward_step(base, [], 1)  # no effect added yet: the baseline's noise model
+    plant.forward_step(base, [{"name": "x"}], 2)  # one added: estimated again, the model refitted under it
+    assert noises == ([ar[0], ar[1]] if refit else [WHITE, WHITE])
+    assert polished == ([ar[0], ar[1]] if refit else [])
+    model.noise = "changed by a judge"
+    plant.without(base, None, [])  # every fit of the plant under its noise model
+    assert polished[-1] == (ar[1] if refit else WHITE)

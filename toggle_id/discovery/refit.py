@@ -49,10 +49,10 @@ class Refit:
     @property
     def lowers_error(self) -> bool:
         """Significant in sample (F-test, its heteroscedasticity-robust twin where it was run, BIC and, under a
-        coloured noise model, the least-squares fits' own gain), whatever the out-of-sample checks say."""
+        coloured noise model, the gain of the loop's own fits), whatever the out-of-sample checks say."""
         checks = self.evidence.get("checks", {})
         return (bool(checks.get("f_test")) and bool(checks.get("robust_f_test", True)) and bool(checks.get("bic"))
-                and bool(checks.get("least_squares", True)))
+                and bool(checks.get("reported_fits", True)))
 
     def to_dict(self, n: int) -> dict:
         return {"name": self.name, "iteration": self.iteration, "params": self.params, "std_errors": self.std_errors,

@@ -108,11 +108,11 @@ def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], re
             route = Route(label, make_plant(nominal), nominal=nominal)
             base = route.plant.baseline()
             seen = next((r for r in ran if same_basin(base, r.plant.baseline_fit, n, rtol)), None)
-            lowest = min(ran, key=lambda r: r.plant.baseline_fit.sse)
+            lowest = min(ran, key=lambda r: r.plant.baseline_fit.rmse(n))  # raw: routes may whiten differently
             if seen is not None:
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) lies in the basin of route "
                                  f"{seen.label} ({seen.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
-            elif kind == "restart" and base.sse >= lowest.plant.baseline_fit.sse:
+            elif kind == "restart" and base.rmse(n) >= lowest.plant.baseline_fit.rmse(n):
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) is no lower than route "
                                  f"{lowest.label}'s ({lowest.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
             if route.skipped:

@@ -91,6 +91,14 @@ class DiscoverSettings:
       robust 2 at the 1 % level), and what an outside effect leaves where the residual is large is still found
       (smooth at 1 kHz, it barely enters the differences: rec22's drag 258 on 3 dof, the bump of rec01 3324 on
       12). Both statistics are always reported; false: the classical verdict alone.
+    - prediction_error: fit every model of the loop the prediction-error way (Ljung ch. 7) when the nominal
+      residual's noise is coloured — least squares on the residual prewhitened by the AR model of the current
+      model's residual, that model estimated again after each accepted effect — instead of by ordinary least
+      squares. The judge's comparisons refit both models under the larger one's noise model either way; the fits
+      the loop reports must show the gain too (check ``reported_fits``), and with ordinary least squares a
+      coloured record's judge and fits can disagree: on rec33 (a slider viscous friction under AR(1) noise,
+      ρ = 0.9) the prewhitened refits favour the friction (F 84.8) while its least-squares refit leaves it at
+      "off". White noise: no change (README, adversarial table).
     """
 
     top_k: int = 3
@@ -137,6 +145,7 @@ class DiscoverSettings:
     route_rtol: float = 1e-3
     glitch_k: float = 8.0
     robust_structure: bool = True
+    prediction_error: bool = False
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -171,7 +180,7 @@ class DiscoverSettings:
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
         if isinstance(self.glitch_k, bool) or not isinstance(self.glitch_k, (int, float)) or not self.glitch_k >= 0:
             raise ConfigError(f"discover.glitch_k must be a number ≥ 0 (0: off), got {self.glitch_k!r}")
-        for name in ("robust_structure", "encompassing"):
+        for name in ("robust_structure", "encompassing", "prediction_error"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.fd_tier not in FD_TIERS:

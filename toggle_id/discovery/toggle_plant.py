@@ -16,7 +16,7 @@ from .engine import Step
 from .ties import indistinguishable, tie_band
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
-from .noise import WHITE, fit_noise
+from .noise import WHITE, NoiseModel, fit_noise
 from .refit import Refit, from_current, guard_null, refit_candidate, scout_candidate
 from .residual import prediction_report, residual_report, residual_structure_energy, structure_energy_of
 from .scoring import CandidateScore, assess
@@ -49,6 +49,9 @@ class TogglePlant:
         self.catch_report: dict | None = None
         self._looked: tuple[Fit, dict] | None = None  # the catch-all's report-only fits of a model (second look)
         self._structure: tuple[Fit, tuple] | None = None  # the structure test of the latest model asked about
+        #: the noise model the loop's fits minimise under (white: least squares; ``prediction_error``: the AR model
+        #: of the current model's residual) and the number of effects in the model it was estimated for
+        self.fit_noise, self._noise_for = WHITE, 0
 
     @property
     def has_validation(self) -> bool:
@@ -58,10 +61,12 @@ class TogglePlant:
         self._say(msg)
 
     def baseline(self) -> Fit:
-        """The nominal model polished from every start (once: a route's baseline is looked at before its loop)."""
-        self.model.noise = WHITE
+        """The nominal model polished from every start (once: a route's baseline is looked at before its loop); with
+        ``prediction_error`` and coloured noise, polished again under the AR model of its residual."""
         if self.baseline_fit is not None:
+            self._fitting()
             return self.baseline_fit
+        self.model.noise = self.fit_noise = WHITE
         self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s, self.say)
         if self.s.glitch_k > 0 and self.referee.glitches is None and self.referee.leave_out_glitches(
                 self.baseline_fit.theta):
@@ -79,13 +84,36 @@ class TogglePlant:
             self.say(f"  baseline without them: rms {self.baseline_fit.rmse(self.model.n) * 1e6:.4g} µm")
         self.noise0 = fit_noise(self.model.residuals(self.baseline_fit.theta[None, :])[0], self.s.noise_max_order)
         self.say(f"noise model of the nominal residual: {self.noise0.describe()}")
+        if self.s.prediction_error and not self.noise0.white:
+            self.baseline_fit = self._under(self.noise0, self.baseline_fit)
         return self.baseline_fit
+
+    def _fitting(self) -> None:
+        """The model's fits minimise under this route's noise model (routes share the model)."""
+        self.model.noise = self.fit_noise
+
+    def _under(self, noise: NoiseModel, fit: Fit) -> Fit:
+        """``fit`` polished again the prediction-error way under ``noise``, which the loop's fits use from now on."""
+        self.model.noise = self.fit_noise = noise
+        out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
+        out.info["starts"] = fit.info.get("starts")
+        self.say(f"  prediction-error fit under {'white noise' if noise.white else f'AR({noise.order}) noise'}: "
+                 f"rms {out.rmse(self.model.n) * 1e6:.4g} µm (before {fit.rmse(self.model.n) * 1e6:.4g} µm)")
+        return out
 
     def remaining(self, added: Sequence[dict]) -> list[Effect]:
         return [e for e in self.pool if e.name not in {a["name"] for a in added}]
 
     def forward_step(self, current: Fit, added: Sequence[dict], iteration: int) -> Step:
         n = self.model.n
+        self._fitting()
+        if self.s.prediction_error and len(added) != self._noise_for and not self.noise0.white:
+            # the noise model again from the residual of the model with the effects added (the nominal residual's
+            # held their structure too), and the model refitted under it: every fit of this step shares it
+            self._noise_for = len(added)
+            noise = fit_noise(self.model.residuals(current.theta[None, :])[0], self.s.noise_max_order)
+            self.say(f"noise model of the current residual: {noise.describe()}")
+            current = self._under(noise, current)
         step = _iteration(self.model, self.referee, current, self.anchor, self.free, self.remaining(added), self.s,
                           iteration, self.held, self.say, self.on_refit, self.missing_kinds)
         self.all_refits.extend(step["refits"])
@@ -106,6 +134,7 @@ class TogglePlant:
         return Step(base, item, after)
 
     def without(self, current: Fit, a: dict | None, added: Sequence[dict], rival: dict | None = None) -> Fit:
+        self._fitting()
         return _without(self.model, current, a and a["name"], added, self.held, self.s, rival)
 
     def judge(self, small: Fit, large: Fit) -> Evidence:
@@ -150,6 +179,7 @@ class TogglePlant:
                  ) -> tuple[list[dict], list[dict]]:
         """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
         makes unnecessary is compensating (the engine took out those no machine has first: :meth:`implausible`)."""
+        self._fitting()
         states = details[2]
         if not (self.s.catch_all and states and added):
             return added, []
@@ -182,6 +212,7 @@ class TogglePlant:
 
     def _catch_all_alone(self, fit: Fit, states: dict) -> dict:
         """The catch-all's report on ``fit`` with no effect to check (fitted once per model)."""
+        self._fitting()
         if self._looked is None or self._looked[0] is not fit:
             self._looked = fit, catch_all(self.model, self.referee, fit, [], states, lambda f, a: f, self.s,
                                           self.say)[2]
@@ -189,6 +220,7 @@ class TogglePlant:
 
     def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
         """The final model without the compensating effects: the baseline when none explains, else refitted."""
+        self._fitting()
         if not added:
             return self.baseline_fit
         names = [c["name"] for c in demoted]

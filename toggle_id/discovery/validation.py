@@ -2,7 +2,8 @@
 BIC), out of sample (time-block cross-validation, and a second record when the user gives one), and after the others
 (backward elimination).
 
-The loop fits by ordinary least squares. A comparison (:meth:`Judge.judge_pair`) takes its noise model from
+The loop fits by ordinary least squares, or the prediction-error way under the AR model of its current residual
+(``discover.prediction_error``). A comparison (:meth:`Judge.judge_pair`) takes its noise model from
 the residual of the *larger* model: when the effect is real that residual is the noise; when it is not, the two
 residuals are alike. (The smaller model's residual, which holds the effect's structure, would pass for coloured
 noise and hide it.) When that noise model is white the two least-squares fits are compared as they are; when it
@@ -15,10 +16,10 @@ smaller model (measured on a backlash record: F = −2.6 for a refit that had lo
 Likewise the smaller model's whitened refit starts from its own fit and from the larger one's whitened fit with the
 new parameters off: a larger model whose shared parameters went to another valley wins nothing by the valley alone
 (rec33 of the adversarial set: a viscous friction refitted to c_B ≈ 1 N·s/m, nothing, with a least-squares error
-above the smaller model's, passed at F 126). And the least-squares fits themselves must show the gain (their
-F-test, which counts every sample and so is only a necessary condition under coloured noise): the parameters
-reported are theirs, and a refit whose effect sits at "off" there (c_B ≈ 10⁻⁶ N·s/m on rec33, accepted at F 84.5 by
-the whitened refits) is no finding of the model reported.
+above the smaller model's, passed at F 126). And the loop's own fits must show the gain (check ``reported_fits``:
+their F-test, which under coloured noise and least-squares fits counts every sample and so is only a necessary
+condition): the parameters reported are theirs, and a refit whose effect sits at "off" there (c_B ≈ 10⁻⁶ N·s/m on
+rec33, accepted at F 84.5 by the whitened refits) is no finding of the model reported.
 """
 from __future__ import annotations
 
@@ -73,8 +74,9 @@ class Evidence:
                  "cross_validation": "no better out of sample (time-block cross-validation)",
                  "validation_record": "does not predict the validation record better",
                  "identifiable": "a new parameter is not identifiable (|correlation| > max_corr)",
-                 "least_squares": "its least-squares fit does not lower the least-squares error significantly: the "
-                                  "gain is the prewhitened refits' alone, and the model reported would not have it"}
+                 "reported_fits": "the loop's own fit, whose parameters are reported, does not lower its error "
+                                  "significantly: the gain is the judge's prewhitened refits' alone, and the model "
+                                  "reported would not have it"}
         return "; ".join(v for k, v in names.items() if k in self.checks and not self.checks[k])
 
     def to_dict(self) -> dict:
@@ -166,8 +168,8 @@ class Judge:
         finally:
             self.model.noise = before
         ev = self.evidence(small_w, large_w, noise)
-        if nested:  # the least-squares fits, whose parameters are reported, must show the gain too
-            ev.checks["least_squares"] = bool(f_test(small.sse, large.sse, len(large.free) - len(small.free),
+        if nested:  # the loop's own fits, whose parameters are reported, must show the gain too
+            ev.checks["reported_fits"] = bool(f_test(*_loop_sse(small, large), len(large.free) - len(small.free),
                                                      self.model.n, len(large.free))[1] < self.s.alpha)
         return ev
 
@@ -195,6 +197,15 @@ class Judge:
             ev.validation0, ev.validation1 = self.validation_sse(small), self.validation_sse(large)
             ev.checks["validation_record"] = bool(ev.validation1 < ev.validation0)
         return ev
+
+
+def _loop_sse(small: Fit, large: Fit) -> tuple[float, float]:
+    """The two fits' SSEs as the loop minimised them: prewhitened when both were fitted under one noise model
+    (``discover.prediction_error``), else raw (least squares)."""
+    same = (small.noise.a if small.noise is not None else ()) == (large.noise.a if large.noise is not None else ())
+    if same:
+        return small.sse, large.sse
+    return tuple(f.raw_sse if f.raw_sse is not None else f.sse for f in (small, large))
 
 
 def in_sample_summary(ev: Evidence, n: int) -> dict:
