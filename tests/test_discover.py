@@ -1004,10 +1004,9 @@ def test_the_reported_fits_check_compares_the_loops_fits_as_they_were_minimised(
 
 @pytest.mark.parametrize("pem, white", [(True, False), (False, False), (True, True)])
 def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_residual(monkeypatch, pem, white):
-    """discover.prediction_error: under coloured noise the baseline is polished again under the AR model of its
-    residual, and after each accepted effect the noise model is estimated again from the current residual and the
-    model refitted under it before the step's scores, scouts and refits; each fit of the plant then minimises under
-    it. Off, or with white noise: least squares throughout, one polish."""
+    """discover.prediction_error: the baseline is polished again under the noise model of its residual less its
+    structure (residual.fitting_noise), and so is each model with an accepted effect; every fit of the plant then
+    minimises under it. Off: least squares throughout; a white noise model: the least-squares fit is kept."""
     from types import SimpleNamespace
 
     from toggle_id.discovery import toggle_plant as TP
@@ -1016,11 +1015,13 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
     from toggle_id.discovery.settings import DiscoverSettings
 
     theta = extend(ASSIGNED)[0]
-    ar = [NoiseModel(a=(0.9,), sigma2_e=0.19e-12, sigma2=1e-12, n=100), NoiseModel(a=(0.85,), sigma2_e=0.3e-12,
-                                                                                    sigma2=1e-12, n=100)]
-    estimates = iter([WHITE] * 3 if white else ar)
-    monkeypatch.setattr(TP, "fit_noise", lambda r, order: next(estimates))
-    monkeypatch.setattr(TP, "_baseline", lambda model, th, others, free, s, say: (Fit(th, tuple(free), 5.0), th))
+    ar = [NoiseModel(a=(0.9,), sigma2_e=0.19e-12, sigma2=1e-12, n=100),
+          NoiseModel(a=(0.85,), sigma2_e=0.3e-12, sigma2=1e-12, n=100)]
+    estimates = iter([WHITE] * 2 if white else ar)
+    monkeypatch.setattr(TP, "fitting_noise", lambda model, th, s: next(estimates))
+    monkeypatch.setattr(TP, "fit_noise", lambda r, order: WHITE)
+    monkeypatch.setattr(TP, "_baseline", lambda model, th, others, free, s, say: (
+        Fit(th, tuple(free), 5.0, noise=WHITE), th))
     model = SimpleNamespace(n=100, noise=WHITE, residuals=lambda th: np.zeros((1, 100)))
     polished = []
 
@@ -1029,24 +1030,44 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
         return Fit(start, tuple(free), 4.0, noise=m.noise)
 
     monkeypatch.setattr(TP, "fit_free", fake_fit_free)
-    noises = []
+    monkeypatch.setattr(TP, "_polish_with_effect", lambda m, chosen, *a: Fit(theta, ("mu", "x_off"), 3.0,
+                                                                              noise=m.noise))
+    noises, chosen = [], [None, SimpleNamespace(name="sensor_offset", F=50.0, p_value=1e-9, delta_bic=-40.0,
+                                                params={}, evidence={})]
 
     def iteration(m, *a, **k):
         noises.append(m.noise)
-        return {"refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": None,
+        return {"refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": chosen.pop(0),
                 "rivals": []}
 
     monkeypatch.setattr(TP, "_iteration", iteration)
-    st = DiscoverSettings(prediction_error=pem, glitch_k=0.0)
-    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), st, theta, [], ("mu",), (), [], None,
-                           lambda s: None, None)
+    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), DiscoverSettings(prediction_error=pem, glitch_k=0.0),
+                           theta, [], ("mu",), (), [], None, lambda s: None, None)
     base = plant.baseline()
     refit = pem and not white
     assert (base.sse, polished) == ((4.0, [ar[0]]) if refit else (5.0, []))
-    plant.forward_step(base, [], 1)  # no effect added yet: the baseline's noise model
-    plant.forward_step(base, [{"name": "x"}], 2)  # one added: estimated again, the model refitted under it
-    assert noises == ([ar[0], ar[1]] if refit else [WHITE, WHITE])
+    assert plant.forward_step(base, [], 1).chosen is None  # nothing added: the model and its noise model kept
+    step = plant.forward_step(base, [], 2)  # an effect added: its model refitted under its residual's noise model
+    assert step.after.noise == (ar[1] if refit else WHITE) and step.after.sse == (4.0 if refit else 3.0)
+    assert noises == ([ar[0], ar[0]] if refit else [WHITE, WHITE])
     assert polished == ([ar[0], ar[1]] if refit else [])
     model.noise = "changed by a judge"
     plant.without(base, None, [])  # every fit of the plant under its noise model
     assert polished[-1] == (ar[1] if refit else WHITE)
+
+
+def test_the_fitting_noise_model_leaves_out_what_the_states_express():
+    """A smooth error of the states (a missing friction's) on white noise: the AR model of the whole residual takes it
+    for slow noise; with what functions of the states express taken out first, the noise is white again."""
+    from toggle_id.discovery.localise import structure_removed
+    from toggle_id.discovery.noise import fit_noise
+
+    rng = np.random.default_rng(4)
+    t = np.linspace(0.0, 1.0, 2000)
+    x = np.sin(2 * np.pi * 1.5 * t)
+    v = np.gradient(x, t)
+    r = 5.0 * np.tanh(v / 2.0) + rng.standard_normal(t.size)  # a Coulomb-like error of 5 σ, white noise of 1
+    signals = {"x_B": x, "xdot_B": v, "v_in": np.cos(2 * np.pi * 1.5 * t), "t": t}
+    assert fit_noise(r, 8).effective_fraction < 0.2
+    left = structure_removed(r, signals, bins=12, lags=50, lag_step=5)
+    assert fit_noise(left, 8).white and np.std(left) == pytest.approx(1.0, rel=0.1)

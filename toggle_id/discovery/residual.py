@@ -11,9 +11,9 @@ from .. import residuals as R
 from ..effects import ALL_INDEX
 from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
-from .localise import locate, noise_level, signals_of, structure_energy
+from .localise import locate, noise_level, signals_of, structure_energy, structure_removed
 from .model import Model, sensitivities
-from .noise import NoiseModel, fit_noise
+from .noise import WHITE, NoiseModel, fit_noise
 from .periodic import periodic
 from .settings import DiscoverSettings
 
@@ -266,6 +266,19 @@ def structure_energy_of(model: Model, r: np.ndarray, states: dict | None, settin
         return float("inf")
     return structure_energy(r, _signals(model, states), bins=settings.structure_bins, lags=settings.ccf_lags,
                             lag_step=settings.ccf_step)
+
+
+def fitting_noise(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> NoiseModel:
+    """The noise model the loop's prediction-error fits minimise under (``discover.prediction_error``): the AR
+    model of the residual of ``theta`` with what functions of the states and the input express taken out first
+    (:func:`.localise.structure_removed`; the whole residual where the model cannot be simulated)."""
+    r, states, _ = _residual(model, theta)
+    if not np.all(np.isfinite(r)):
+        return WHITE
+    if states:
+        r = structure_removed(r, _signals(model, states), bins=settings.structure_bins, lags=settings.ccf_lags,
+                              lag_step=settings.ccf_step)
+    return fit_noise(r, settings.noise_max_order)
 
 
 def residual_structure_energy(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> float:

@@ -16,9 +16,10 @@ from .engine import Step
 from .ties import indistinguishable, tie_band
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
-from .noise import WHITE, NoiseModel, fit_noise
+from .noise import WHITE, fit_noise
 from .refit import Refit, from_current, guard_null, refit_candidate, scout_candidate
-from .residual import prediction_report, residual_report, residual_structure_energy, structure_energy_of
+from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
+                       structure_energy_of)
 from .scoring import CandidateScore, assess
 from .settings import DiscoverSettings
 from .stats import f_test
@@ -50,8 +51,8 @@ class TogglePlant:
         self._looked: tuple[Fit, dict] | None = None  # the catch-all's report-only fits of a model (second look)
         self._structure: tuple[Fit, tuple] | None = None  # the structure test of the latest model asked about
         #: the noise model the loop's fits minimise under (white: least squares; ``prediction_error``: the AR model
-        #: of the current model's residual) and the number of effects in the model it was estimated for
-        self.fit_noise, self._noise_for = WHITE, 0
+        #: of the current model's residual less its structure, :func:`.residual.fitting_noise`)
+        self.fit_noise = WHITE
 
     @property
     def has_validation(self) -> bool:
@@ -84,21 +85,27 @@ class TogglePlant:
             self.say(f"  baseline without them: rms {self.baseline_fit.rmse(self.model.n) * 1e6:.4g} µm")
         self.noise0 = fit_noise(self.model.residuals(self.baseline_fit.theta[None, :])[0], self.s.noise_max_order)
         self.say(f"noise model of the nominal residual: {self.noise0.describe()}")
-        if self.s.prediction_error and not self.noise0.white:
-            self.baseline_fit = self._under(self.noise0, self.baseline_fit)
+        if self.s.prediction_error:
+            self.baseline_fit = self._under(self.baseline_fit)
         return self.baseline_fit
 
     def _fitting(self) -> None:
         """The model's fits minimise under this route's noise model (routes share the model)."""
         self.model.noise = self.fit_noise
 
-    def _under(self, noise: NoiseModel, fit: Fit) -> Fit:
-        """``fit`` polished again the prediction-error way under ``noise``, which the loop's fits use from now on."""
+    def _under(self, fit: Fit) -> Fit:
+        """``fit`` polished again the prediction-error way under the noise model of its residual
+        (:func:`.residual.fitting_noise`), which the loop's fits use from now on; ``fit`` itself when that model
+        is the one it was fitted under, or white and ``fit`` a least-squares fit."""
+        noise = fitting_noise(self.model, fit.theta, self.s)
         self.model.noise = self.fit_noise = noise
+        if noise.a == (fit.noise.a if fit.noise is not None else ()):
+            return fit
         out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
         out.info["starts"] = fit.info.get("starts")
-        self.say(f"  prediction-error fit under {'white noise' if noise.white else f'AR({noise.order}) noise'}: "
-                 f"rms {out.rmse(self.model.n) * 1e6:.4g} µm (before {fit.rmse(self.model.n) * 1e6:.4g} µm)")
+        self.say(f"  prediction-error fit under the noise model of its residual less what the states express, "
+                 f"{noise.describe()}: rms {out.rmse(self.model.n) * 1e6:.4g} µm (before "
+                 f"{fit.rmse(self.model.n) * 1e6:.4g} µm)")
         return out
 
     def remaining(self, added: Sequence[dict]) -> list[Effect]:
@@ -107,13 +114,6 @@ class TogglePlant:
     def forward_step(self, current: Fit, added: Sequence[dict], iteration: int) -> Step:
         n = self.model.n
         self._fitting()
-        if self.s.prediction_error and len(added) != self._noise_for and not self.noise0.white:
-            # the noise model again from the residual of the model with the effects added (the nominal residual's
-            # held their structure too), and the model refitted under it: every fit of this step shares it
-            self._noise_for = len(added)
-            noise = fit_noise(self.model.residuals(current.theta[None, :])[0], self.s.noise_max_order)
-            self.say(f"noise model of the current residual: {noise.describe()}")
-            current = self._under(noise, current)
         step = _iteration(self.model, self.referee, current, self.anchor, self.free, self.remaining(added), self.s,
                           iteration, self.held, self.say, self.on_refit, self.missing_kinds)
         self.all_refits.extend(step["refits"])
@@ -127,6 +127,8 @@ class TogglePlant:
         if chosen is None:
             return Step(base)
         after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say)
+        if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
+            after = self._under(after)
         item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
                 "delta_bic": chosen.delta_bic, "rmse_after_m": after.rmse(n), "params_at_acceptance": chosen.params,
                 "evidence": chosen.evidence, "indistinguishable_from": step["rivals"]}

@@ -75,8 +75,9 @@ class Evidence:
                  "validation_record": "does not predict the validation record better",
                  "identifiable": "a new parameter is not identifiable (|correlation| > max_corr)",
                  "reported_fits": "the loop's own fit, whose parameters are reported, does not lower its error "
-                                  "significantly: the gain is the judge's prewhitened refits' alone, and the model "
-                                  "reported would not have it"}
+                                  "significantly" + (": the gain is the judge's prewhitened refits' alone, and the "
+                                                     "model reported would not have it"
+                                                     if self.checks.get("f_test") else "")}
         return "; ".join(v for k, v in names.items() if k in self.checks and not self.checks[k])
 
     def to_dict(self) -> dict:
