@@ -110,7 +110,7 @@ def test_magnitude_grid_spans_the_domain_on_the_allowed_sides():
 
 def test_candidates_within_the_score_tests_resolution_of_the_top_one_all_lead():
     from toggle_id.discovery.scoring import CandidateScore
-    from toggle_id.discovery.toggle_plant import score_leaders
+    from toggle_id.discovery.scoring import score_leaders
 
     def cand(name, score, profile):
         return CandidateScore(name, score, 0.0, {}, None, 1.0, 1.0, profile_score=profile)
@@ -131,7 +131,7 @@ def test_candidates_within_the_score_tests_resolution_of_the_top_one_all_lead():
 
 def test_beyond_top_k_a_scout_is_refitted_while_it_could_beat_or_tie_the_best_refit_or_its_score_exceeds_it():
     from toggle_id.discovery.settings import DiscoverSettings
-    from toggle_id.discovery.toggle_plant import worth_refitting
+    from toggle_id.discovery.scoring import worth_refitting
 
     n, st = 5001, DiscoverSettings(alpha=0.01, ambiguity_alpha=0.05)
 

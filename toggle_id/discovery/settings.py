@@ -91,14 +91,15 @@ class DiscoverSettings:
       robust 2 at the 1 % level), and what an outside effect leaves where the residual is large is still found
       (smooth at 1 kHz, it barely enters the differences: rec22's drag 258 on 3 dof, the bump of rec01 3324 on
       12). Both statistics are always reported; false: the classical verdict alone.
-    - prediction_error: fit every model of the loop the prediction-error way (Ljung ch. 7) when the nominal
-      residual's noise is coloured — least squares on the residual prewhitened by the AR model of the current
-      model's residual, that model estimated again after each accepted effect — instead of by ordinary least
-      squares. The judge's comparisons refit both models under the larger one's noise model either way; the fits
+    - prediction_error: fit every model of the loop the prediction-error way (Ljung ch. 7): least squares on the
+      residual prewhitened by the AR model of the current model's residual less what functions of the states and
+      the input express (:func:`.residual.fitting_noise`; estimated for the baseline and again after each
+      accepted effect), instead of ordinary least squares. Where that noise model is white the least-squares fit
+      is kept. The judge's comparisons refit both models under the larger one's noise model either way; the fits
       the loop reports must show the gain too (check ``reported_fits``), and with ordinary least squares a
       coloured record's judge and fits can disagree: on rec33 (a slider viscous friction under AR(1) noise,
       ρ = 0.9) the prewhitened refits favour the friction (F 84.8) while its least-squares refit leaves it at
-      "off". White noise: no change (README, adversarial table).
+      "off" (README, adversarial table).
     """
 
     top_k: int = 3

@@ -13,16 +13,15 @@ from ..errors import DataError
 from ..residuals import glitch_text
 from .catchall import catch_all, reading_needed
 from .engine import Step
-from .ties import indistinguishable, tie_band
+from .ties import indistinguishable
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .refit import Refit, from_current, guard_null, refit_candidate, scout_candidate
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
-from .scoring import CandidateScore, assess
+from .scoring import CandidateScore, assess, score_leaders, worth_refitting
 from .settings import DiscoverSettings
-from .stats import f_test
 from .validation import Evidence, Judge
 
 
@@ -63,7 +62,7 @@ class TogglePlant:
 
     def baseline(self) -> Fit:
         """The nominal model polished from every start (once: a route's baseline is looked at before its loop); with
-        ``prediction_error`` and coloured noise, polished again under the AR model of its residual."""
+        ``prediction_error``, polished again under the noise model of its residual (:meth:`_under`)."""
         if self.baseline_fit is not None:
             self._fitting()
             return self.baseline_fit
@@ -410,43 +409,6 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
 
 #: What a kind of effect (:attr:`~toggle_id.effects.Effect.acts_on`) is, for the log.
 KIND_TEXT = {"slider": "a force on the slider", "reading": "an error of the reading"}
-
-
-def worth_refitting(sse: float, statistic: float, base_sse: float, p_base: int, k: int, n: int,
-                    settings: DiscoverSettings, best_sse: float | None = None, realised: float | None = None) -> bool:
-    """Beyond the ``top_k`` refits and the score leaders, is a candidate whose scout reached ``sse`` refitted?
-
-    With a refit accepted this round (``best_sse`` its SSE, ``realised`` its F·k): yes while the scout explains
-    more than it or comes within the tie band of it (no effect is accepted while a candidate that explains more
-    has not been refitted; a rival the record may not tell apart), and while the candidate's score ``statistic``
-    exceeds what that refit realised (the same χ² units, each under its own noise model: approximate). A scout's 8
-    evaluations can show little of a smooth effect the nominal parameters first absorbed — adversarial record
-    rec15: the slider's viscous friction scored 57.9 with a scout at 2.061 µm and refitted to 1.737 µm, where the
-    accepted cogging torque had realised F·k = 30 at 2.062 µm. With none accepted yet: while the scout's short
-    polish is significant as least squares against the ``p_base``-parameter baseline (``k`` more parameters), so
-    that no effect is dismissed on its scout alone."""
-    if best_sse is not None:
-        return bool(sse < best_sse + tie_band(best_sse, n, settings.ambiguity_alpha)
-                    or (realised is not None and statistic > realised))
-    return bool(f_test(base_sse, sse, k, n, p_base + k)[1] < settings.alpha)
-
-
-def score_leaders(scored: Sequence[CandidateScore], alpha: float, screen: float = 0.0) -> set[str]:
-    """The candidates the score test ranks first: the top statistic (the larger of a candidate's profile and
-    score-test χ²) and every significant one (statistic above ``screen``) within the test's own resolution of it —
-    a difference below the χ²(1) critical value at ``alpha`` (0: the top one alone). To first order the record
-    cannot tell such candidates apart, so none of them is dismissed on its 8-evaluation scout; statistics at the
-    noise's level all lie within that band of each other and tell nothing (a backlash scores 0 at b_l = 0).
-    Measured on adversarial record rec08 (a torque constant that saturates): the saturation and a cubic contact
-    stiffness score 276.8 and 277.0; the stiffness's scout reached 0.998 µm, the saturation's 3.023 µm, and with the
-    top statistic alone only the stiffness was refitted and accepted, where both refitted tie (the record cannot
-    tell them apart)."""
-    stat = {c.name: c.statistic for c in scored}
-    if not stat:
-        return set()
-    top = max(stat.values())
-    band = float(stats.chi2.isf(alpha, 1)) if alpha > 0 else 0.0
-    return {nm for nm, v in stat.items() if v == top or (v >= top - band and v > screen)}
 
 
 def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
