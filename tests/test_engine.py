@@ -269,7 +269,9 @@ def test_the_emps_loop_applies_the_same_ambiguity_rule_to_the_refits_of_a_round(
 def test_compensating_lists_each_effect_once_with_its_latest_refit():
     """An effect refitted in several iterations (rec22 with its validation record listed constant_load_force,
     sensor_offset and cogging_torque twice) is listed once, with the refit judged against the most complete
-    model; effects already listed, added, or tied with an added one are left out."""
+    model; effects already listed, added, or tied with an added one are left out. Only a latest refit judged against
+    a model with every added effect counts: one that lowered the error of a model still missing an effect (rec32's
+    dead time before the cogging torque was added) does not, nor does one whose later refit no longer lowers it."""
     from types import SimpleNamespace
 
     from toggle_id.discovery.loop import compensating_refits
@@ -279,12 +281,18 @@ def test_compensating_lists_each_effect_once_with_its_latest_refit():
                                reason=f"{name} in iteration {it}", evidence={"iteration": it})
 
     refits = [refit("constant_load_force", 1), refit("sensor_offset", 1), refit("backlash", 1, accepted=True),
-              refit("stribeck_friction", 1, lowers=False), refit("cogging_torque", 1),
-              refit("constant_load_force", 2), refit("sensor_offset", 2), refit("dead_time", 2)]
-    out = compensating_refits(refits, [{"name": "backlash"}],
-                              [{"name": "dead_time", "indistinguishable_from": [{"name": "cogging_torque"}]}])
+              refit("stribeck_friction", 1, lowers=False), refit("cogging_torque", 1), refit("voltage_saturation", 1),
+              refit("constant_load_force", 2), refit("sensor_offset", 2), refit("dead_time", 2),
+              refit("voltage_saturation", 2, lowers=False)]
+    added = [{"name": "dead_time", "iteration": 1, "indistinguishable_from": [{"name": "cogging_torque"}]}]
+    out = compensating_refits(refits, [{"name": "backlash"}], added)
     assert [(c["name"], c["iteration"]) for c in out] == [("constant_load_force", 2), ("sensor_offset", 2)]
     assert out[0]["reason"] == "constant_load_force in iteration 2" and out[0]["evidence"] == {"iteration": 2}
+    # a second effect added in iteration 2: every refit so far was judged against a model without it
+    assert compensating_refits(refits, [], added + [{"name": "backlash", "iteration": 2}]) == []
+    # nothing added: every refit was judged against the final model (the baseline)
+    assert [c["name"] for c in compensating_refits(refits, [], [])] == ["constant_load_force", "sensor_offset",
+                                                                        "cogging_torque", "dead_time"]
 
 
 # ---------------------------------------------------------------------------------------------- the loop

@@ -226,14 +226,19 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
 
 
 def compensating_refits(refits: Sequence[Refit], compensating: Sequence[dict], added: Sequence[dict]) -> list[dict]:
-    """The refits that lowered the error but were not accepted, one item per effect — its latest refit, judged
-    against the most complete model (``refits`` in iteration order) — leaving out the effects already listed as
-    compensating, added, or tied with an added one."""
+    """The refits that lowered the error but were not accepted, one item per effect: its latest refit
+    (``refits`` in iteration order) decides, and only when it was judged against a model with every added effect
+    (an iteration after the last one that added an effect kept in ``added``) — a stand-in for an effect added later
+    lowers the error of a model the loop did not end with (rec32 under prediction-error fits: a dead time and a torque
+    saturation, refitted before the cogging torque was added, were listed). Effects already listed as compensating,
+    added, or tied with an added one are left out."""
     listed = ({c["name"] for c in compensating} | {a["name"] for a in added}
               | {r["name"] for a in added for r in a.get("indistinguishable_from", ())})
-    latest = {rf.name: rf for rf in refits if rf.lowers_error and not rf.accepted and rf.name not in listed}
+    complete = max((a.get("iteration", 0) for a in added), default=0)
+    latest = {rf.name: rf for rf in refits}
     return [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
-             "evidence": rf.evidence} for rf in latest.values()]
+             "evidence": rf.evidence} for rf in latest.values()
+            if rf.iteration > complete and rf.lowers_error and not rf.accepted and rf.name not in listed]
 
 
 def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_after: dict) -> None:
