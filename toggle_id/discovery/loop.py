@@ -211,6 +211,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,
              "noise_model": {"before": noise0.to_dict(), "after": noise_after.to_dict()},
+             # what the final model's fit minimised: least squares (white), or the prewhitened residual
+             "fits_minimise_under": (current.noise.to_dict() if current.noise is not None else None),
              "localisation": diag_after.get("localisation"),
              "validation_record": validation.name if validation is not None else None, "catch_all": catch_report,
              "validation_prediction": predicted,

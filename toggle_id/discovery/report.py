@@ -236,6 +236,11 @@ def summary_text(res: DiscoveryResult) -> str:
     if nm:
         lines.append(f"noise model (final residual): {nm.get('kind')}, "
                      f"≈{nm.get('effective_samples')} independent samples of {nm.get('n')}")
+    fitted = res.extra.get("fits_minimise_under")
+    if fitted:
+        lines.append("final fit: " + ("least squares" if fitted.get("kind") == "white" else
+                                      f"prediction error under {fitted.get('kind')} noise (the residual less what "
+                                      "the states express)"))
     for a in res.effects_added:
         se = a["std_errors"].get(a["magnitude"]["name"])
         hc = a["magnitude"].get("hc_ratio") or 1.0
