@@ -8,7 +8,9 @@ term and an :class:`~toggle_id.effects.Effect` entry.
 1. *Baseline* (:mod:`.model`): the nominal fit is polished on the whole record (PRECISE tier, log space, one
    parameter held per exact symmetry of x_B, :mod:`.gauge`), from every start; the best is the baseline.
 2. *Noise model* (:mod:`.noise`): an AR(p) model of the residual. Every statistic is computed on prewhitened
-   residuals and sensitivities, so coloured noise (a closed loop, an encoder) does not pass for an effect.
+   residuals and sensitivities, so coloured noise (a closed loop, an encoder) does not pass for an effect; the
+   loop's fits minimise the residual prewhitened by the AR model of the current residual less what the states
+   express (prediction-error fits, ``discover.prediction_error``; least squares where that model is white).
 3. *Scores and scouts* (:mod:`.scoring`, :mod:`.refit`): the score (LM) test and a magnitude grid of every
    candidate up to its feasible bound at two linearisation points (the fit, and the nominal start with the effects
    so far), and a short refit (scout) of *every* candidate from its best grid start — threshold and periodic

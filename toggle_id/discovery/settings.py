@@ -99,7 +99,7 @@ class DiscoverSettings:
       the loop reports must show the gain too (check ``reported_fits``), and with ordinary least squares a
       coloured record's judge and fits can disagree: on rec33 (a slider viscous friction under AR(1) noise,
       ρ = 0.9) the prewhitened refits favour the friction (F 84.8) while its least-squares refit leaves it at
-      "off" (README, adversarial table).
+      "off"; with prediction-error fits it is accepted (README, adversarial table). false: least squares.
     """
 
     top_k: int = 3
@@ -146,7 +146,7 @@ class DiscoverSettings:
     route_rtol: float = 1e-3
     glitch_k: float = 8.0
     robust_structure: bool = True
-    prediction_error: bool = False
+    prediction_error: bool = True
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
