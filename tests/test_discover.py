@@ -956,8 +956,16 @@ def test_a_coloured_comparison_refits_the_larger_model_also_from_the_smaller_mod
     assert judge.model.noise == "white"  # the model's own noise model is restored
     seen.clear()
     monkeypatch.setattr(V, "fit_noise", lambda r, order: SimpleNamespace(white=True))
-    judge.judge_pair(small, large)  # white: the least-squares fits are compared as they are
+    # white: the least-squares fits are compared as they are, and their gain is the judge's own F-test
+    assert judge.judge_pair(small, large).checks == {}
     assert seen[0] == (small, large)
+    # prediction-error fits (under the loop's coloured noise model) compared as they are: their own gain must show
+    ar = SimpleNamespace(a=(0.9,), white=False)
+    pem_small = Fit(small.theta, small.free, 10.0, raw_sse=10.0, noise=ar)
+    assert judge.judge_pair(pem_small, Fit(large.theta, large.free, 9.99, raw_sse=8.0, noise=ar)).checks == {
+        "reported_fits": False}
+    assert judge.judge_pair(pem_small, Fit(large.theta, large.free, 8.0, raw_sse=9.99, noise=ar)).checks == {
+        "reported_fits": True}
 
 
 def test_a_coloured_comparison_refits_the_smaller_model_also_from_the_larger_models_valley(monkeypatch):

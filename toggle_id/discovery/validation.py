@@ -16,8 +16,9 @@ smaller model (measured on a backlash record: F = −2.6 for a refit that had lo
 Likewise the smaller model's whitened refit starts from its own fit and from the larger one's whitened fit with the
 new parameters off: a larger model whose shared parameters went to another valley wins nothing by the valley alone
 (rec33 of the adversarial set: a viscous friction refitted to c_B ≈ 1 N·s/m, nothing, with a least-squares error
-above the smaller model's, passed at F 126). And the loop's own fits must show the gain (check ``reported_fits``:
-their F-test, which under coloured noise and least-squares fits counts every sample and so is only a necessary
+above the smaller model's, passed at F 126). And the loop's own fits must show the gain (check ``reported_fits``,
+of every nested comparison that is coloured or whose fits are prediction-error ones: their F-test on their SSEs as
+minimised, which for least-squares fits under coloured noise counts every sample and so is only a necessary
 condition): the parameters reported are theirs, and a refit whose effect sits at "off" there (c_B ≈ 10⁻⁶ N·s/m on
 rec33, accepted at F 84.5 by the whitened refits) is no finding of the model reported.
 """
@@ -139,13 +140,17 @@ class Judge:
         return self._val[key]
 
     def judge_pair(self, small: Fit, large: Fit) -> Evidence:
-        """The case for ``large`` against ``small`` (both least-squares fits) under the noise model of
-        ``large``'s residual; both refitted under it first when it is coloured (see the module docstring)."""
+        """The case for ``large`` against ``small`` (the loop's fits) under the noise model of ``large``'s
+        residual; both refitted under it first when it is coloured (see the module docstring)."""
         r1, _ = self.residual_and_jacobian(large)
         noise = fit_noise(r1, self.s.noise_max_order) if np.all(np.isfinite(r1)) else NoiseModel()
-        if noise.white:
-            return self.evidence(small, large, noise)
         nested = set(small.free) < set(large.free)
+        if noise.white:
+            ev = self.evidence(small, large, noise)
+            if nested and not all(f.noise is None or f.noise.white for f in (small, large)):
+                # prediction-error fits judged as they are: their own gain, as they were minimised, must show too
+                ev.checks["reported_fits"] = self._reported_gain(small, large)
+            return ev
         before = self.model.noise
         self.model.noise = noise
         try:
@@ -170,9 +175,13 @@ class Judge:
             self.model.noise = before
         ev = self.evidence(small_w, large_w, noise)
         if nested:  # the loop's own fits, whose parameters are reported, must show the gain too
-            ev.checks["reported_fits"] = bool(f_test(*_loop_sse(small, large), len(large.free) - len(small.free),
-                                                     self.model.n, len(large.free))[1] < self.s.alpha)
+            ev.checks["reported_fits"] = self._reported_gain(small, large)
         return ev
+
+    def _reported_gain(self, small: Fit, large: Fit) -> bool:
+        """The F-test of the loop's own two fits, on their SSEs as they were minimised (:func:`_loop_sse`)."""
+        return bool(f_test(*_loop_sse(small, large), len(large.free) - len(small.free), self.model.n,
+                           len(large.free))[1] < self.s.alpha)
 
     def evidence(self, small: Fit, large: Fit, noise: NoiseModel | None = None) -> Evidence:
         """The case for ``large`` (more free parameters) against ``small``, both fitted under ``noise``
