@@ -135,7 +135,7 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     """Polish with the effect's parameters freed, continuing from the scout, then judged against ``base``
     (:class:`~.validation.Judge`: prewhitened F-test and BIC, cross-validation, validation record).
 
-    A refit that is significant as least squares is converged before it is judged, from where it stands and
+    A refit that is significant by its own fit is converged before it is judged, from where it stands and
     from ``anchor`` (the nominal start) with the refit's effect values — the polished baseline may have bent the
     nominal parameters into a valley the effect's optimum is not in. If it is then dismissed, it is refitted
     from stronger magnitudes of the effect (:func:`_stronger`) and, where one of them ends lower, converged and
@@ -160,7 +160,7 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
                    rounds=settings.refit_rounds)
     significant = f_test(base.sse, fit.sse, k, model.n, p1)[1] < settings.alpha
     if significant:
-        # significant as least squares: converge it before it is judged (a refit stopped half-way leaves a
+        # significant by its own fit: converge it before it is judged (a refit stopped half-way leaves a
         # structured residual — a coloured noise model — and a cross-validation linearised far from its optimum)
         starts = [fit.theta]
         if anchor is not None:

@@ -297,8 +297,8 @@ def worth_refitting(sse: float, statistic: float, base_sse: float, p_base: int, 
     evaluations can show little of a smooth effect the nominal parameters first absorbed — adversarial record
     rec15: the slider's viscous friction scored 57.9 with a scout at 2.061 µm and refitted to 1.737 µm, where the
     accepted cogging torque had realised F·k = 30 at 2.062 µm. With none accepted yet: while the scout's short
-    polish is significant as least squares against the ``p_base``-parameter baseline (``k`` more parameters), so
-    that no effect is dismissed on its scout alone."""
+    polish is significant by its own fit (the F-test on the SSEs the loop's fits minimise) against the
+    ``p_base``-parameter baseline (``k`` more parameters), so that no effect is dismissed on its scout alone."""
     if best_sse is not None:
         return bool(sse < best_sse + tie_band(best_sse, n, settings.ambiguity_alpha)
                     or (realised is not None and statistic > realised))

@@ -18,7 +18,7 @@ class DiscoverSettings:
     """Numbers of the discovery loop a user may change (conf/experiment/discover.yaml, node ``discover``).
 
     - top_k: candidates refitted per iteration at least (the best scouts; more while a scout explains more than
-      the best accepted refit, or, with none accepted yet, while a scout is significant as least squares at
+      the best accepted refit, or, with none accepted yet, while a scout is significant by its own fit at
       ``alpha``); alpha: level of the F-test an effect must pass
       (BIC must improve too); max_effects: most effects added; candidates: effect names to consider (None: all).
     - screen_alpha: a candidate is scouted only if its score or profile statistic at the polished fit exceeds
@@ -72,7 +72,7 @@ class DiscoverSettings:
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
       test leaves is judged by the model with both effects (:func:`.ties.settle_ties_by_encompassing`): an effect
       needed beside its rival, and the rival not beside it, is named.
-    - stronger_starts: a refit that is significant as least squares but dismissed is repeated from these
+    - stronger_starts: a refit that is significant by its own fit but dismissed is repeated from these
       multiples (≥ 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
       from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
       started small can stop where nominal parameters absorb the effect (:func:`.refit.stronger_magnitudes`);
