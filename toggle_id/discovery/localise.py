@@ -112,17 +112,20 @@ def structure_energy(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: 
     a high-pass filter — the smooth error a missing friction leaves is largely removed by it — so a whitened
     statistic can even grow when an effect removes most of the error."""
     r = np.asarray(r, float)
-    bases, _, _ = family_bases(signals, bins, lags, lag_step)
     total = 0.0
-    for name, B in bases.items():
-        if name not in TESTED or not np.all(np.isfinite(B)):
-            continue
-        coef = np.linalg.lstsq(B, r, rcond=1e-10)[0]
-        fitted = B @ coef
+    for B in _tested_bases(signals, bins, lags, lag_step):
+        fitted = B @ np.linalg.lstsq(B, r, rcond=1e-10)[0]
         total += float(fitted @ fitted)
     return total
 
 
+def _tested_bases(signals: Mapping[str, np.ndarray], bins: int, lags: int, lag_step: int) -> list[np.ndarray]:
+    """The bases of the families that enter the verdict (:data:`TESTED`), those whose signals are finite."""
+    bases, _, _ = family_bases(signals, bins, lags, lag_step)
+    return [B for name, B in bases.items() if name in TESTED and np.all(np.isfinite(B))]
+
+
+@one_blas_thread
 def structure_removed(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12, lags: int = 50,
                       lag_step: int = 5) -> np.ndarray:
     """``r`` less its least-squares projection on the tested families' bases all at once: what no function of
@@ -130,8 +133,7 @@ def structure_removed(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins:
     still holds a missing effect's structure. A noise model fitted to the whole residual takes a smooth error for
     slow noise (a far nominal fit's 27-µm error on a 1-s record read as AR(7) noise of ≈5 independent samples)."""
     r = np.asarray(r, float)
-    bases, _, _ = family_bases(signals, bins, lags, lag_step)
-    cols = [B for name, B in bases.items() if name in TESTED and np.all(np.isfinite(B))]
+    cols = _tested_bases(signals, bins, lags, lag_step)
     if not cols:
         return r.copy()
     X = np.hstack(cols)
