@@ -271,6 +271,53 @@ def test_the_robust_structure_statistic_tests_after_the_fits_sensitivities():
     assert bumps[:, 0].sum() >= 5 and bumps[:, 1].sum() >= bumps[:, 0].sum() - 1, bumps.sum(axis=0)
 
 
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_a_fit_stopped_short_of_its_minimum_is_not_read_as_noise(rho):
+    """The families are tested after the fit's sensitivities, so a residual its own parameters still explain reads
+    as noise to them; the convergence check, under the noise model the fit minimised under, says the fit stopped
+    short — and at the fit's minimum its statistic is 0, so a converged fit is never flagged by it."""
+    tr = trajectory()
+    sig = {k: tr[k] for k in ("x_B", "xdot_B", "i_q", "v_in", "t")}
+    v = tr["xdot_B"]
+    J = np.column_stack([np.ones(N), tr["x_B"] - tr["x_B"].mean(), v / np.abs(v).max(),
+                         np.gradient(v) / np.abs(np.gradient(v)).max(), np.sin(2 * np.pi * tr["t"] / 1.7)])
+    nm = NoiseModel(a=(rho,)) if rho else NoiseModel()
+    k0 = nm.order
+    stats_at_minimum = []
+    for seed in range(10):
+        y = J @ np.array([3e-6, 1e-3, 2e-6, -1e-6, 1e-6]) + 1e-6 * ar1(rho, seed=seed)
+        beta = np.linalg.lstsq(nm.whiten_columns(J)[k0:], nm.whiten(y)[k0:], rcond=None)[0]  # the fit's minimum
+        r = y - J @ beta
+        at_min = locate(None, r, sig, J=J, robust=True, fitted=J, fitted_noise=nm)
+        stats_at_minimum.append(at_min["convergence"]["statistic"])
+        assert at_min["convergence"]["converged"] and at_min["convergence"]["dof"] == 5
+    assert max(stats_at_minimum) < 1e-6, stats_at_minimum
+    short = r + J @ np.array([5e-6, 0.0, 3e-6, 0.0, 0.0])  # a step of the parameters away: ≈ 6 σ of error
+    assert np.sqrt(np.mean((short - r) ** 2)) > 4e-6
+    assert not locate(None, short, sig, J=J, robust=True)["structure_left"]  # the flaw the check closes
+    stopped = locate(None, short, sig, J=J, robust=True, fitted=J, fitted_noise=nm)
+    conv = stopped["convergence"]
+    assert stopped["structure_left"] and not conv["converged"] and conv["p_value"] < 1e-10
+    assert stopped["text"].startswith("structure left: the fit has not converged") and conv["share"] > 0.5
+    # no free parameter inside its bounds: nothing to test
+    assert locate(None, r, sig, fitted=J[:, :0])["convergence"]["converged"]
+
+
+def test_inside_bounds_leaves_out_a_parameter_at_its_bound():
+    from toggle_id.discovery.model import inside_bounds
+    from toggle_id.effects import ALL_INDEX
+    from toggle_id.identify import stage_bounds
+    from toggle_id.params import ASSIGNED
+    from toggle_id.simulate import extend
+
+    theta = extend(ASSIGNED)[0]
+    free = ("B_m", "K_t", "mu")
+    assert inside_bounds(theta, free).tolist() == [True, True, True]
+    lo, hi = stage_bounds(list(free))
+    theta[ALL_INDEX["K_t"]], theta[ALL_INDEX["mu"]] = lo[1], hi[2]
+    assert inside_bounds(theta, free).tolist() == [True, False, False]
+
+
 def test_a_noise_level_that_grows_with_speed_is_named_and_steady_noise_of_any_shape_is_not():
     tr = trajectory()
     sig = {k: tr[k] for k in ("x_B", "xdot_B", "i_q", "v_in", "t")}

@@ -143,19 +143,21 @@ def structure_removed(r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins:
 @one_blas_thread
 def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
            alpha: float = 0.01, lags: int = 50, lag_step: int = 5, J: np.ndarray | None = None,
-           robust: bool = False) -> dict:
+           robust: bool = False, fitted: np.ndarray | None = None, fitted_noise: NoiseModel | None = None) -> dict:
     """Structure test and localisation of the residual ``r`` (see the module docstring; ``J``: the fit's
     sensitivities, for the robust statistic of :func:`.stats.structure_test`; ``robust``: the verdict from the
-    smaller of the two statistics).
+    smaller of the two statistics; ``fitted``: the sensitivities of the parameters fitted to ``r`` that are inside
+    their bounds, and ``fitted_noise`` the noise model the fit minimised under, for :func:`convergence`).
 
     Returns {structure_left, alpha, families: {name: {p_value, statistic, dof, share, centres, levels,
-    where, text}}, strongest, text}. ``structure_left`` when a tested family's p-value is below
-    alpha / (number of tested families).
+    where, text}}, strongest, convergence, text}. ``structure_left`` when a tested family's p-value is below
+    alpha / (number of tested families), or when the fit has not converged.
     """
     bases, centres, edges_of = family_bases(signals, bins, lags, lag_step)
     res = structure_test(noise, r, bases, J=J, robust=robust)
     tested = [k for k in TESTED if k in res]
     level = alpha / max(len(tested), 1)
+    conv = convergence(r, fitted, level, fitted_noise) if fitted is not None else None
     families = {}
     for name, d in res.items():
         fam = {k: d[k] for k in ("statistic", "statistic_classical", "statistic_robust", "dof", "p_value", "share")}
@@ -169,13 +171,47 @@ def locate(noise: NoiseModel | None, r: np.ndarray, signals: Mapping[str, np.nda
         families[name] = fam
     sig = sorted((k for k in tested if families[k]["significant"]), key=lambda k: families[k]["p_value"])
     strongest = sig[0] if sig else None
-    if strongest is None:
+    unconverged = conv is not None and not conv["converged"]
+    if strongest is None and not unconverged:
         text = "no structure left: the whitened residual is not predicted by position, velocity, current or input"
     else:
-        parts = _parts(families, sig) or ["correlated with the past input"]
-        text = "structure left: " + "; ".join(parts[:3])
-    return {"structure_left": strongest is not None, "alpha": alpha, "level_per_family": level, "bins": bins,
-            "families": families, "strongest": strongest, "significant": sig, "text": text}
+        parts = (_parts(families, sig) or ["correlated with the past input"]) if sig else []
+        text = "structure left: " + "; ".join(([conv["text"]] if unconverged else []) + parts[:3])
+    return {"structure_left": strongest is not None or unconverged, "alpha": alpha, "level_per_family": level,
+            "bins": bins, "families": families, "strongest": strongest, "significant": sig, "convergence": conv,
+            "text": text}
+
+
+def convergence(r: np.ndarray, fitted: np.ndarray, level: float, noise: NoiseModel | None = None) -> dict:
+    """Has the fit whose residual is ``r`` reached a minimum of its own criterion — the residual prewhitened by the
+    ``noise`` model it was fitted under (None: white, least squares)? The whitened residual is regressed on the
+    whitened sensitivities ``fitted`` (N, q) of its free parameters inside their bounds: at a minimum it has no
+    component along them (the explained share is 0, up to the polish's tolerance and its Jacobian's tier), while a
+    fit stopped short leaves a residual its own parameters still explain. The statistic is read against χ²(q), which
+    it stays far below at a minimum (measured 1–16 for q = 11–16 at the adversarial set's fits), so this test adds
+    next to nothing to the verdict's false-alarm rate. The families are tested *after* the sensitivities
+    (:func:`.stats.structure_test`), so without it a fit stopped far from its minimum (11.3 µm on a 1-µm-noise
+    record) reads as noise.
+
+    Returns {statistic, dof, p_value, share, converged, text}: not ``converged`` when the p-value is below ``level``."""
+    fitted = np.asarray(fitted, float)
+    if fitted.ndim != 2 or fitted.shape[1] == 0 or not np.any(fitted):
+        return {"statistic": 0.0, "dof": 0, "p_value": 1.0, "share": 0.0, "converged": True,
+                "text": "no free parameter inside its bounds"}
+    noise = noise if noise is not None else NoiseModel()
+    k0 = noise.order
+    e, Jw = noise.whiten(np.asarray(r, float))[k0:], noise.whiten_columns(fitted)[k0:]
+    coef, _, rank, _ = np.linalg.lstsq(Jw, e, rcond=1e-10)
+    ess, sse = float(np.sum((Jw @ coef) ** 2)), float(e @ e)
+    stat = ess / (sse / e.size) if sse > 0 else 0.0
+    dof = max(int(rank), 1)
+    p_value = float(stats.chi2.sf(stat, dof))
+    converged = bool(p_value >= level)
+    text = ("the fit has converged" if converged else
+            f"the fit has not converged: its own parameters still explain {100 * ess / sse:.3g} % of its residual "
+            f"(p = {p_value:.2g})")
+    return {"statistic": stat, "dof": dof, "p_value": p_value, "share": ess / sse if sse > 0 else 0.0,
+            "converged": converged, "text": text}
 
 
 def _same_place(a: Mapping, b: Mapping) -> bool:

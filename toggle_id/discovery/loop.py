@@ -142,7 +142,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     ambiguous = [a for a in added if a.get("indistinguishable_from")]
     added = [a for a in added if not a.get("indistinguishable_from")]
     diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split,
-                                               judge.residual_and_jacobian(baseline)[1])
+                                               judge.residual_and_jacobian(baseline)[1], baseline.free,
+                                               baseline.noise)
     accepted_names = {a["name"] for a in added}
     ambiguous_names = {nm for a in ambiguous for nm in [a["name"]] + [r["name"] for r in a["indistinguishable_from"]]}
     cands = []

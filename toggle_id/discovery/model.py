@@ -247,6 +247,15 @@ class Fit:
         return float(np.sqrt((self.sse if self.raw_sse is None else self.raw_sse) / n))
 
 
+def inside_bounds(theta: np.ndarray, free: Sequence[str], rtol: float = 1e-6) -> np.ndarray:
+    """Bool (len(free),): the free parameters of ``theta`` strictly inside their bounds (:func:`stage_bounds`) —
+    those a fit could still move either way. One at a bound may keep a gradient at the fit's minimum."""
+    lo, hi = stage_bounds(list(free))
+    x = theta[[ALL_INDEX[n] for n in free]].astype(float)
+    tol = rtol * np.where(np.isfinite(hi - lo), hi - lo, np.maximum(np.abs(x), 1.0))
+    return (x - lo > tol) & (hi - x > tol)
+
+
 def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-4,
              bounds: Mapping[str, Sequence[float]] | None = None, rounds: int = 1, round_rtol: float = 1e-4,
              coarse: bool = True) -> Fit:

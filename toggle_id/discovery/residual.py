@@ -12,7 +12,7 @@ from ..effects import ALL_INDEX
 from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
 from .localise import locate, noise_level, signals_of, structure_energy, structure_removed
-from .model import Model, sensitivities
+from .model import Model, inside_bounds, sensitivities
 from .noise import WHITE, NoiseModel, fit_noise
 from .periodic import periodic
 from .settings import DiscoverSettings
@@ -35,15 +35,20 @@ def _signals(model: Model, states: dict) -> dict:
     return signals_of(rec.t, rec.v_in, states)
 
 
-def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings, J: np.ndarray | None = None
-            ) -> dict:
+def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSettings, J: np.ndarray | None = None,
+            fitted: np.ndarray | None = None, fitted_noise: NoiseModel | None = None) -> dict:
     return locate(None, r, _signals(model, states), bins=settings.structure_bins, alpha=settings.alpha_diag,
-                  lags=settings.ccf_lags, lag_step=settings.ccf_step, J=J, robust=settings.robust_structure)
+                  lags=settings.ccf_lags, lag_step=settings.ccf_step, J=J, robust=settings.robust_structure,
+                  fitted=fitted, fitted_noise=fitted_noise)
 
 
 def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None,
-                    J: np.ndarray | None = None) -> tuple[dict, np.ndarray, dict]:
-    """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals.
+                    J: np.ndarray | None = None, free: Sequence[str] | None = None,
+                    fitted_noise: NoiseModel | None = None) -> tuple[dict, np.ndarray, dict]:
+    """Diagnostics of the residual of ``theta`` (dict), the residual (N,) and the state signals; ``J``: the
+    sensitivities of the fit's ``free`` parameters (with ``free``, the structure test also asks whether the fit has
+    reached a minimum of what it minimised under ``fitted_noise`` (None: least squares):
+    :func:`.localise.convergence`, on the parameters inside their bounds).
 
     Besides the classical tests of :func:`toggle_id.residuals.diagnose` (which assume white noise), the dict
     holds the AR noise model of the residual (``noise_model``), the Ljung–Box test of the prewhitened residual
@@ -62,7 +67,8 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     d["noise_model"] = noise.to_dict()
     d["whiteness_prewhitened"] = R.ljung_box(noise.whiten(r)[noise.order:], settings.acf_lags, settings.alpha_diag,
                                              n_fitted=noise.order)
-    loc = _locate(model, r, states, settings, J)
+    fitted = J[:, inside_bounds(theta, free)] if J is not None and free is not None else None
+    loc = _locate(model, r, states, settings, J, fitted, fitted_noise)
     d["localisation"] = loc
     d["drift"] = drift_test(rec.t, r, settings.noise_max_order, settings.alpha_diag)
     d["lines"] = spectral_lines(r, 1.0 / rec.dt, settings.alpha_diag)

@@ -159,7 +159,8 @@ class TogglePlant:
     def structure(self, fit: Fit) -> tuple[bool, tuple]:
         if self._structure is None or self._structure[0] is not fit:
             diag, r, states = residual_report(self.model, fit.theta, self.s, self.split,
-                                              self.referee.residual_and_jacobian(fit)[1])
+                                              self.referee.residual_and_jacobian(fit)[1], fit.free,
+                                              fit.noise)
             self._structure = fit, (bool(diag.get("verdict", {}).get("structure_left", False)), (diag, r, states))
         return self._structure[1]
 
