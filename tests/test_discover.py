@@ -268,6 +268,8 @@ def test_no_effect_no_false_positive():
     from toggle_id.discovery.report import summary_text
 
     assert d["fits_minimise_under"]["kind"] == "white" and "final fit: least squares" in summary_text(res)
+    conv = d["residual_tests_after"]["localisation"]["convergence"]
+    assert conv["converged"] and conv["dof"] >= 10 and "final fit converged" in summary_text(res)
     json.dumps(d)
 
 

@@ -241,6 +241,11 @@ def summary_text(res: DiscoveryResult) -> str:
         lines.append("final fit: " + ("least squares" if fitted.get("kind") == "white" else
                                       f"prediction error under {fitted.get('kind')} noise (the residual less what "
                                       "the states express)"))
+    conv = res.diagnostics_after.get("localisation", {}).get("convergence")
+    if conv:
+        lines.append(f"final fit {'converged' if conv['converged'] else 'NOT converged'}: its own parameters explain "
+                     f"{100 * conv['share']:.2g} % of its residual (χ² {conv['statistic']:.3g}, {conv['dof']} "
+                     f"parameters inside their bounds, p = {conv['p_value']:.2g})")
     for a in res.effects_added:
         se = a["std_errors"].get(a["magnitude"]["name"])
         hc = a["magnitude"].get("hc_ratio") or 1.0
