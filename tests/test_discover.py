@@ -64,7 +64,9 @@ def test_settings_validate_and_reject_bad_values():
                         ({"catch_all": "yes"}, "catch_all"), ({"fd_tier": "loose"}, "fd_tier"),
                         ({"stronger_starts": [0.5]}, "stronger_starts"), ({"stronger_starts": 3}, "stronger_starts"),
                         ({"routes": "sometimes"}, "routes"), ({"route_rtol": 1.0}, "route_rtol"),
-                        ({"glitch_k": -1.0}, "glitch_k"), ({"glitch_k": True}, "glitch_k")]:
+                        ({"glitch_k": -1.0}, "glitch_k"), ({"glitch_k": True}, "glitch_k"),
+                        ({"unconverged_share": 1.0}, "unconverged_share"),
+                        ({"unconverged_share": "x"}, "unconverged_share")]:
         with pytest.raises(ConfigError, match=needle):
             D.DiscoverSettings.from_dict(bad)
     with pytest.raises(ConfigError, match="nominal"):

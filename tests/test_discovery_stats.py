@@ -299,6 +299,12 @@ def test_a_fit_stopped_short_of_its_minimum_is_not_read_as_noise(rho):
     conv = stopped["convergence"]
     assert stopped["structure_left"] and not conv["converged"] and conv["p_value"] < 1e-10
     assert stopped["text"].startswith("structure left: the fit has not converged") and conv["share"] > 0.5
+    # a significant but small share (a kink's linearisation, not a fit stopped short) is no sign of one: ≈ 4 %
+    e, w4 = nm.whiten(r)[k0:], nm.whiten_columns(J[:, 4:])[k0:, 0]
+    slight = r + J[:, 4] * np.sqrt(200.0 * np.mean(e ** 2) / (w4 @ w4))  # χ² 200 on 5 dof
+    strict = locate(None, slight, sig, J=J, fitted=J, fitted_noise=nm, unconverged_share=0.0)["convergence"]
+    assert strict["p_value"] < 1e-6 and not strict["converged"] and 0.005 < strict["share"] < 0.1, strict
+    assert locate(None, slight, sig, J=J, fitted=J, fitted_noise=nm)["convergence"]["converged"]
     # no free parameter inside its bounds: nothing to test
     assert locate(None, r, sig, fitted=J[:, :0])["convergence"]["converged"]
 

@@ -39,7 +39,7 @@ def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSetting
             fitted: np.ndarray | None = None, fitted_noise: NoiseModel | None = None) -> dict:
     return locate(None, r, _signals(model, states), bins=settings.structure_bins, alpha=settings.alpha_diag,
                   lags=settings.ccf_lags, lag_step=settings.ccf_step, J=J, robust=settings.robust_structure,
-                  fitted=fitted, fitted_noise=fitted_noise)
+                  fitted=fitted, fitted_noise=fitted_noise, unconverged_share=settings.unconverged_share)
 
 
 def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None,

@@ -100,6 +100,10 @@ class DiscoverSettings:
       coloured record's judge and fits can disagree: on rec33 (a slider viscous friction under AR(1) noise,
       ρ = 0.9) the prewhitened refits favour the friction (F 84.8) while its least-squares refit leaves it at
       "off"; with prediction-error fits it is accepted (README, adversarial table). false: least squares.
+    - unconverged_share: the structure test also asks whether the fit reached its minimum
+      (:func:`.localise.convergence`): a fit is unconverged, its structure left, when its own parameters explain
+      more than this share of its whitened residual at the test's level (a fit stopped far off: 0.5–0.98; converged
+      fits: below 0.01, a backlash fit's kink included).
     """
 
     top_k: int = 3
@@ -147,6 +151,7 @@ class DiscoverSettings:
     glitch_k: float = 8.0
     robust_structure: bool = True
     prediction_error: bool = True
+    unconverged_share: float = 0.1
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -191,6 +196,9 @@ class DiscoverSettings:
             raise ConfigError(f"discover.noise_max_order must be a non-negative integer, got {self.noise_max_order!r}")
         if not isinstance(self.cv_folds, int) or isinstance(self.cv_folds, bool) or self.cv_folds < 2:
             raise ConfigError(f"discover.cv_folds must be an integer ≥ 2, got {self.cv_folds!r}")
+        if isinstance(self.unconverged_share, bool) or not isinstance(self.unconverged_share, (int, float)) \
+                or not 0.0 <= self.unconverged_share < 1.0:
+            raise ConfigError(f"discover.unconverged_share must lie in [0, 1), got {self.unconverged_share!r}")
         if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
             raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
         if not (isinstance(self.validation_material, (int, float)) and not isinstance(self.validation_material, bool)
