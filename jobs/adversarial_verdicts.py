@@ -96,6 +96,8 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         "validation_localisation": _validation(report, "text") if _validation(report, "structure_left") else None,
         "localisation": (report.get("localisation") or {}).get("text")
         if isinstance(report.get("localisation"), dict) and report["localisation"].get("structure_left") else None,
+        "periodic": ((report.get("residual_tests_after") or {}).get("periodic") or {}).get("text")
+        if ((report.get("residual_tests_after") or {}).get("periodic") or {}).get("periodic") else None,
         "commit": code_label(report.get("code")),
     }
 
@@ -157,8 +159,8 @@ def results_markdown(rows: list[dict], summary: dict) -> str:
             f"{s['nothing_accepted_quiet']} of {s['quiet']} noise-only and outside records; outside records called "
             f"unexplained with nothing accepted: {s['unexplained_outside']} of {s['outside']}"
             + (f"; {s['errors']} run(s) failed" if s["errors"] else "") + "."]
-    where = [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}): {r['localisation']}" for r in rows
-             if r.get("localisation")]
+    where = [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}): {r['localisation']}"
+             + (f"; periodic: {r['periodic']}" if r.get("periodic") else "") for r in rows if r.get("localisation")]
     where += [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}), its validation record: "
               f"{r['validation_localisation']}" for r in rows if r.get("validation_localisation")]
     commits: dict[str, list[str]] = {}

@@ -200,6 +200,18 @@ def test_result_rows_read_the_new_keys_when_present_and_do_without_them():
     assert "Code: not recorded (every record)." in md  # reports made before they said which code made them
 
 
+def test_the_where_lines_add_what_repeats_with_a_position():
+    report = {"effects_added": [], "unexplained": True,
+              "localisation": {"structure_left": True, "text": "structure left: a bump near i_q ≈ 176 A"},
+              "residual_tests_after": {"periodic": {"periodic": True, "text": "the residual repeats every 4.81 mm"}}}
+    row = V.result_row(_entry("outside", name="rec23"), report, 1.0, "r")
+    md = V.results_markdown([row], V.summarise([row]))
+    assert "rec23 (no effect): structure left: a bump near i_q ≈ 176 A; periodic: the residual repeats every 4.81 mm" \
+        in md
+    quiet = V.result_row(_entry("outside", name="rec24"), {**report, "residual_tests_after": {}}, 1.0, "r")
+    assert quiet["periodic"] is None
+
+
 def test_the_table_says_which_code_made_each_row():
     made = {"effects_added": [], "code": {"version": "0.1.0", "git_commit": "0123456789abcdef", "git_dirty": False}}
     dirty = {"effects_added": [], "code": {"version": "0.1.0", "git_commit": "fedcba9876543210", "git_dirty": True}}

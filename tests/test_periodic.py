@@ -55,6 +55,37 @@ def test_a_repetition_per_motor_revolution_is_counted_per_revolution():
     assert "times per motor revolution" in out["text"] and "slider B position" not in out["text"]
 
 
+def test_a_second_position_is_named_only_where_it_explains_beyond_the_first():
+    """An error periodic in one position shows, weaker, in the other (significant here too); it is said only when
+    its period explains the residual beyond the best one's — as two errors, one in each position, do."""
+    st = states()
+    scale = 0.5e-6 * np.sin(2 * np.pi * st["x_B"] / 0.005)
+    one = periodic(noise(4) + scale, st)
+    fams = one["families"]
+    assert fams["x_B"]["significant"] and fams["motor_angle"]["significant"]  # the shadow in the other position
+    assert one["strongest"] == "x_B" and not fams["motor_angle"]["beyond_strongest"]
+    assert "motor revolution" not in one["text"]
+    two = periodic(noise(4) + scale + 0.4e-6 * np.sin(6.0 * st["motor_angle"]), st)
+    assert all(f["significant"] for f in two["families"].values())
+    other = next(k for k in two["families"] if k != two["strongest"])
+    assert two["families"][other]["beyond_strongest"]
+    assert "mm of slider B position" in two["text"] and "times per motor revolution" in two["text"]
+    assert "may not tell" in two["text"] and "linear scale" in two["text"] and "cogging" in two["text"]
+
+
+def test_a_fraction_of_a_repetition_per_revolution_is_no_motor_side_cause():
+    """A motor's cogging, an encoder's eccentricity and a lead error repeat a whole number of times per revolution:
+    3.4 per revolution is said to be none of them, and the slider's period, significant too, is named."""
+    st = states()
+    out = periodic(noise(5) + 0.4e-6 * np.sin(3.4 * st["motor_angle"]), st)
+    fam = out["families"]["motor_angle"]
+    assert out["strongest"] == "motor_angle" and fam["cycles_per_revolution"] == pytest.approx(3.4, abs=0.02)
+    assert "not a whole number of times per revolution" in out["text"]
+    assert ("along slider B position it repeats every" in out["text"]) == out["families"]["x_B"]["significant"]
+    whole = periodic(noise(5) + 0.4e-6 * np.sin(3.0 * st["motor_angle"]), st)
+    assert "not a whole number" not in whole["text"] and "cogging" in whole["text"]
+
+
 @pytest.mark.parametrize("rho", [0.0, 0.9])
 def test_white_and_coloured_noise_repeat_with_no_position(rho):
     st = states()

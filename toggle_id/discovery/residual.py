@@ -75,7 +75,7 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     d["noise_level"] = noise_level(noise, r, _signals(model, states), bins=settings.structure_bins,
                                    alpha=settings.alpha_diag)
     d["periodic"] = periodic(r, states, alpha=settings.alpha_diag, max_order=settings.noise_max_order, J=J,
-                             robust=settings.robust_structure, noise=noise)
+                             robust=settings.robust_structure, noise=noise, whole_tol=settings.cogging_whole_tol)
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
