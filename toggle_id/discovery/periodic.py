@@ -91,7 +91,7 @@ def periodic(r: np.ndarray, states: Mapping[str, np.ndarray], *, alpha: float = 
     module docstring; ``noise``: the residual's AR noise model when the caller has it, else fitted here;
     ``whole_tol``: how far from a whole number a count per motor revolution may lie for a motor-side cause). Returns
     {periodic, alpha, families: {key: {period, period_display, cycles_per_revolution, amplitude_m, statistic, dof,
-    p_value, p_scan, periods_in_band, significant, text}}, strongest, text}."""
+    p_value, p_scan, periods_in_band, significant, repeats, text, beyond_strongest (the others)}}, strongest, text}."""
     r = np.asarray(r, float)
     keys = [k for k in POSITIONS if k in states and np.all(np.isfinite(states[k]))]
     out: dict = {"periodic": False, "alpha": alpha, "families": {}, "strongest": None,
@@ -138,8 +138,9 @@ def periodic(r: np.ndarray, states: Mapping[str, np.ndarray], *, alpha: float = 
         fams[k]["beyond_strongest"] = k in also
     said = [sig[0], *also]
     first = fams[sig[0]]
-    if first["cycles_per_revolution"] is not None and abs(first["cycles_per_revolution"]
-                                                          - round(first["cycles_per_revolution"])) > whole_tol:
+    fraction = first["cycles_per_revolution"] is not None and abs(
+        first["cycles_per_revolution"] - round(first["cycles_per_revolution"])) > whole_tol
+    if fraction:
         # no motor-side cause repeats a fraction of times per revolution: the error follows another position
         first["text"] = (f"the residual repeats {first['repeats']}, not a whole number of times per revolution as "
                          "a cogging, an encoder's eccentricity or a ball screw's lead error would: an error that "
@@ -149,8 +150,9 @@ def periodic(r: np.ndarray, states: Mapping[str, np.ndarray], *, alpha: float = 
                              for k in sig[1:] if POSITIONS[k][3] is False))
     text = first["text"] if not also else (
         "the residual repeats " + ", and ".join(fams[k]["repeats"] for k in said)
-        + ", each beyond the other: the mechanism ties these positions to each other, so which one the error "
-        "follows the record may not tell — " + "; or ".join(CAUSES[k].rstrip("?") for k in said) + "?")
+        + ", the later beyond the first: the mechanism ties these positions to each other, so which one the error "
+        "follows the record may not tell" + (" (the count per revolution is no whole number)" if fraction else "")
+        + " — " + "; or ".join(CAUSES[k].rstrip("?") for k in said) + "?")
     out.update(periodic=True, strongest=sig[0], text=text)
     return out
 
