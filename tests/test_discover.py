@@ -6,6 +6,7 @@ fit started from the true nominal parameters perturbed by a few per cent (no GA)
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -423,6 +424,9 @@ def test_a_second_route_runs_only_when_structure_is_left_and_the_better_route_is
     assert "from the truth nominal fit it reached a better model" in res.conclusion
     assert "route truth (reported)" in summary_text(res) and "route again: skipped" in summary_text(res)
     json.dumps(res.to_dict())
+    alone = D.discover(rec, nominal=far, settings=dataclasses.replace(settings, routes="never"))
+    assert alone.unexplained and "The final fit had not converged" in alone.conclusion
+    assert "final fit NOT converged" in summary_text(alone)
     made.clear()
     quiet = D.discover(rec, nominal=truth, settings=settings, alternatives=[("truth", second)])
     assert made == [] and len(quiet.to_dict()["routes"]) == 1 and not quiet.unexplained

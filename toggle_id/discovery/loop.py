@@ -179,6 +179,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
     if repeats := periodic_text(diag_after):
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
+    conv = (diag_after.get("localisation") or {}).get("convergence") or {}
+    if conv and not conv["converged"]:
+        conclusion += (f" The final fit had not converged — its own parameters still explain {100 * conv['share']:.3g} % "
+                       "of its residual — so what is left is partly the fit's: raise discover.baseline_nfev, "
+                       "discover.refit_nfev or discover.rounds.")
     lines = noise_lines(diag_after)
     if lines and not unexplained:
         conclusion += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +
