@@ -69,6 +69,8 @@ def test_job_on_simulated_records_end_to_end(sim_files, tmp_path, job_env):
     assert rep["identified"]["M"] == pytest.approx(PUBLISHED["M"], rel=0.01)
     assert rep["identified"]["Fc"] == pytest.approx(PUBLISHED["Fc"], rel=0.05)
     assert rep["position_rel_error_pct_after"] < 0.2 * rep["position_rel_error_pct_before"]
+    conv = rep["localisation"]["convergence"]  # the final output-error fit reached its minimum
+    assert conv["converged"] and conv["dof"] >= 3 and conv["share"] < 1e-3
     v = rep["validation"]
     assert v["path"] == sim_files["val"] and v["has_pulses"] and v["status"] == 0 and v["n_samples"] == 3000
     assert set(v["models"]) == {"final", "published", "reference"}

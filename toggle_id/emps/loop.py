@@ -106,7 +106,7 @@ def localisation_signals(record: EmpsRecord, theta: np.ndarray,
 
 
 def localise(record: EmpsRecord, theta: np.ndarray, sim_options: Mapping | None = None, *, bins: int = 12,
-             alpha: float = 0.01) -> dict:
+             alpha: float = 0.01, fit: OEFitResult | None = None) -> dict:
     """Is structure left in the position residual of ``theta``, and where? :func:`toggle_id.discovery.localise.locate`
     with no fixed noise model (each family judged under the AR noise model of its own alternative; the verdict robust
     to a noise level that varies, as the toggle loop's) on the signals of :func:`localisation_signals`; position,
@@ -114,12 +114,19 @@ def localise(record: EmpsRecord, theta: np.ndarray, sim_options: Mapping | None 
     force, controller output and time are shown (in a closed loop the controller output carries the position error
     itself). Returns locate's dict (``structure_left``, ``families``, ``significant``, ``strongest``, ``text``) with
     ``noise_level`` (report-only, :func:`toggle_id.discovery.localise.noise_level`); ``{"error": ...}`` when the
-    model cannot be simulated on the record."""
+    model cannot be simulated on the record. With the output-error ``fit`` of ``theta``, the verdict also asks whether
+    it reached its minimum (:func:`toggle_id.discovery.localise.convergence`, least squares, on its Jacobian's columns
+    of the parameters inside their bounds), as the toggle plant's does."""
     r, signals = localisation_signals(record, theta, sim_options)
     if not (np.all(np.isfinite(r)) and all(np.all(np.isfinite(v)) for v in signals.values())):
         return {"error": "the final model cannot be simulated on the record", "structure_left": None,
                 "text": "no localisation: the final model cannot be simulated on the record"}
-    out = locate(None, r, signals, bins=int(bins), alpha=float(alpha), robust=True)
+    fitted = None
+    if fit is not None and fit.jacobian is not None:
+        idx = np.array([INDEX[n] for n in fit.free], dtype=np.int64)
+        lo, hi, x = LOWER[idx], UPPER[idx], np.asarray(fit.theta, float)[idx]
+        fitted = fit.jacobian[:, (x - lo > 1e-6 * (hi - lo)) & (hi - x > 1e-6 * (hi - lo))]
+    out = locate(None, r, signals, bins=int(bins), alpha=float(alpha), robust=True, fitted=fitted)
     out["noise_level"] = noise_level(fit_noise(r), r, signals, bins=int(bins), alpha=float(alpha))
     return out
 
@@ -271,7 +278,7 @@ class EmpsPlant:
         return any(a["name"] in EFFECTS[b["name"]].requires for b in added if b is not a)
 
     def structure(self, fit: OEFitResult) -> tuple[bool | None, dict]:
-        loc = localise(self.record, fit.theta, self.sim_kw, bins=self.bins, alpha=self.alpha)
+        loc = localise(self.record, fit.theta, self.sim_kw, bins=self.bins, alpha=self.alpha, fit=fit)
         return loc.get("structure_left"), loc
 
     def structure_energy(self, fit: OEFitResult, details: dict | None = None) -> float:
