@@ -247,13 +247,20 @@ class Fit:
         return float(np.sqrt((self.sse if self.raw_sse is None else self.raw_sse) / n))
 
 
-def inside_bounds(theta: np.ndarray, free: Sequence[str], rtol: float = 1e-6) -> np.ndarray:
-    """Bool (len(free),): the free parameters of ``theta`` strictly inside their bounds (:func:`stage_bounds`) —
-    those a fit could still move either way. One at a bound may keep a gradient at the fit's minimum."""
-    lo, hi = stage_bounds(list(free))
-    x = theta[[ALL_INDEX[n] for n in free]].astype(float)
-    tol = rtol * np.where(np.isfinite(hi - lo), hi - lo, np.maximum(np.abs(x), 1.0))
+def strictly_inside(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, rtol: float = 1e-6) -> np.ndarray:
+    """Bool: the values ``x`` farther than ``rtol`` of their range (of |x| or 1 where it is unbounded) from the
+    bounds ``lo``, ``hi`` — parameters a fit could still move either way. One at a bound may keep a gradient at the
+    fit's minimum."""
+    x, lo, hi = (np.asarray(v, float) for v in (x, lo, hi))
+    with np.errstate(invalid="ignore"):
+        tol = rtol * np.where(np.isfinite(hi - lo), hi - lo, np.maximum(np.abs(x), 1.0))
     return (x - lo > tol) & (hi - x > tol)
+
+
+def inside_bounds(theta: np.ndarray, free: Sequence[str], rtol: float = 1e-6) -> np.ndarray:
+    """Bool (len(free),): the free parameters of ``theta`` strictly inside their bounds (:func:`stage_bounds`)."""
+    lo, hi = stage_bounds(list(free))
+    return strictly_inside(theta[[ALL_INDEX[n] for n in free]], lo, hi, rtol)
 
 
 def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-4,

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..discovery.engine import Step, run_loop
 from ..discovery.localise import locate, noise_level, structure_energy
+from ..discovery.model import strictly_inside
 from ..discovery.noise import fit_noise, whitened_sse
 from ..discovery.ties import indistinguishable
 from ..discovery.validation import Evidence
@@ -124,8 +125,7 @@ def localise(record: EmpsRecord, theta: np.ndarray, sim_options: Mapping | None 
     fitted = None
     if fit is not None and fit.jacobian is not None:
         idx = np.array([INDEX[n] for n in fit.free], dtype=np.int64)
-        lo, hi, x = LOWER[idx], UPPER[idx], np.asarray(fit.theta, float)[idx]
-        fitted = fit.jacobian[:, (x - lo > 1e-6 * (hi - lo)) & (hi - x > 1e-6 * (hi - lo))]
+        fitted = fit.jacobian[:, strictly_inside(np.asarray(fit.theta, float)[idx], LOWER[idx], UPPER[idx])]
     out = locate(None, r, signals, bins=int(bins), alpha=float(alpha), robust=True, fitted=fitted)
     out["noise_level"] = noise_level(fit_noise(r), r, signals, bins=int(bins), alpha=float(alpha))
     return out
