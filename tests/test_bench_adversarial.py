@@ -206,8 +206,8 @@ def test_the_where_lines_add_what_repeats_with_a_position():
               "residual_tests_after": {"periodic": {"periodic": True, "text": "the residual repeats every 4.81 mm"}}}
     row = V.result_row(_entry("outside", name="rec23"), report, 1.0, "r")
     md = V.results_markdown([row], V.summarise([row]))
-    assert "rec23 (no effect): structure left: a bump near i_q ≈ 176 A; periodic: the residual repeats every 4.81 mm" \
-        in md
+    assert ("rec23 (no effect): structure left: a bump near i_q ≈ 176 A; periodic: the residual repeats every "
+            "4.81 mm") in md
     quiet = V.result_row(_entry("outside", name="rec24"), {**report, "residual_tests_after": {}}, 1.0, "r")
     assert quiet["periodic"] is None
 

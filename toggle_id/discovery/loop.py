@@ -181,9 +181,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
     conv = (diag_after.get("localisation") or {}).get("convergence") or {}
     if conv and not conv["converged"]:
-        conclusion += (f" The final fit had not converged — its own parameters still explain {100 * conv['share']:.3g} % "
-                       "of its residual — so what is left is partly the fit's: raise discover.baseline_nfev, "
-                       "discover.refit_nfev or discover.rounds.")
+        conclusion += (" The final fit had not converged — its own parameters still explain "
+                       f"{100 * conv['share']:.3g} % of its residual — so what is left is partly the fit's: raise "
+                       "discover.baseline_nfev, discover.refit_nfev or discover.rounds.")
     lines = noise_lines(diag_after)
     if lines and not unexplained:
         conclusion += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +
