@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from jobs.adversarial_set import SIGMA
+from toggle_id.discovery.residual import periodic_text
 
 
 def _names(items) -> list[str]:
@@ -96,8 +97,7 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         "validation_localisation": _validation(report, "text") if _validation(report, "structure_left") else None,
         "localisation": (report.get("localisation") or {}).get("text")
         if isinstance(report.get("localisation"), dict) and report["localisation"].get("structure_left") else None,
-        "periodic": ((report.get("residual_tests_after") or {}).get("periodic") or {}).get("text")
-        if ((report.get("residual_tests_after") or {}).get("periodic") or {}).get("periodic") else None,
+        "periodic": periodic_text(report.get("residual_tests_after") or {}),
         "commit": code_label(report.get("code")),
     }
 

@@ -203,22 +203,16 @@ def convergence(r: np.ndarray, fitted: np.ndarray, level: float, noise: NoiseMod
     Returns {statistic, dof, p_value, share, converged, text}: not ``converged`` when the p-value is below ``level``
     and the share above ``min_share``."""
     fitted = np.asarray(fitted, float)
-    if fitted.ndim != 2 or fitted.shape[1] == 0 or not np.any(fitted):
+    d = (structure_test(noise if noise is not None else NoiseModel(), r, {"parameters": fitted})
+         .get("parameters") if fitted.ndim == 2 and np.any(fitted) else None)
+    if d is None:
         return {"statistic": 0.0, "dof": 0, "p_value": 1.0, "share": 0.0, "converged": True,
                 "text": "no free parameter inside its bounds"}
-    noise = noise if noise is not None else NoiseModel()
-    k0 = noise.order
-    e, Jw = noise.whiten(np.asarray(r, float))[k0:], noise.whiten_columns(fitted)[k0:]
-    coef, _, rank, _ = np.linalg.lstsq(Jw, e, rcond=1e-10)
-    ess, sse = float(np.sum((Jw @ coef) ** 2)), float(e @ e)
-    stat = ess / (sse / e.size) if sse > 0 else 0.0
-    dof = max(int(rank), 1)
-    p_value = float(stats.chi2.sf(stat, dof))
-    converged = bool(p_value >= level or ess <= min_share * sse)
+    converged = bool(d["p_value"] >= level or d["share"] <= min_share)
     text = ("the fit has converged" if converged else
-            f"the fit has not converged: its own parameters still explain {100 * ess / sse:.3g} % of its residual "
-            f"(p = {p_value:.2g})")
-    return {"statistic": stat, "dof": dof, "p_value": p_value, "share": ess / sse if sse > 0 else 0.0,
+            f"the fit has not converged: its own parameters still explain {100 * d['share']:.3g} % of its residual "
+            f"(p = {d['p_value']:.2g})")
+    return {"statistic": d["statistic"], "dof": d["dof"], "p_value": d["p_value"], "share": d["share"],
             "converged": converged, "text": text}
 
 

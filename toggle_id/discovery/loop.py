@@ -23,8 +23,8 @@ from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
 from .routes import Route, choose, more_routes, route_line
-from .residual import (level_varies, line_text, noise_lines, periodic_text, predicted_left, prediction_report,
-                       residual_report)
+from .residual import (convergence_of, level_varies, line_text, noise_lines, periodic_text, predicted_left,
+                       prediction_report, residual_report)
 from .noise import fit_noise
 from .validation import Judge
 
@@ -179,7 +179,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
     if repeats := periodic_text(diag_after):
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
-    conv = (diag_after.get("localisation") or {}).get("convergence") or {}
+    conv = convergence_of(diag_after)
     if conv and not conv["converged"]:
         conclusion += (" The final fit had not converged — its own parameters still explain "
                        f"{100 * conv['share']:.3g} % of its residual — so what is left is partly the fit's: raise "

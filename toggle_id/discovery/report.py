@@ -15,7 +15,7 @@ from ..simulate import PRECISE
 from .catchall import TREND_R2, reading_needed
 from .model import Fit, Model
 from .refit import Refit
-from .residual import level_varies, line_text, noise_lines, periodic_text
+from .residual import convergence_of, level_varies, line_text, noise_lines, periodic_text
 from .routes import route_line
 from .settings import DiscoverSettings
 
@@ -241,7 +241,7 @@ def summary_text(res: DiscoveryResult) -> str:
         lines.append("final fit: " + ("least squares" if fitted.get("kind") == "white" else
                                       f"prediction error under {fitted.get('kind')} noise (the residual less what "
                                       "the states express)"))
-    conv = res.diagnostics_after.get("localisation", {}).get("convergence")
+    conv = convergence_of(res.diagnostics_after)
     if conv:
         lines.append(f"final fit {'converged' if conv['converged'] else 'NOT converged'}: its own parameters explain "
                      f"{100 * conv['share']:.2g} % of its residual (χ² {conv['statistic']:.3g}, {conv['dof']} "

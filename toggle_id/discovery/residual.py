@@ -168,6 +168,11 @@ def periodic_text(diagnostics: dict) -> str | None:
     return found["text"] if found.get("periodic") else None
 
 
+def convergence_of(diagnostics: dict) -> dict | None:
+    """The convergence check (:func:`.localise.convergence`) of a :func:`residual_report` (None: not asked)."""
+    return (diagnostics.get("localisation") or {}).get("convergence")
+
+
 def noise_lines(diagnostics: dict) -> list[dict]:
     """The lines of :func:`spectral_lines` in a :func:`residual_report` (none when it has no such test)."""
     return (diagnostics.get("lines") or {}).get("lines") or []
