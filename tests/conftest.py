@@ -260,6 +260,30 @@ def pytest_sessionstart(session):
     _CPU_AT_START = cpu_times()
 
 
+def _xdist_workers(config) -> int:
+    n = config.getoption("numprocesses", default=None)
+    if n in ("auto", "logical"):
+        return os.cpu_count() or 1
+    return int(n or 0)
+
+
+def pytest_configure(config):
+    """Under pytest-xdist, before its workers start: compile the kernels, the rigid and the backlash integrator in two
+    processes side by side (:func:`toggle_id.simulate.compile_kernels`), where each worker would compile both on its
+    first simulation (a cold cache: a fresh clone, or after an edit of ``toggle_id/kernels``); on a warm cache they
+    only load them. A kind that fails to compile is left to the tests, which then fail with its error."""
+    if getattr(config, "workerinput", None) is not None or _xdist_workers(config) < 2:
+        return
+    from toggle_id.simulate import share_cores
+
+    env = share_cores({**os.environ, "PYTHONPATH": str(ROOT)})
+    procs = [subprocess.Popen([sys.executable, "-c", "import sys; from toggle_id.simulate import compile_kernels; "
+                               "compile_kernels(sys.argv[1:])", kind], cwd=ROOT, env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for kind in ("rigid", "lash")]
+    for proc in procs:
+        proc.wait()
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """The suite's wall time means little without the machine's speed: print it (one core's simulation rate and
     the CPU steal of the run) after a run that got as far as its tests."""

@@ -19,7 +19,7 @@ import numpy as np
 from .errors import ConfigError
 from .kernels import kernel_array
 from .kernels import slots as K
-from .kernels.driver import simulate_batch_parallel, simulate_batch_serial
+from .kernels.driver import lash_batch_parallel, lash_batch_serial, simulate_batch_parallel, simulate_batch_serial
 from .kernels.geometry import build_table
 from .params import N_PARAMS
 from .plant import GEOMETRY, Geometry
@@ -33,6 +33,9 @@ N_THETA = K.N_THETA
 #: Integration methods: Rodas4 throughout, DOPRI5 throughout, or DOPRI5 in free motion and Rodas4 while clamped.
 METHODS = {"rodas4": K.METHOD_RODAS4, "dopri5": K.METHOD_DOPRI5, "mixed": K.METHOD_MIXED}
 STOPS = {"none": K.STOPS_NONE, "sampled": K.STOPS_SAMPLED, "all": K.STOPS_ALL}
+#: (parallel, backlash) -> the batched kernel: rows with backlash run the two-body integrator, compiled apart.
+_KERNELS = {(False, False): simulate_batch_serial, (True, False): simulate_batch_parallel,
+            (False, True): lash_batch_serial, (True, True): lash_batch_parallel}
 
 #: The environment under which processes that share the cores with one another all run the parallel kernels
 #: (the test suite's workers, several jobs at once): numba's OpenMP threads then sleep while they wait instead of
@@ -266,13 +269,36 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     good = np.flatnonzero(~bad)
     if good.size:
         sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
-        kern = simulate_batch_parallel if parallel else simulate_batch_serial
         tab, head = geometry_table(geometry)
-        kern(thetas, good, geo, tab, head, t, N, v_in, sweep, record.sweep is not None, float(t0), y0,
-             int(contact0), settings.as_array(), x, i, status, n_steps, events)
+
+        def run(rows: np.ndarray, tier: SolverSettings) -> None:
+            lash = thetas[rows, K.B_L] > 0.0  # backlash: the two-body integrator, compiled apart (kernels.driver)
+            for kern, part in ((_KERNELS[parallel, False], rows[~lash]), (_KERNELS[parallel, True], rows[lash])):
+                if part.size:
+                    kern(thetas, part, geo, tab, head, t, N, v_in, sweep, record.sweep is not None, float(t0), y0,
+                         int(contact0), tier.as_array(), x, i, status, n_steps, events)
+
+        run(good, settings)
         redo = np.flatnonzero(status == STATUS_SOLVER_FAILURE)
         if redo.size and settings.fallback is not None:
             fell_back[redo] = True
-            kern(thetas, redo, geo, tab, head, t, N, v_in, sweep, record.sweep is not None, float(t0),
-                 y0, int(contact0), settings.fallback.as_array(), x, i, status, n_steps, events)
+            run(redo, settings.fallback)
     return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events, fell_back=fell_back)
+
+
+def compile_kernels(kinds: Sequence[str] = ("rigid", "lash"), parallel: bool = True) -> None:
+    """Compile the batched kernels of ``kinds`` — ``"rigid"``, ``"lash"`` (backlash) — serial and, with
+    ``parallel``, threaded, by a 3-sample simulation each; on a warm numba cache this only loads them. For a process
+    that wants the compilation over before its work is timed or shared: the test suite compiles the two kinds in two
+    processes side by side before its workers start, where each worker would otherwise compile both."""
+    from .params import ASSIGNED
+
+    unknown = set(kinds) - {"rigid", "lash"}
+    if unknown:
+        raise ConfigError(f"compile_kernels: unknown kinds {sorted(unknown)}; known: rigid, lash")
+    record = Record.from_sweep("simulation", 0.01, name="compile")
+    for kind in kinds:
+        theta = extend(ASSIGNED[None, :])
+        theta[0, K.B_L] = 1e-4 if kind == "lash" else 0.0
+        for par in (False, True) if parallel else (False,):
+            simulate(theta, record, FAST, n_samples=3, parallel=par)
