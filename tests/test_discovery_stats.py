@@ -514,3 +514,30 @@ def test_localisation_runs_with_one_blas_thread_and_gives_the_pool_back(monkeypa
     sig = trajectory(1001)
     localise.locate(None, 1e-6 * np.random.default_rng(0).standard_normal(1001), sig)
     assert seen == [[1] * len(before)] and blas_threads() == before
+
+
+def test_a_noise_model_as_slow_as_the_motion_leaves_structure_and_makes_every_accepted_effect_compensating():
+    """The floor on the noise model's independent samples (``discover.min_effective_fraction``, 0.02): AR(1) noise
+    with ρ = 0.9 (the adversarial set's) and white noise pass; a slow error the noise model takes for noise (a
+    random walk's slow wander, ρ → 1) does not, and then no effect accepted under it is called added."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.residual import slow_noise
+    from toggle_id.discovery.toggle_plant import TogglePlant
+
+    rng = np.random.default_rng(7)
+    e = rng.standard_normal(5001)
+    ar09 = signal.lfilter([1.0], [1.0, -0.9], e)
+    wander = np.cumsum(e) * 0.2 + e  # a slow wander under white noise: AR(8), coefficients summing to 0.98
+    fast_enough = [slow_noise(fit_noise(x), 0.02) for x in (e, ar09)]
+    assert [s["slow"] for s in fast_enough] == [False, False]
+    assert 0.03 < fast_enough[1]["effective_fraction"] < 0.08  # (1 − ρ)/(1 + ρ) = 0.053
+    slow = slow_noise(fit_noise(wander), 0.02)
+    assert slow["slow"] and slow["effective_fraction"] < 0.02 and "validation.path" in slow["text"]
+    assert not slow_noise(fit_noise(wander), 0.0)["slow"]  # the check off
+    said: list[str] = []
+    plant = SimpleNamespace(say=said.append)
+    added = [{"name": "contact_nonlinear_stiffness"}, {"name": "cogging_torque"}]
+    keep, demoted = TogglePlant.explains(plant, None, added, ({"slow_noise": slow}, None, None), added)
+    assert keep == [] and [d["name"] for d in demoted] == ["contact_nonlinear_stiffness", "cogging_torque"]
+    assert all("cannot be told apart" in d["reason"] for d in demoted) and said

@@ -104,6 +104,11 @@ class DiscoverSettings:
       (:func:`.localise.convergence`): a fit is unconverged, its structure left, when its own parameters explain
       more than this share of its whitened residual at the test's level (a fit stopped far off: 0.5–0.98; converged
       fits: below 0.01, a backlash fit's kink included).
+    - min_effective_fraction: the final residual's noise model must leave at least this share of its samples
+      independent (:attr:`.noise.NoiseModel.effective_fraction`; AR(1): (1 − ρ)/(1 + ρ), 0.02 at ρ ≈ 0.96, a
+      correlation time of ~25 samples). A noise model slower than that is as slow as the motion, and a slow error
+      the model lacks passes for it: structure is then left (the result unexplained) and no effect accepted under
+      it is called added (:func:`.residual.slow_noise`). 0 turns the check off.
     """
 
     top_k: int = 3
@@ -152,6 +157,7 @@ class DiscoverSettings:
     robust_structure: bool = True
     prediction_error: bool = True
     unconverged_share: float = 0.1
+    min_effective_fraction: float = 0.02
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -199,6 +205,10 @@ class DiscoverSettings:
         if isinstance(self.unconverged_share, bool) or not isinstance(self.unconverged_share, (int, float)) \
                 or not 0.0 <= self.unconverged_share < 1.0:
             raise ConfigError(f"discover.unconverged_share must lie in [0, 1), got {self.unconverged_share!r}")
+        if isinstance(self.min_effective_fraction, bool) or not isinstance(self.min_effective_fraction, (int, float)) \
+                or not 0.0 <= self.min_effective_fraction < 1.0:
+            raise ConfigError("discover.min_effective_fraction must lie in [0, 1), got "
+                              f"{self.min_effective_fraction!r}")
         if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
             raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
         if not (isinstance(self.validation_material, (int, float)) and not isinstance(self.validation_material, bool)

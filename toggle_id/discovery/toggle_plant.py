@@ -180,7 +180,17 @@ class TogglePlant:
     def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict]
                  ) -> tuple[list[dict], list[dict]]:
         """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
-        makes unnecessary is compensating (the engine took out those no machine has first: :meth:`implausible`)."""
+        makes unnecessary is compensating (the engine took out those no machine has first: :meth:`implausible`).
+        Before it: when the residual's noise model is too slow to be told from a slow error of the model
+        (:func:`.residual.slow_noise`), every effect is compensating — the statistics that accepted it were
+        prewhitened by a noise model that may hold the error it stands in for (rec28 of the adversarial set)."""
+        slow = (details[0] or {}).get("slow_noise") or {}
+        if slow.get("slow") and added:
+            why = (f"lowers the error, but was accepted under a noise model that leaves "
+                   f"{slow['effective_samples']} samples independent: an error the model lacks and slow noise "
+                   "cannot be told apart on this record")
+            self.say(f"{', '.join(a['name'] for a in added)}: {why}")
+            return [], [dict(a, reason=why) for a in added]
         self._fitting()
         states = details[2]
         if not (self.s.catch_all and states and added):
