@@ -22,6 +22,7 @@ from toggle_id.simulate import (
     STATUS_INVALID,
     STATUS_OK,
     SolverSettings,
+    extend,
     precise_jacobian,
     simulate,
 )
@@ -440,3 +441,23 @@ def test_the_shared_cores_benchmark_runs_processes_side_by_side():
     assert _side_by_side(2, env, 2, 0.2) > 0
     with pytest.raises(RuntimeError, match="shared-cores run failed"):
         _side_by_side(1, env, 2, -1.0)
+
+
+def test_rows_with_backlash_run_the_kernel_compiled_apart_and_compile_kernels_names_its_kinds():
+    """Rows with b_l > 0 go to the two-body integrator's own kernel (a process without backlash never compiles it),
+    each row to its kernel in one call; an unknown kind is a one-line error."""
+    from toggle_id.effects import ALL_INDEX
+    from toggle_id.kernels.driver import lash_batch_serial, simulate_batch_serial
+    from toggle_id.simulate import compile_kernels
+
+    compile_kernels(("rigid", "lash"), parallel=False)
+    assert simulate_batch_serial.signatures and lash_batch_serial.signatures
+    rec = Record.from_sweep("simulation", duration=0.2)
+    theta = extend(np.repeat(ASSIGNED[None], 3, axis=0))
+    theta[1, ALL_INDEX["b_l"]] = 3e-4
+    both = simulate(theta, rec, FAST)
+    alone = [simulate(theta[k:k + 1], rec, FAST).x_B[0] for k in range(3)]
+    np.testing.assert_array_equal(both.x_B, np.array(alone))
+    assert np.max(np.abs(both.x_B[1] - both.x_B[0])) > 1e-7  # the lash acts: the row went to the two-body kernel
+    with pytest.raises(ConfigError, match="unknown kinds"):
+        compile_kernels(("elastic",))
