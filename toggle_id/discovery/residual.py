@@ -79,9 +79,9 @@ def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings,
     d["verdict"]["classical_structure_left"] = d["verdict"]["structure_left"]
     d["slow_noise"] = slow_noise(noise, settings.min_effective_fraction)
     if d["slow_noise"]["slow"]:
+        rest = loc["text"].removeprefix("structure left: ") if loc["structure_left"] else ""
         loc["structure_left"] = True
-        loc["text"] = "structure left: " + d["slow_noise"]["text"] + (
-            "; " + loc["text"].removeprefix("structure left: ") if loc["text"].startswith("structure left") else "")
+        loc["text"] = "structure left: " + "; ".join([d["slow_noise"]["text"]] + ([rest] if rest else []))
     d["verdict"]["structure_left"] = bool(loc["structure_left"])
     return d, r, states
 
@@ -95,13 +95,13 @@ def slow_noise(noise: NoiseModel, floor: float) -> dict:
     0.003–0.011 where an effect outside the library was left to the noise model (rec01, rec24, rec25, rec27,
     rec28), on rec28 after a spurious contact stiffness (AR(8), its coefficients summing to 0.98: 16 independent
     samples of 5001). Returns {slow, effective_fraction, effective_samples, floor, text}."""
-    frac = float(noise.effective_fraction)
+    nm = noise.to_dict()
+    frac = nm["effective_sample_fraction"]
     slow = bool(floor > 0 and frac < floor)
-    kind = "white" if noise.white else f"AR({noise.order})"
-    text = (f"the residual's noise model, {kind}, leaves {frac * noise.n:.0f} of {noise.n} samples independent "
-            f"(fewer than {floor:.0%}): noise as slow as the motion, which a slow error the model lacks passes for "
-            "— a second record (validation.path) can tell them apart" if slow else "")
-    return {"slow": slow, "effective_fraction": frac, "effective_samples": int(round(frac * noise.n)),
+    text = (f"the residual's noise model, {nm['kind']}, leaves {nm['effective_samples']} of {nm['n']} samples "
+            f"independent (fewer than {floor:.0%}): noise as slow as the motion, which a slow error the model lacks "
+            "passes for — a second record (validation.path) can tell them apart" if slow else "")
+    return {"slow": slow, "effective_fraction": frac, "effective_samples": nm["effective_samples"],
             "floor": float(floor), "text": text}
 
 
