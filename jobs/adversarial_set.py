@@ -32,7 +32,10 @@ The set (:data:`SPECS`):
   (the paper's simulation sweep) and a sensor offset (cycling) under AR(1) noise with ρ = 0.9, and a dead time
   under the 1-µm encoder without Gaussian noise (the simulation sweep), each calibrated to about 2σ of its own noise
   (σ = q/√12 ≈ 0.29 µm for the encoder); two at once under that AR(1) noise, a constant load force and a cogging
-  torque on the simulation sweep; and a slider viscous friction under it at the faint end, ≈ 1.3σ (cycling).
+  torque on the simulation sweep; and a slider viscous friction under it at the faint end, ≈ 1.3σ (cycling);
+* an effect outside the library under that AR(1) noise (added 2026-11-29): the friction bump on the simulation
+  sweep, ≈ 3σ — coloured noise and missing physics at once, as in measured data: the noise model must not swallow
+  the bump, nor the bump make a library effect look supported.
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
@@ -140,6 +143,8 @@ SPECS: tuple[Spec, ...] = (
          {"n_cog": 6.0, "phi_cog": 0.5}, ("F_load", "a_cog"), noise_ar=0.9),
     Spec("ar09_viscous_cycling_faint", "library", "cycling", 115, ("viscous_friction_slider",), calibrate=("c_B",),
          noise_ar=0.9, target=1.3),
+    Spec("ar09_outside_bump_simulation", "outside", "simulation", 412, calibrate=("F_b",), outside="bump",
+         noise_ar=0.9, target=3.0),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -186,6 +191,7 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "pair_ar09_load_cogging": {"F_load": (172.299, 2.006), "a_cog": (0.129997, 2.000)},  # each alone: refit RMS
     # 1.74, 1.73 um
     "ar09_viscous_cycling_faint": {"c_B": (1193.38, 1.304)},  # refit RMS 0.838 um (the issue's faint end, 1.3σ)
+    "ar09_outside_bump_simulation": {"F_b": (157.565, 3.010)},  # refit RMS 2.84 um
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
@@ -292,15 +298,24 @@ def noise_seed(spec: Spec) -> int:
 SECOND_COMMAND = {"simulation": "cycling", "experiment": "cycling", "cycling": "experiment"}
 #: Offset of the validation record's noise seed: independent noise of the same model.
 VALIDATION_SEED_OFFSET = 5000
+#: Step of a replicate's noise seed (``--replicates``): the same machine again, with independent noise.
+REPLICATE_SEED_STEP = 100_000
+
+
+def replicate_name(name: str, replicate: int) -> str:
+    """``rec19`` for the record itself, ``rec19_r2`` for its second replicate."""
+    return name if replicate == 0 else f"{name}_r{replicate}"
 
 
 def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration: float = DURATION,
-                validation: bool = False):
+                validation: bool = False, replicate: int = 0):
     """(record with noisy x_B, manifest entry) of ``spec`` with its ``calibrated`` {parameter: (value, ratio)}.
 
     ``validation``: the second record of the same machine (truth, effects, noise model) under
     :data:`SECOND_COMMAND` with independent noise, named ``<name>_validation`` — what a user would record to check
-    a model on data it was not fitted on."""
+    a model on data it was not fitted on. ``replicate`` k > 0: the same record (truth, effects, command, noise
+    model) with independent noise, named ``<name>_r<k>`` — one verdict is one draw of the noise; replicates
+    measure how often it comes out so (a false-alarm rate on the noise-only records)."""
     from toggle_id.app.records import build_record
     from toggle_id.effects import EFFECTS_BY_NAME
     from toggle_id.params import PARAM_NAMES
@@ -309,9 +324,11 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
     magnitudes = {k: float(v[0]) for k, v in calibrated.items()}
     theta, draw = draw_truth(spec)
     effects = effect_values(spec, magnitudes)
-    name = NAMES[spec.key] + ("_validation" if validation else "")
+    if replicate < 0:
+        raise ValueError(f"replicate must be >= 0, got {replicate}")
+    name = replicate_name(NAMES[spec.key], replicate) + ("_validation" if validation else "")
     kind = SECOND_COMMAND[spec.command] if validation else spec.command
-    seed = noise_seed(spec) + (VALIDATION_SEED_OFFSET if validation else 0)
+    seed = noise_seed(spec) + (VALIDATION_SEED_OFFSET if validation else 0) + REPLICATE_SEED_STEP * replicate
     if spec.outside:
         rec = base_record(kind, duration)
         x, i = clean_response(spec, theta, effects, magnitudes, rec)
@@ -331,7 +348,7 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
     command = (CYCLING.to_dict() if kind == "cycling" else
                {"kind": "sweep", "sweep": kind, **SWEEPS[kind].__dict__})
     entry = {
-        "name": name, "file": f"{name}.csv", "key": spec.key, "category": spec.category,
+        "name": name, "file": f"{name}.csv", "key": spec.key, "category": spec.category, "replicate": replicate,
         "effects": list(spec.effects),
         "effect_params": {e: {p.name: effects.get(p.name, p.off) for p in EFFECTS_BY_NAME[e].params}
                           for e in spec.effects},
@@ -503,9 +520,10 @@ def sha256(path: Path) -> str:
 
 
 def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple[float, float]]],
-             duration: float = DURATION, log=print, validation: bool = False) -> dict:
+             duration: float = DURATION, log=print, validation: bool = False, replicates: int = 0) -> dict:
     """Write the records of ``specs`` and the manifest (merged with an existing one); return the manifest.
-    ``validation``: also each record's second record (:func:`make_record`), named in its entry's ``validation``."""
+    ``validation``: also each record's second record (:func:`make_record`), named in its entry's ``validation``;
+    ``replicates``: also that many replicates of each record (independent noise, ``<name>_r1`` …)."""
     from toggle_id.checkpoint import atomic_write_json
     from toggle_id.data import write_csv
 
@@ -516,17 +534,18 @@ def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple
     for spec in specs:
         if spec.calibrate and set(calibrated.get(spec.key, {})) != set(spec.calibrate):
             raise SystemExit(f"error: {spec.key} has no calibrated magnitude; run with --calibrate")
-        t0 = time.perf_counter()
-        rec, entry = make_record(spec, calibrated.get(spec.key, {}), duration)
-        csv = write_csv(rec, out / entry["file"])
-        entry["sha256"] = sha256(csv)
-        if validation:
-            vrec, ventry = make_record(spec, calibrated.get(spec.key, {}), duration, validation=True)
-            vcsv = write_csv(vrec, out / ventry["file"])
-            entry["validation"] = {"file": ventry["file"], "command": ventry["command"],
-                                   "noise_seed": ventry["noise"]["seed"], "sha256": sha256(vcsv)}
-        records[entry["name"]] = entry
-        log(f"{entry['name']}: {rec.n} samples ({time.perf_counter() - t0:.1f} s)")
+        for k in range(replicates + 1):
+            t0 = time.perf_counter()
+            rec, entry = make_record(spec, calibrated.get(spec.key, {}), duration, replicate=k)
+            csv = write_csv(rec, out / entry["file"])
+            entry["sha256"] = sha256(csv)
+            if validation:
+                vrec, ventry = make_record(spec, calibrated.get(spec.key, {}), duration, validation=True, replicate=k)
+                vcsv = write_csv(vrec, out / ventry["file"])
+                entry["validation"] = {"file": ventry["file"], "command": ventry["command"],
+                                       "noise_seed": ventry["noise"]["seed"], "sha256": sha256(vcsv)}
+            records[entry["name"]] = entry
+            log(f"{entry['name']}: {rec.n} samples ({time.perf_counter() - t0:.1f} s)")
     manifest = {"generated_by": "python -m jobs.bench_adversarial", "sigma_m": SIGMA,
                 "calibrated_for_duration_s": DURATION,
                 "note": "record names say nothing about their content; this manifest is the truth",

@@ -1,7 +1,7 @@
 """An adversarial set of records on which the discovery loop is judged.
 
-``python -m jobs.bench_adversarial --out DIR [--only NAME,...] [--duration S] [--calibrate] [--validation] [--run]
-[--jobs N] [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
+``python -m jobs.bench_adversarial --out DIR [--only NAME,...] [--duration S] [--calibrate] [--validation]
+[--replicates K] [--run] [--jobs N] [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
 
 Writes CSV records (docs/model.md §8, via :func:`toggle_id.data.write_csv`) and ``manifest.json`` (the truth of each:
 parameters, effects, noise model, command) into DIR. A record's name (``rec01`` …) says nothing about what is in
@@ -12,6 +12,10 @@ it; only the manifest does. The set — what each record holds, how its truth is
 noise model under the other kind of command (:data:`jobs.adversarial_set.SECOND_COMMAND`: a swept machine is also cycled, a cycled one
 swept at A = 0.25 V) with independent noise; the discover runs get it as ``validation.path`` (predicted, never
 fitted: an effect must predict it better, and structure left in its prediction makes the result unexplained).
+
+``--replicates K`` also writes (and runs) K replicates of each record, ``recNN_r1`` …: the same machine, command
+and noise model with independent noise. A verdict is one draw of the noise; the replicates say how often it comes
+out so — on the noise-only records, how often the loop names an effect that is not there.
 
 ``--run`` then runs the discover job on every record (``python -m jobs.run +experiment=discover data=csv
 data.path=… seed=0 progress=false``; MLflow off unless ``--mlflow-uri``; ``--override`` adds Hydra overrides),
@@ -38,6 +42,7 @@ from jobs.adversarial_set import (
     calibrate,
     calibration_table,
     generate,
+    replicate_name,
     select,
 )
 from jobs.adversarial_verdicts import result_row, results_markdown, summarise
@@ -143,11 +148,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--validation", action="store_true",
                     help="also write each machine's second record (the other command, independent noise) and give it "
                          "to the discover job as validation.path: predicted, never fitted")
+    ap.add_argument("--replicates", type=int, default=0,
+                    help="also write (and run) K replicates of each record: the same machine, independent noise")
     args = ap.parse_args(argv)
     if not (args.duration > 0):
         ap.error(f"--duration must be positive, got {args.duration}")
     if args.jobs < 1:
         ap.error(f"--jobs must be at least 1, got {args.jobs}")
+    if args.replicates < 0:
+        ap.error(f"--replicates must be at least 0, got {args.replicates}")
     out = Path(args.out).expanduser().resolve()
     specs = select(args.only)
     calibrated = {k: dict(v) for k, v in CALIBRATED.items()}
@@ -158,10 +167,10 @@ def main(argv: list[str] | None = None) -> int:
             calibrated[key] = {p: (c["value"], c["ratio"]) for p, c in params.items()}
         (out / "calibration.json").write_text(json.dumps(cal, indent=1))
         print("CALIBRATED entries (paste into jobs/adversarial_set.py):\n" + calibration_table(cal), flush=True)
-    manifest = generate(out, specs, calibrated, args.duration, validation=args.validation)
+    manifest = generate(out, specs, calibrated, args.duration, validation=args.validation, replicates=args.replicates)
     if args.run:
-        _, summary = run_all(out, manifest, [NAMES[s.key] for s in specs], args.override, args.mlflow_uri, args.jobs,
-                             args.timeout)
+        names = [replicate_name(NAMES[s.key], k) for s in specs for k in range(args.replicates + 1)]
+        _, summary = run_all(out, manifest, names, args.override, args.mlflow_uri, args.jobs, args.timeout)
         if summary["errors"]:
             return 1
     return 0

@@ -21,12 +21,14 @@ from toggle_id.simulate import PRECISE, extend, simulate
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
     cats = [s.category for s in S.SPECS]
     assert len(S.SPECS) >= 18
-    assert cats.count("library") == 16 and cats.count("pair") == 4 and cats.count("outside") == 9
+    assert cats.count("library") == 16 and cats.count("pair") == 4 and cats.count("outside") == 10
     # real effects under the noise that must not look like one: AR(1) ρ = 0.9 (three, one faint) and the encoder
     coloured = [(s.noise_m, s.noise_ar, s.quantum_m) for s in S.SPECS if s.category == "library" and
                 (s.noise_ar or s.quantum_m)]
     assert sorted(coloured) == [(0.0, 0.0, 1e-6)] + [(1e-6, 0.9, 0.0)] * 3
     assert any(s.noise_ar == 0.9 for s in S.SPECS if s.category == "pair")  # and two effects at once under it
+    # and an effect outside the library under it: coloured noise and missing physics at once, as in measured data
+    assert any(s.noise_ar == 0.9 and s.outside == "bump" for s in S.SPECS if s.category == "outside")
     # a threshold effect among two at once (the drive's voltage saturation beside a cogging torque)
     assert any("voltage_saturation" in s.effects for s in S.SPECS if s.category == "pair")
     assert {s.effects[0] for s in S.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
@@ -75,6 +77,28 @@ def test_generator_writes_the_records_and_the_manifest(tmp_path):
     B.main(["--out", str(tmp_path), "--only", "noise_quantised", "--duration", "1.0"])
     assert {p.name: p.read_bytes() for p in tmp_path.glob("*.csv")} == before
     assert len(json.loads((tmp_path / "manifest.json").read_text())["records"]) == 2  # merged, not replaced
+
+
+def test_replicates_are_the_same_machine_with_independent_noise(tmp_path):
+    """--replicates: recNN_r1 … hold the record's truth, command and noise model, and noise of their own; the record
+    itself is unchanged by asking for them."""
+    assert B.main(["--out", str(tmp_path / "one"), "--only", "noise_white", "--duration", "0.5"]) == 0
+    assert B.main(["--out", str(tmp_path), "--only", "noise_white", "--duration", "0.5", "--replicates", "2"]) == 0
+    name = S.NAMES["noise_white"]
+    man = {r["name"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
+    assert sorted(man) == [name, f"{name}_r1", f"{name}_r2"]
+    assert [man[n]["replicate"] for n in sorted(man)] == [0, 1, 2]
+    assert (tmp_path / f"{name}.csv").read_bytes() == (tmp_path / "one" / f"{name}.csv").read_bytes()
+    recs = [read_csv(tmp_path / man[n]["file"]) for n in sorted(man)]
+    for n in sorted(man)[1:]:
+        assert man[n]["params"] == man[name]["params"] and man[n]["command"] == man[name]["command"]
+        assert man[n]["noise"]["model"] == man[name]["noise"]["model"]
+        assert man[n]["noise"]["seed"] != man[name]["noise"]["seed"]
+    d1, d2 = recs[1].x_B - recs[0].x_B, recs[2].x_B - recs[0].x_B
+    assert np.std(d1) == pytest.approx(np.sqrt(2) * 1e-6, rel=0.15)  # two independent draws of 1-µm noise
+    assert abs(np.corrcoef(d1, d2)[0, 1] - 0.5) < 0.15  # both minus the same draw, independent otherwise
+    with pytest.raises(SystemExit):
+        B.main(["--out", str(tmp_path), "--only", "noise_white", "--replicates", "-1"])
 
 
 def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp_path):
