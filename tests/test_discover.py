@@ -166,7 +166,7 @@ def test_with_nothing_supported_the_catch_alls_kind_of_term_sends_its_untried_ef
     that kind the scouts left untried is refitted — not the others (a dead time), and nothing when none is asked."""
     from types import SimpleNamespace
 
-    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery import forward as TP
     from toggle_id.discovery.model import Fit
     from toggle_id.discovery.refit import Refit, Scout
     from toggle_id.discovery.scoring import CandidateScore

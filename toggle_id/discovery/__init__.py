@@ -11,10 +11,10 @@ term and an :class:`~toggle_id.effects.Effect` entry.
    residuals and sensitivities, so coloured noise (a closed loop, an encoder) does not pass for an effect; the
    loop's fits minimise the residual prewhitened by the AR model of the current residual less what the states
    express (prediction-error fits, ``discover.prediction_error``; least squares where that model is white).
-3. *Scores and scouts* (:mod:`.scoring`, :mod:`.refit`): the score (LM) test and a magnitude grid of every
-   candidate up to its feasible bound at two linearisation points (the fit, and the nominal start with the effects
-   so far), and a short refit (scout) of *every* candidate from its best grid start — threshold and periodic
-   effects are silent at "off" but not at their magnitude.
+3. *Scores and scouts* (:mod:`.scoring`, :mod:`.refit`; one iteration of them and of the refits: :mod:`.forward`):
+   the score (LM) test and a magnitude grid of every candidate up to its feasible bound at two linearisation points
+   (the fit, and the nominal start with the effects so far), and a short refit (scout) of *every* candidate from its
+   best grid start — threshold and periodic effects are silent at "off" but not at their magnitude.
 4. *Refits and verdicts* (:mod:`.validation`, :mod:`.stats`): candidates are refitted in the order of their scouts,
    and no effect is accepted while a candidate whose scout explains more has not been refitted. A refit is judged
    under the noise model of its own residual (both models refitted the prediction-error way when it is coloured):

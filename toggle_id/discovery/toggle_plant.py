@@ -6,28 +6,27 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
 from ..residuals import glitch_text
 from .catchall import catch_all, reading_needed
 from .engine import Step
-from .ties import indistinguishable
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
-from .refit import Refit, from_current, guard_null, refit_candidate, scout_candidate
+from .forward import _iteration, _polish_with_effect
+from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
-from .scoring import CandidateScore, assess, score_leaders, worth_refitting
+from .scoring import CandidateScore
 from .settings import DiscoverSettings
 from .validation import Evidence, Judge
 
 
 class TogglePlant:
     """The toggle mechanism as a plant of the discovery engine (:class:`.engine.Plant`): its baseline polish, its
-    forward step (scores, scouts, refits, guards: :func:`_iteration`), its refits without an effect (the gauge
+    forward step (scores, scouts, refits, guards: :func:`.forward._iteration`), its refits without an effect (the gauge
     parameter the effect alone freed held again) and its structure test and catch-all check. Keeps what the report
     needs: the baseline (updated when a guard finds a better nominal optimum before any effect is added), the
     first iteration's scores, every iteration's record and every refit."""
@@ -207,7 +206,7 @@ class TogglePlant:
         """The kinds of effect (:attr:`~toggle_id.effects.Effect.acts_on`) that a generic term of the catch-all check
         finds missing from ``fit``: ``slider`` when the generic force is supported on top of it, with ``reading``
         when the generic error of the reading is needed beside the force; none when its residual holds no
-        structure (the forward step's second look: :func:`_iteration`)."""
+        structure (the forward step's second look: :func:`.forward._iteration`)."""
         left, details = self.structure(fit)
         if not (self.s.catch_all and left and details[2]):
             return set()
@@ -296,167 +295,6 @@ def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], fre
         raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
     current.info["starts"] = report
     return current, anchor
-
-
-def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, free: Sequence[str],
-               remaining: Sequence[Effect], settings: DiscoverSettings, it: int, held: Sequence[str],
-               say: Callable[[str], None], on_refit: Callable[[Refit], None] | None,
-               second_look: Callable[[Fit], set[str]] | None = None) -> dict:
-    """Scores, scouts and refits of one iteration; the candidate to add (or None). ``second_look(fit)``: the kinds
-    of effect (:attr:`~toggle_id.effects.Effect.acts_on`) a generic term of the catch-all check finds missing
-    from ``fit``, asked when no refit is supported."""
-    n = model.n
-    noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
-    points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
-    # second linearisation point: the nominal fit as given, with the effects added so far — the polished fit may
-    # have bent the nominal parameters far towards the missing effect, where the local picture is distorted
-    alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in current.free if nm not in free})
-    if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
-        second = assess(model, "nominal start", alt, current.free, remaining, settings, noise)
-        if second is not None:  # (None: the nominal start cannot be simulated with these effects)
-            points.append(second)
-    scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
-    for c in scores:
-        for pt in points[1:]:
-            c.profile_score_alt = pt.scores[c.name].profile_score
-    say("scores (profile | LM, prewhitened): " + ", ".join(
-        f"{c.name} {c.profile_score:.3g} | {c.score:.3g}" for c in sorted(scores, key=lambda c: -c.profile_score)))
-    screen = float(stats.chi2.isf(settings.screen_alpha, 1))
-    here = points[0].scores
-    if settings.scout_all:  # global screening: every candidate with a grid is scouted
-        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)]
-    else:
-        screened = [c for c in scores if any(c.name in pt.profiles for pt in points)
-                    and (here[c.name].statistic > screen
-                         or (c.name not in points[0].profiles
-                             and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
-    scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
-              for c in screened}
-    for c in scores:
-        c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
-    order = sorted(scouts.values(), key=lambda sc: sc.sse)
-    scores.sort(key=lambda c: (scouts[c.name].sse if c.name in scouts else np.inf, -c.profile_score))
-    say("scouts: " + (", ".join(f"{sc.name} {np.sqrt(sc.sse / n) * 1e6:.4g} µm" for sc in order) or "none"))
-    base = current
-    refits: list[Refit] = []
-    better_null: Fit | None = None
-    # the candidates the score test ranks first are refitted whatever their scouts: a short polish of a threshold
-    # or delay effect may show little of what its converged refit explains, and the two rankings disagreeing is
-    # itself a reason to look
-    leaders = score_leaders([c for c in scores if c.name in scouts and np.isfinite(scouts[c.name].sse)],
-                            settings.ambiguity_alpha, screen)
-    stat = {c.name: c.statistic for c in scores}
-
-    def refit(sc) -> None:
-        nonlocal base, better_null
-        eff = EFFECTS_BY_NAME[sc.name]
-        start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
-        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=start)
-        if rf.accepted:
-            null = guard_null(model, base, rf, eff, settings, judge)
-            if null is not None and null.sse < base.sse:
-                say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
-                    f"{null.rmse(n) * 1e6:.4g} µm")
-                base = better_null = null
-                for other in refits:  # earlier refits are judged against the better baseline too
-                    if other.accepted:
-                        other.judge(judge.judge_pair(base, other.fit), base.sse)
-                        if not other.accepted:
-                            other.reason = "against the re-polished nominal model: " + other.reason
-        ev = rf.evidence
-        hc = ev.get("hc_ratio", 1.0) or 1.0
-        robust = f" (robust p {ev.get('p_value_robust', np.nan):.3g}, ×{hc:.3g})" if hc > 1.2 else ""
-        say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, "
-            f"p {rf.p_value:.3g}{robust}, ΔBIC {rf.delta_bic:.4g}, "
-            f"out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
-            f"{ev.get('cv_sse_w_after', np.nan):.4g} → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
-            f"({rf.seconds:.1f} s)")
-        refits.append(rf)
-        if on_refit is not None:
-            on_refit(rf)
-
-    for i, sc in enumerate(order):
-        leading = min((rf for rf in refits if rf.accepted), key=lambda rf: rf.fit.rmse(n), default=None)
-        best = leading.fit.rmse(n) ** 2 * n if leading is not None else None
-        realised = leading.F * leading.k if leading is not None else None
-        if not np.isfinite(sc.sse):
-            break
-        if i >= settings.top_k and sc.name not in leaders:  # at least top_k refits, the leaders whatever their scouts
-            k_sc = len(freed_with(base.free, EFFECTS_BY_NAME[sc.name], held)) - len(base.free)
-            if not worth_refitting(sc.sse, stat.get(sc.name, 0.0), base.sse, len(base.free), k_sc, n, settings,
-                                   best, realised):
-                continue
-        refit(sc)
-    tried = {rf.name for rf in refits}
-    untried = [sc for sc in order if np.isfinite(sc.sse) and EFFECTS_BY_NAME[sc.name].acts_on and sc.name not in tried]
-    if second_look is not None and untried and not any(rf.accepted for rf in refits):
-        # nothing supported, and the scouts left effects untried: when a force on the slider (or an error of the
-        # reading) of any shape explains what is left, every library effect of that kind is refitted before the
-        # record is called unexplained — a scout's short polish from a model that absorbed a smooth effect shows
-        # little of it (adversarial record rec33: a slider viscous friction scouted 8th, never refitted)
-        kinds = second_look(base)
-        untried = [sc for sc in untried if EFFECTS_BY_NAME[sc.name].acts_on in kinds]
-        if untried:
-            say("  nothing supported, and " + " or ".join(KIND_TEXT[k] for k in sorted(kinds)) + " of any shape "
-                "explains what is left (catch-all): refitting " + ", ".join(sc.name for sc in untried))
-        for sc in untried:
-            refit(from_current(model, base, sc, settings))
-    winners = [rf for rf in refits if rf.accepted]
-    chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
-    rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []
-    for rf in winners:
-        if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
-            rf.reason = f"supported, but {chosen.name} explains more (lower SSE); judged again next iteration"
-    if rivals:
-        say(f"  {chosen.name} and " + ", ".join(r["name"] for r in rivals) + " fit this record equally well "
-            "(Vuong " + ", ".join(f"z {r['vuong']['z']:.2f}" for r in rivals) + "): ambiguous")
-    record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
-              "noise_model_of_current_residual": noise.to_dict(), "points": [pt.label for pt in points],
-              "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
-              "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals}
-    return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
-            "base": base, "rivals": rivals}
-
-
-#: What a kind of effect (:attr:`~toggle_id.effects.Effect.acts_on`) is, for the log.
-KIND_TEXT = {"slider": "a force on the slider", "reading": "an error of the reading"}
-
-
-def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: DiscoverSettings) -> list[dict]:
-    """The other supported refits of the round the record cannot tell apart from ``chosen``
-    (:func:`.ties.indistinguishable`, on the residuals the judge already simulated); each such refit's reason
-    says so."""
-    if not settings.ambiguity_alpha > 0:
-        return []
-    others = [rf for rf in winners if rf is not chosen]
-    found = indistinguishable(judge.residual(chosen.fit), chosen.k, [(judge.residual(rf.fit), rf.k) for rf in others],
-                              settings.noise_max_order, settings.ambiguity_alpha)
-    out = []
-    for rf, v in zip(others, found):
-        rf.evidence["vuong_against_" + chosen.name] = v
-        if v["tied"]:
-            rf.reason = (f"fits as well as {chosen.name} (Vuong z {v['z']:.2f}, p {v['p_value']:.2g}): the record "
-                         "cannot tell them apart")
-            out.append({"name": rf.name, "params": rf.params, "rmse_m": rf.fit.rmse(judge.model.n), "vuong": v,
-                        "F": rf.F, "p_value": rf.p_value, "delta_bic": rf.delta_bic, "evidence": rf.evidence})
-    return out
-
-
-def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: Sequence[str],
-                        settings: DiscoverSettings, say: Callable[[str], None]) -> Fit:
-    """The accepted refit polished in full, also from the nominal fit as given with the effects' values (the
-    polished baseline may sit in another valley); the better of the two."""
-    n = model.n
-    current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
-                       rounds=settings.rounds)
-    effect_names = [nm for nm in chosen.fit.free if nm not in free]
-    alt = fit_free(model, _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names}),
-                   chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-    if alt.sse < current.sse:
-        say(f"  second start (nominal fit + effects) reached {alt.rmse(n) * 1e6:.4g} µm "
-            f"instead of {current.rmse(n) * 1e6:.4g} µm")
-        current = alt
-    return current
 
 
 def _without(model: Model, current: Fit, name: str | None, added: Sequence[dict], held: Sequence[str],
