@@ -2,6 +2,7 @@
 one line within seconds when it cannot, and the embedded default that always starts its own local Ray."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -219,3 +220,35 @@ def test_a_job_joins_a_head_with_token_auth_and_the_default_runs_after_the_head_
         assert time.monotonic() - t0 < 240
     finally:
         _kill_head(ray_tmp)
+
+
+@pytest.mark.integration
+def test_a_local_ray_that_will_not_start_leaves_the_job_to_the_serial_evaluator(tmp_path, monkeypatch, caplog):
+    """On a loaded machine Ray's local node may time out while starting: tried twice, then the job goes on serially
+    with one warning line, and the same seed gives the same result; a cluster asked for by address stays an error."""
+    from conftest import run_in_process
+
+    from toggle_id import evaluators
+    from toggle_id.app.common import ray_session
+
+    calls = []
+
+    def will_not_start(**kw):
+        calls.append(kw)
+        raise Exception("The current node timed out during startup. This could happen because some of the raylet "
+                        "failed to startup or the GCS has become overloaded.")
+
+    monkeypatch.setattr(evaluators, "init_ray", will_not_start)
+    fell_back = run_in_process("jobs.run", *QUICK, f"hydra.run.dir={tmp_path / 'ray'}", cwd=tmp_path)
+    assert fell_back.returncode == 0, fell_back.stderr[-2000:]
+    assert len(calls) == 2
+    assert any("local Ray did not start twice" in r.getMessage() and "evaluating serially" in r.getMessage()
+               for r in caplog.records)
+    serial = run_in_process("jobs.run", *QUICK, "evaluator=serial", f"hydra.run.dir={tmp_path / 'serial'}",
+                            cwd=tmp_path)
+    assert serial.returncode == 0, serial.stderr[-2000:]
+    a, b = (json.loads((tmp_path / d / "result.json").read_text()) for d in ("ray", "serial"))
+    assert a["fitness"] == b["fitness"] and a["params"] == b["params"]
+    with pytest.raises(Exception, match="timed out during startup"):
+        with ray_session({"kind": "ray", "address": "127.0.0.1:6379"}):
+            pass

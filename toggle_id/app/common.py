@@ -11,6 +11,7 @@ records first (the EMPS job) fails in a second when they are wrong.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from contextlib import contextmanager
 from pathlib import Path
@@ -139,23 +140,55 @@ def identify_kwargs(cfg: Mapping, run_dir: Path, resume: bool) -> dict:
 
 
 # ------------------------------------------------------------------------------------------ evaluators
+log = logging.getLogger("toggle_id")
+#: Why the job's local Ray could not start (None: it started, or was not asked for); set by :func:`ray_session`,
+#: read by the evaluators of :func:`evaluator_factory`.
+_LOCAL_RAY_FAILED: list[str] = []
+
+
 @contextmanager
 def ray_session(ev: Mapping) -> Iterator[None]:
-    """Start (or join) Ray once for the whole job when the evaluator is Ray; shut it down if we started it."""
+    """Start (or join) Ray once for the whole job when the evaluator is Ray; shut it down if we started it.
+
+    A local Ray that does not start (its node timed out on a loaded machine, a full /tmp) is tried once more; if it
+    fails again the job goes on with the serial evaluator — the same seed gives the same result whatever the
+    number of workers, so only the time changes — and says so in one warning line. Joining a cluster
+    (``evaluator.address``) that fails stays an error: that was asked for by name."""
+    _LOCAL_RAY_FAILED.clear()
     if ev.get("kind", "serial") != "ray":
         yield
         return
-    from ..evaluators import init_ray
+    from .. import evaluators
     import ray
 
-    started = init_ray(num_cpus=ev.get("n_workers"), address=ev.get("address"),
-                       connect_timeout_s=float(ev.get("connect_timeout_s", 10.0)),
-                       ship_code=bool(ev.get("ship_code", True)))
+    started = False
+    for attempt in (1, 2):
+        try:
+            started = evaluators.init_ray(num_cpus=ev.get("n_workers"), address=ev.get("address"),
+                                          connect_timeout_s=float(ev.get("connect_timeout_s", 10.0)),
+                                          ship_code=bool(ev.get("ship_code", True)))
+            break
+        except ConfigError:
+            raise
+        except Exception as err:  # Ray's own start-up errors are plain Exceptions
+            if ev.get("address") is not None:
+                raise
+            ray.shutdown()
+            if attempt == 2:
+                why = " ".join(str(err).split())[:200] or type(err).__name__
+                _LOCAL_RAY_FAILED.append(why)
+                log.warning(f"local Ray did not start twice ({why}): evaluating serially instead (the same "
+                            "result, more time)")
     try:
         yield
     finally:
         if started:
             ray.shutdown()
+
+
+def local_ray_failed() -> str | None:
+    """Why this job's local Ray could not start (None: it did, or none was asked for)."""
+    return _LOCAL_RAY_FAILED[0] if _LOCAL_RAY_FAILED else None
 
 
 def evaluator_factory(ev: Mapping) -> Callable[[Any], Any]:
@@ -179,8 +212,13 @@ def evaluator_factory(ev: Mapping) -> Callable[[Any], Any]:
         raise ConfigError(f"evaluator.address must be null (a local Ray), auto or HOST:PORT, got {address!r}")
     if kind == "serial":
         return lambda problem: make_evaluator("serial", problem)
-    return lambda problem: make_evaluator("ray", problem, n_workers=n, address=address,
-                                          ready_timeout_s=float(timeout), connect_timeout_s=float(connect))
+
+    def ray_or_serial(problem):
+        if address is None and local_ray_failed():  # see ray_session: the job goes on serially
+            return make_evaluator("serial", problem)
+        return make_evaluator("ray", problem, n_workers=n, address=address, ready_timeout_s=float(timeout),
+                              connect_timeout_s=float(connect))
+    return ray_or_serial
 
 
 # ------------------------------------------------------------------------------------------ reporting

@@ -56,6 +56,9 @@ class Model:
         #: ``settings``, the residuals' own) and their relative step (None: each fit's ``fd_rel_step``)
         self.jacobian, self.jacobian_step = jacobian if jacobian is not None else (settings, None)
         self.parallel = parallel
+        #: Broyden updates allowed between two finite-difference Jacobians in a polish's coarse rounds (0: none;
+        #: see :func:`fit_free`)
+        self.jacobian_reuse = 0
         self.n_sims = 0
         self.noise = WHITE_ASSUMED
         #: effect sets (:func:`effects_on`) whose simulations go straight to the fallback
@@ -273,7 +276,8 @@ def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int
     SSE by more than ``round_rtol`` (relative): the nominal parameters lie in long curved valleys (scaling
     symmetries), where one trust-region run often stops early.
 
-    With ``coarse`` and a model whose Jacobians come from a looser tier (:attr:`Model.jacobian`), the rounds use
+    With ``coarse`` and a model whose Jacobians come from a looser tier (:attr:`Model.jacobian`) or are partly
+    Broyden updates (:attr:`Model.jacobian_reuse`), the rounds use
     them and one more round with the residuals' own Jacobians (PRECISE, ``fd_rel_step``) ends the fit: the fixed
     point of an approximate Jacobian is biased along the sloppy directions (measured: ~3 σ² of SSE on a 5-s
     record), which an exact round removes in a few steps. Without ``coarse`` every round is PRECISE (a scout:
@@ -299,7 +303,7 @@ def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int
             merge(more)
         if gain <= round_rtol:
             break
-    if coarse and model.jacobian is not model.settings:
+    if coarse and (model.jacobian is not model.settings or model.jacobian_reuse > 0):
         more = _fit_once(model, fit.theta, free, max_nfev, fd_rel_step, bounds, coarse=False)
         if more.sse < fit.sse:
             merge(more)
@@ -327,6 +331,8 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
         return T
 
     last: list[tuple[np.ndarray, np.ndarray]] = []  # the latest residual: scipy asks for the Jacobian there
+    reuse = model.jacobian_reuse if coarse else 0
+    held: dict = {}  # the latest Jacobian, where it was taken, the residual there, Broyden updates since a fresh one
 
     def resid(x: np.ndarray) -> np.ndarray:
         r = model.fit_residuals(thetas_of(x[None, :]))[0]
@@ -334,15 +340,24 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
         return r
 
     def jac(x: np.ndarray) -> np.ndarray:
+        here = last[0][1] if last and np.array_equal(last[0][0], x) else None
+        if reuse and held and held["age"] < reuse and here is not None and np.all(np.isfinite(here)):
+            J = broyden(held["J"], held["x"], held["r"], x, here, typ)
+            if J is not None:
+                held.update(J=J, x=x.copy(), r=here, age=held["age"] + 1)
+                return J
         h = step * np.maximum(np.abs(x), typ)
         h = np.where(x + h > hi, -h, h)
         X = x[None, :] + np.diag(h)
-        if tier is model.settings and last and np.array_equal(last[0][0], x):
-            r0, Rr = last[0][1], model.fit_residuals(thetas_of(X))
+        if tier is model.settings and here is not None:
+            r0, Rr = here, model.fit_residuals(thetas_of(X))
         else:  # the point itself in the Jacobian's tier too: both ends of every difference from one integrator
             R = model.fit_residuals(thetas_of(np.vstack([x[None, :], X])), tier)
             r0, Rr = R[0], R[1:]
-        return (Rr - r0).T / h
+        J = (Rr - r0).T / h
+        if reuse and here is not None:
+            held.update(J=J, x=x.copy(), r=here, age=0)
+        return J
 
     t0 = time.perf_counter()
     res = polish(resid, x0, lo, hi, log_mask=mask, jac_fn=jac, max_nfev=max_nfev)
@@ -351,6 +366,21 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
             "nfev": int(res.nfev), "message": str(res.message), "seconds": time.perf_counter() - t0}
     raw = float(_sse(model.residuals(out[None, :]))[0]) if not model.noise.white else float(res.sse)
     return Fit(out, free, float(res.sse), info, res.jac, res.scaling, raw, model.noise)
+
+
+def broyden(J: np.ndarray, x0: np.ndarray, r0: np.ndarray, x1: np.ndarray, r1: np.ndarray, scale: np.ndarray
+            ) -> np.ndarray | None:
+    """Broyden's rank-one update of the Jacobian ``J`` = dr/dx at ``x0`` to ``x1`` (residuals ``r0``, ``r1``), in
+    the coordinates x/``scale``: the least change of J (Frobenius norm, scaled) that maps the step onto the change of
+    the residual, so the columns of parameters of very different sizes are corrected in proportion. None for a zero
+    step."""
+    dz = (x1 - x0) / scale
+    nz = float(dz @ dz)
+    if not nz > 0.0:
+        return None
+    Jz = J * scale[None, :]
+    Jz = Jz + np.outer(r1 - r0 - Jz @ dz, dz) / nz
+    return Jz / scale[None, :]
 
 
 def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, held: Sequence[str] = (),

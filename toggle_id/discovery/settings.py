@@ -38,6 +38,11 @@ class DiscoverSettings:
       (:data:`toggle_id.simulate.JACOBIAN` at a 1e-3 step, about half the cost, each polish finished by a PRECISE
       round, the screening grids in it too; residuals, statistics, sensitivities and scouts stay PRECISE) — ~20 %
       faster, but it moved verdicts of the adversarial set (README), so it is not the default;
+      jacobian_reuse: k > 0 lets the long polishes' rounds follow each finite-difference Jacobian by up to k
+      Broyden updates (the secant update in coordinates scaled by the parameters' sizes, from the residuals scipy
+      evaluated anyway: no simulation), each polish then finished by a round with fresh Jacobians throughout; 0
+      (the default) is every Jacobian by finite differences — an experiment towards issue 14, not yet judged
+      on the adversarial set;
       jac_rel_step: (log-)step of the sensitivities J; rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
       as absorbed by the free parameters.
     - noise_std: known measurement noise (m), only reported as rms/noise (the discover job: None takes
@@ -131,6 +136,7 @@ class DiscoverSettings:
     hold_gauge: bool = True
     grid_points: int = 10
     fd_tier: str = "precise"
+    jacobian_reuse: int = 0
     fd_rel_step: float = 1e-4
     jac_rel_step: float = 1e-4
     rank_rtol: float = 1e-7
@@ -179,6 +185,10 @@ class DiscoverSettings:
             raise ConfigError(f"discover.screen_alpha must lie in (0, 1], got {self.screen_alpha!r}")
         if not 0.0 < float(self.alpha_diag) < 1.0:
             raise ConfigError(f"discover.alpha_diag must lie in (0, 1), got {self.alpha_diag!r}")
+        reuse = self.jacobian_reuse
+        if not isinstance(reuse, int) or isinstance(reuse, bool) or reuse < 0:
+            raise ConfigError(f"discover.jacobian_reuse must be a non-negative integer (0: off), "
+                              f"got {self.jacobian_reuse!r}")
         if not isinstance(self.max_effects, int) or self.max_effects < 0:
             raise ConfigError(f"discover.max_effects must be a non-negative integer, got {self.max_effects!r}")
         for name in ("acf_lags", "ccf_lags", "ccf_step", "baseline_nfev", "refit_nfev", "null_nfev", "scout_nfev",
