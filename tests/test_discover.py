@@ -63,6 +63,7 @@ def test_settings_validate_and_reject_bad_values():
                         ({"bogus": 1}, "bogus"), ({"max_effects": -1}, "max_effects"),
                         ({"noise_std": -1.0}, "noise_std"), ({"catch_all_keep": 1.0}, "catch_all_keep"),
                         ({"catch_all": "yes"}, "catch_all"), ({"fd_tier": "loose"}, "fd_tier"),
+                        ({"jacobian_reuse": -1}, "jacobian_reuse"), ({"jacobian_reuse": True}, "jacobian_reuse"),
                         ({"stronger_starts": [0.5]}, "stronger_starts"), ({"stronger_starts": 3}, "stronger_starts"),
                         ({"routes": "sometimes"}, "routes"), ({"route_rtol": 1.0}, "route_rtol"),
                         ({"glitch_k": -1.0}, "glitch_k"), ({"glitch_k": True}, "glitch_k"),
@@ -493,6 +494,32 @@ def test_the_gauge_moves_effects_along_the_symmetries_without_changing_x_B():
     ki, c = ALL_INDEX["K_i"], ALL_INDEX["c_kt"]
     assert moved[c] * moved[ki] ** 2 == pytest.approx(theta[c] * theta[ki] ** 2, rel=1e-12)
     assert moved[c] != pytest.approx(theta[c], rel=1e-3)
+
+
+def test_broyden_update_meets_the_secant_condition_and_changes_the_jacobian_least_in_scaled_coordinates():
+    """discover.jacobian_reuse's update (model.broyden), against its definition: the updated Jacobian maps the step
+    onto the residual's change; it differs from the old one by a rank-one term whose row space is the scaled step,
+    so a direction orthogonal to the step (scaled) is mapped as before; on a linear residual started from the true
+    Jacobian it stays exact; a zero step gives None."""
+    from toggle_id.discovery.model import broyden
+
+    rng = np.random.default_rng(3)
+    m, k = 40, 5
+    scale = np.array([1e-3, 1.0, 50.0, 2e4, 0.2])
+    A = rng.standard_normal((m, k)) / scale[None, :]
+    J0 = A + 0.3 * rng.standard_normal((m, k)) / scale[None, :]
+    x0 = scale * rng.uniform(0.5, 2.0, k)
+    x1 = x0 + scale * 0.1 * rng.standard_normal(k)
+    r0, r1 = A @ x0, A @ x1
+    J1 = broyden(J0, x0, r0, x1, r1, scale)
+    assert np.allclose(J1 @ (x1 - x0), r1 - r0, rtol=1e-10, atol=1e-12 * np.abs(r1 - r0).max())
+    dz = (x1 - x0) / scale
+    assert np.linalg.matrix_rank((J1 - J0) * scale[None, :], tol=1e-9 * np.abs(J1 * scale).max()) == 1
+    w = rng.standard_normal(k)
+    w -= (w @ dz) / (dz @ dz) * dz  # orthogonal to the scaled step
+    assert np.allclose((J1 * scale) @ w, (J0 * scale) @ w)
+    assert np.allclose(broyden(A, x0, r0, x1, r1, scale), A)
+    assert broyden(J0, x0, r0, x0.copy(), r0, scale) is None
 
 
 # ---------------------------------------------------------------------------------------------- the job
