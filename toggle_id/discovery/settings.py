@@ -81,7 +81,10 @@ class DiscoverSettings:
       multiples (≥ 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
       from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
       started small can stop where nominal parameters absorb the effect (:func:`.refit.stronger_magnitudes`);
-      empty: off.
+      empty: off. weaker_starts: when the accepted effect's magnitude ends at the edge of its feasible domain
+      (:data:`.forward.AT_BOUND` of the way), its final polish also starts from the nominal fit as given with the
+      magnitude at these fractions (< 1) of its distance from "off" — a lash or a threshold run to its bound sits
+      where the SSE no longer moves with it (docs/discovery.md, *open problems*); empty: off.
     - routes: when the loop runs again from the further nominal fits it is given (:mod:`.routes`): ``unexplained``
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
@@ -157,6 +160,7 @@ class DiscoverSettings:
     ambiguity_alpha: float = 0.05
     encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
+    weaker_starts: tuple[float, ...] = (1 / 3, 1 / 10)
     routes: str = "unexplained"
     route_rtol: float = 1e-3
     glitch_k: float = 8.0
@@ -238,6 +242,11 @@ class DiscoverSettings:
                 isinstance(f, (int, float)) and not isinstance(f, bool) and f >= 1 for f in factors):
             raise ConfigError(f"discover.stronger_starts must be a list of numbers ≥ 1, got {factors!r}")
         self.stronger_starts = tuple(float(f) for f in factors)
+        factors = self.weaker_starts
+        if isinstance(factors, (int, float)) or not all(
+                isinstance(f, (int, float)) and not isinstance(f, bool) and 0 < f < 1 for f in factors):
+            raise ConfigError(f"discover.weaker_starts must be a list of numbers in (0, 1), got {factors!r}")
+        self.weaker_starts = tuple(float(f) for f in factors)
         if self.routes not in ("unexplained", "always", "never"):
             raise ConfigError(f"discover.routes must be 'unexplained', 'always' or 'never', got {self.routes!r}")
         if not (isinstance(self.route_rtol, (int, float)) and not isinstance(self.route_rtol, bool)
@@ -269,7 +278,7 @@ class DiscoverSettings:
         if extra:
             raise ConfigError(f"discover: unknown setting(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
         kw = {k: v for k, v in node.items() if k in known}
-        for key in ("candidates", "stronger_starts"):
+        for key in ("candidates", "stronger_starts", "weaker_starts"):
             if isinstance(kw.get(key), (list, tuple)):
                 kw[key] = tuple(kw[key])
         return cls(**kw).validate()
