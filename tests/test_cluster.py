@@ -242,6 +242,9 @@ def test_a_local_ray_that_will_not_start_leaves_the_job_to_the_serial_evaluator(
     fell_back = run_in_process("jobs.run", *QUICK, f"hydra.run.dir={tmp_path / 'ray'}", cwd=tmp_path)
     assert fell_back.returncode == 0, fell_back.stderr[-2000:]
     assert len(calls) == 2
+    from toggle_id.app.common import local_ray_failed
+
+    assert local_ray_failed() is None  # the fallback ended with its job's session
     assert any("local Ray did not start twice" in r.getMessage() and "evaluating serially" in r.getMessage()
                for r in caplog.records)
     serial = run_in_process("jobs.run", *QUICK, "evaluator=serial", f"hydra.run.dir={tmp_path / 'serial'}",

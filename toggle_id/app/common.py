@@ -182,6 +182,7 @@ def ray_session(ev: Mapping) -> Iterator[None]:
     try:
         yield
     finally:
+        _LOCAL_RAY_FAILED.clear()  # the fallback holds for this job's session only
         if started:
             ray.shutdown()
 
