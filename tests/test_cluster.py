@@ -229,7 +229,7 @@ def test_a_local_ray_that_will_not_start_leaves_the_job_to_the_serial_evaluator(
     from conftest import run_in_process
 
     from toggle_id import evaluators
-    from toggle_id.app.common import ray_session
+    from toggle_id.app.common import local_ray_failed, ray_session
 
     calls = []
 
@@ -242,8 +242,6 @@ def test_a_local_ray_that_will_not_start_leaves_the_job_to_the_serial_evaluator(
     fell_back = run_in_process("jobs.run", *QUICK, f"hydra.run.dir={tmp_path / 'ray'}", cwd=tmp_path)
     assert fell_back.returncode == 0, fell_back.stderr[-2000:]
     assert len(calls) == 2
-    from toggle_id.app.common import local_ray_failed
-
     assert local_ray_failed() is None  # the fallback ended with its job's session
     assert any("local Ray did not start twice" in r.getMessage() and "evaluating serially" in r.getMessage()
                for r in caplog.records)
