@@ -534,7 +534,10 @@ def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple
     for spec in specs:
         if spec.calibrate and set(calibrated.get(spec.key, {})) != set(spec.calibrate):
             raise SystemExit(f"error: {spec.key} has no calibrated magnitude; run with --calibrate")
-        for k in range(replicates + 1):
+        if replicates and spec.noise_m == 0:  # an encoder without Gaussian noise: nothing random to draw again
+            log(f"{NAMES[spec.key]}: no random noise (a quantised reading only), so no replicates: each would be "
+                "the same record")
+        for k in range(replicates + 1 if spec.noise_m > 0 else 1):
             t0 = time.perf_counter()
             rec, entry = make_record(spec, calibrated.get(spec.key, {}), duration, replicate=k)
             csv = write_csv(rec, out / entry["file"])

@@ -14,8 +14,9 @@ swept at A = 0.25 V) with independent noise; the discover runs get it as ``valid
 fitted: an effect must predict it better, and structure left in its prediction makes the result unexplained).
 
 ``--replicates K`` also writes (and runs) K replicates of each record, ``recNN_r1`` …: the same machine, command
-and noise model with independent noise. A verdict is one draw of the noise; the replicates say how often it comes
-out so — on the noise-only records, how often the loop names an effect that is not there.
+and noise model with independent noise (none of a record without random noise, the quantised reading alone). A
+verdict is one draw of the noise; the replicates say how often it comes out so — on the noise-only records, how
+often the loop names an effect that is not there.
 
 ``--run`` then runs the discover job on every record (``python -m jobs.run +experiment=discover data=csv
 data.path=… seed=0 progress=false``; MLflow off unless ``--mlflow-uri``; ``--override`` adds Hydra overrides),
@@ -169,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
         print("CALIBRATED entries (paste into jobs/adversarial_set.py):\n" + calibration_table(cal), flush=True)
     manifest = generate(out, specs, calibrated, args.duration, validation=args.validation, replicates=args.replicates)
     if args.run:
-        names = [replicate_name(NAMES[s.key], k) for s in specs for k in range(args.replicates + 1)]
+        names = [replicate_name(NAMES[s.key], k) for s in specs
+                 for k in range(args.replicates + 1 if s.noise_m > 0 else 1)]
         _, summary = run_all(out, manifest, names, args.override, args.mlflow_uri, args.jobs, args.timeout)
         if summary["errors"]:
             return 1

@@ -99,6 +99,11 @@ def test_replicates_are_the_same_machine_with_independent_noise(tmp_path):
     assert abs(np.corrcoef(d1, d2)[0, 1] - 0.5) < 0.15  # both minus the same draw, independent otherwise
     with pytest.raises(SystemExit):
         B.main(["--out", str(tmp_path), "--only", "noise_white", "--replicates", "-1"])
+    # a reading quantised without Gaussian noise has nothing random: its replicates would be the record itself
+    assert B.main(["--out", str(tmp_path / "q"), "--only", "noise_quantised", "--duration", "0.5",
+                   "--replicates", "2"]) == 0
+    assert [r["name"] for r in json.loads((tmp_path / "q" / "manifest.json").read_text())["records"]] == \
+        [S.NAMES["noise_quantised"]]
 
 
 def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp_path):
