@@ -302,6 +302,12 @@ VALIDATION_SEED_OFFSET = 5000
 REPLICATE_SEED_STEP = 100_000
 
 
+def replicate_count(spec: Spec, replicates: int) -> int:
+    """How many records ``spec`` gives with ``replicates`` asked for: itself and the replicates, or itself alone when
+    it has no random noise (a quantised reading only: a replicate would be the same record)."""
+    return replicates + 1 if spec.noise_m > 0 else 1
+
+
 def replicate_name(name: str, replicate: int) -> str:
     """``rec19`` for the record itself, ``rec19_r2`` for its second replicate."""
     return name if replicate == 0 else f"{name}_r{replicate}"
@@ -537,7 +543,7 @@ def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple
         if replicates and spec.noise_m == 0:  # an encoder without Gaussian noise: nothing random to draw again
             log(f"{NAMES[spec.key]}: no random noise (a quantised reading only), so no replicates: each would be "
                 "the same record")
-        for k in range(replicates + 1 if spec.noise_m > 0 else 1):
+        for k in range(replicate_count(spec, replicates)):
             t0 = time.perf_counter()
             rec, entry = make_record(spec, calibrated.get(spec.key, {}), duration, replicate=k)
             csv = write_csv(rec, out / entry["file"])

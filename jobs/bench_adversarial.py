@@ -43,6 +43,7 @@ from jobs.adversarial_set import (
     calibrate,
     calibration_table,
     generate,
+    replicate_count,
     replicate_name,
     select,
 )
@@ -170,8 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         print("CALIBRATED entries (paste into jobs/adversarial_set.py):\n" + calibration_table(cal), flush=True)
     manifest = generate(out, specs, calibrated, args.duration, validation=args.validation, replicates=args.replicates)
     if args.run:
-        names = [replicate_name(NAMES[s.key], k) for s in specs
-                 for k in range(args.replicates + 1 if s.noise_m > 0 else 1)]
+        names = [replicate_name(NAMES[s.key], k) for s in specs for k in range(replicate_count(s, args.replicates))]
         _, summary = run_all(out, manifest, names, args.override, args.mlflow_uri, args.jobs, args.timeout)
         if summary["errors"]:
             return 1

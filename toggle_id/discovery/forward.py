@@ -193,8 +193,9 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
     current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
                        rounds=settings.rounds)
     effect_names = [nm for nm in chosen.fit.free if nm not in free]
-    alt = fit_free(model, _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names}),
-                   chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+    as_given = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names})  # the nominal fit as given
+    alt = fit_free(model, as_given, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                   rounds=settings.rounds)
     if alt.sse < current.sse:
         say(f"  second start (nominal fit + effects) reached {alt.rmse(n) * 1e6:.4g} µm "
             f"instead of {current.rmse(n) * 1e6:.4g} µm")
@@ -204,8 +205,7 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
     value = float(current.theta[ALL_INDEX[mag.name]])
     if settings.weaker_starts and at_bound(effect, value):
         for f in settings.weaker_starts:
-            start = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names})
-            start[ALL_INDEX[mag.name]] = mag.off + f * (value - mag.off)
+            start = _with(as_given, {mag.name: mag.off + f * (value - mag.off)})
             weaker = fit_free(model, start, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
                               rounds=settings.rounds)
             say(f"  {mag.name} at the edge of its domain ({value:.4g}): from {f:.3g} of it, "

@@ -73,8 +73,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     settings = (settings or DiscoverSettings()).validate()
     say = progress or (lambda msg: log.info(msg))
     t_start = time.perf_counter()
-    model = Model(record, PRECISE, settings.parallel, jacobian=settings.jacobian)
-    model.jacobian_reuse = settings.jacobian_reuse
+    model = Model(record, PRECISE, settings.parallel, jacobian=settings.jacobian,
+                  jacobian_reuse=settings.jacobian_reuse)
     judge = Judge(model, settings, validation)
     fixed = dict(fixed or {})
     for k in fixed:

@@ -47,7 +47,7 @@ class Model:
     integrator the rows ended in, at about half the cost."""
 
     def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True,
-                 jacobian: tuple[SolverSettings, float] | None = None) -> None:
+                 jacobian: tuple[SolverSettings, float] | None = None, jacobian_reuse: int = 0) -> None:
         if record.x_B is None:
             raise DataError(f"record {record.name!r} has no measured x_B to fit")
         self.record = record
@@ -58,7 +58,7 @@ class Model:
         self.parallel = parallel
         #: Broyden updates allowed between two finite-difference Jacobians in a polish's coarse rounds (0: none;
         #: see :func:`fit_free`)
-        self.jacobian_reuse = 0
+        self.jacobian_reuse = int(jacobian_reuse)
         self.n_sims = 0
         self.noise = WHITE_ASSUMED
         #: effect sets (:func:`effects_on`) whose simulations go straight to the fallback
