@@ -35,7 +35,10 @@ The set (:data:`SPECS`):
   torque on the simulation sweep; and a slider viscous friction under it at the faint end, ≈ 1.3σ (cycling);
 * an effect outside the library under that AR(1) noise (added 2026-11-29): the friction bump on the simulation
   sweep, ≈ 3σ — coloured noise and missing physics at once, as in measured data: the noise model must not swallow
-  the bump, nor the bump make a library effect look supported.
+  the bump, nor the bump make a library effect look supported;
+* two threshold effects under that AR(1) noise (added 2026-11-29, eighteenth session), each ≈ 2σ on the cycling
+  command: the drive's voltage saturation and a screw backlash — a slow noise and an effect that acts only past a
+  threshold both leave long runs of one sign in the residual.
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
@@ -145,6 +148,9 @@ SPECS: tuple[Spec, ...] = (
          noise_ar=0.9, target=1.3),
     Spec("ar09_outside_bump_simulation", "outside", "simulation", 412, calibrate=("F_b",), outside="bump",
          noise_ar=0.9, target=3.0),
+    Spec("ar09_voltage_saturation_cycling", "library", "cycling", 116, ("voltage_saturation",), calibrate=("s_sat",),
+         noise_ar=0.9),
+    Spec("ar09_backlash_cycling", "library", "cycling", 117, ("backlash",), calibrate=("b_l",), noise_ar=0.9),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -192,6 +198,8 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     # 1.74, 1.73 um
     "ar09_viscous_cycling_faint": {"c_B": (1193.38, 1.304)},  # refit RMS 0.838 um (the faint end, 1.3σ)
     "ar09_outside_bump_simulation": {"F_b": (157.565, 3.010)},  # refit RMS 2.84 um
+    "ar09_voltage_saturation_cycling": {"s_sat": (0.0390166, 1.989)},  # refit RMS 1.72 um; steep (0.0408588: 32.9 um)
+    "ar09_backlash_cycling": {"b_l": (4.35054e-06, 2.009)},  # refit RMS 1.74 um
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
