@@ -513,6 +513,54 @@ def test_an_effect_polished_to_the_edge_of_its_domain_is_polished_again_from_wea
         D.DiscoverSettings(weaker_starts=(2.0,)).validate()
 
 
+def test_a_second_start_that_moves_the_effect_is_started_again_at_the_values_reached(monkeypatch):
+    """forward._polish_with_effect: when the polish from the nominal fit as given wins but moves the effect's
+    magnitude by more than reanchor_rtol, the nominal fit as given is polished once more at the magnitude reached
+    (the nominal parameters bent on the way and stalled: the default suite's backlash case on an AMD machine)."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import forward as FW
+    from toggle_id.discovery.model import Fit
+
+    a, b = np.zeros(len(ALL_INDEX)), np.zeros(len(ALL_INDEX))
+    a[ALL_INDEX["b_l"]], b[ALL_INDEX["b_l"]] = 3.26e-4, 5.1e-4
+    assert FW.moved_effects(a, b, ["b_l"], 0.1) == ["b_l"] and FW.moved_effects(a, b, ["b_l"], 0.5) == []
+    assert FW.moved_effects(a, b, ["b_l"], 0.0) == [] and FW.moved_effects(a, a, ["b_l"], 0.1) == []
+    theta = extend(ASSIGNED)[0]
+    anchor = theta * 1.01
+    free = ("J_m",)
+
+    def run(rtol: float) -> tuple[list, Fit]:
+        starts = []
+
+        def fake_fit(model, th, fr, *a, **k):
+            starts.append(th.copy())
+            out = th.copy()
+            if not np.isclose(th[ALL_INDEX["J_m"]], anchor[ALL_INDEX["J_m"]]):
+                return Fit(out, fr, 50.0)  # the refit's valley
+            if abs(th[ALL_INDEX["b_l"]] - 5.1e-4) < 1e-6:
+                return Fit(out, fr, 0.97)  # the nominal fit as given at the right lash: the floor
+            out[ALL_INDEX["b_l"]] = 5.1e-4
+            out[ALL_INDEX["J_m"]] *= 1.5  # the nominal parameters bend on the way, and stall there
+            return Fit(out, fr, 9.3)
+
+        monkeypatch.setattr(FW, "fit_free", fake_fit)
+        th = theta.copy()
+        th[ALL_INDEX["b_l"]] = 3.26e-4
+        chosen = SimpleNamespace(name="backlash", fit=Fit(th, (*free, "b_l"), 60.0))
+        out = FW._polish_with_effect(SimpleNamespace(n=100), chosen, anchor, free,
+                                     D.DiscoverSettings(reanchor_rtol=rtol), lambda m: None)
+        return starts, out
+
+    starts, out = run(0.1)
+    assert len(starts) == 3 and out.sse == 0.97 and out.theta[ALL_INDEX["b_l"]] == 5.1e-4
+    assert starts[2][ALL_INDEX["J_m"]] == anchor[ALL_INDEX["J_m"]] and starts[2][ALL_INDEX["b_l"]] == 5.1e-4
+    starts, out = run(0.0)  # off: the stalled fit is kept
+    assert len(starts) == 2 and out.sse == 9.3
+    with pytest.raises(ConfigError, match="reanchor_rtol"):
+        D.DiscoverSettings(reanchor_rtol="x").validate()
+
+
 @pytest.mark.slow
 def test_a_lash_run_out_to_its_bound_comes_back_to_the_truth():
     """The open problem of docs/discovery.md on the default suite's backlash case cut to 0.5 s, the job's defaults:

@@ -84,7 +84,9 @@ class DiscoverSettings:
       empty: off. weaker_starts: when the accepted effect's magnitude ends at the edge of its feasible domain
       (:data:`.forward.AT_BOUND` of the way), its final polish also starts from the nominal fit as given with the
       magnitude at these fractions (< 1) of its distance from "off" — a lash or a threshold run to its bound sits
-      where the SSE no longer moves with it (docs/discovery.md, *open problems*); empty: off.
+      where the SSE no longer moves with it (docs/discovery.md, *open problems*); empty: off. reanchor_rtol: when
+      the polish from the nominal fit as given moves an added effect's magnitude by more than this share of its
+      distance from "off", the nominal fit as given is polished once more at the magnitudes reached (≤ 0: off).
     - routes: when the loop runs again from the further nominal fits it is given (:mod:`.routes`): ``unexplained``
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
@@ -161,6 +163,7 @@ class DiscoverSettings:
     encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
     weaker_starts: tuple[float, ...] = (1 / 3, 1 / 10)
+    reanchor_rtol: float = 0.1
     routes: str = "unexplained"
     route_rtol: float = 1e-3
     glitch_k: float = 8.0
@@ -247,6 +250,9 @@ class DiscoverSettings:
                 isinstance(f, (int, float)) and not isinstance(f, bool) and 0 < f < 1 for f in factors):
             raise ConfigError(f"discover.weaker_starts must be a list of numbers in (0, 1), got {factors!r}")
         self.weaker_starts = tuple(float(f) for f in factors)
+        if not (isinstance(self.reanchor_rtol, (int, float)) and not isinstance(self.reanchor_rtol, bool)
+                and np.isfinite(self.reanchor_rtol)):
+            raise ConfigError(f"discover.reanchor_rtol must be a number (≤ 0: off), got {self.reanchor_rtol!r}")
         if self.routes not in ("unexplained", "always", "never"):
             raise ConfigError(f"discover.routes must be 'unexplained', 'always' or 'never', got {self.routes!r}")
         if not (isinstance(self.route_rtol, (int, float)) and not isinstance(self.route_rtol, bool)
