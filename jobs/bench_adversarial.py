@@ -35,13 +35,12 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from jobs.adversarial_calibration import calibrate, calibration_table
 from jobs.adversarial_set import (
     CALIBRATED,
     DURATION,
     NAMES,
     ROOT,
-    calibrate,
-    calibration_table,
     generate,
     replicate_count,
     replicate_name,

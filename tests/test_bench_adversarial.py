@@ -320,3 +320,22 @@ def test_run_judges_one_record_with_the_discover_job(tmp_path):
     wall = row["wall_s"]
     assert B.main(args) == 0  # resumed: not run again
     assert json.loads((tmp_path / "results.json").read_text())["rows"][0]["wall_s"] == wall
+
+
+def test_calibration_finds_the_magnitude_whose_refit_leaves_the_target_ratio():
+    """jobs.adversarial_calibration on a 1-s record (the voltage saturation under AR(1) noise: steep, searched in
+    the excess over the clipping threshold): the ratio of the magnitude found is the target within the tolerance,
+    and measuring that magnitude again gives the same ratio."""
+    import math
+
+    from jobs import adversarial_calibration as C
+
+    spec = S.SPECS_BY_KEY["ar09_voltage_saturation_cycling"]
+    theta, _ = S.draw_truth(spec)
+    out = C.calibrate_param(spec, "s_sat", theta, duration=1.0, log=lambda m: None)
+    assert abs(out["ratio"] / spec.target - 1.0) <= 0.03 and out["evaluations"][-1]["value"] == out["value"]
+    rec = S.base_record(spec.command, 1.0)
+    x, _ = S.clean_response(spec, theta, {"s_sat": out["value"]}, {"s_sat": out["value"]}, rec)
+    r = C.refit_rms(spec, theta, rec, x)
+    assert math.sqrt(r * r + 1e-12) / 1e-6 == pytest.approx(out["ratio"], rel=1e-6)
+    assert C.calibration_table({spec.key: {"s_sat": out}}).startswith(f'    "{spec.key}": {{"s_sat": (')
