@@ -848,6 +848,26 @@ def test_coloured_or_quantised_noise_is_not_an_effect(rho, quantum, sigma):
 
 
 @pytest.mark.slow
+def test_a_threshold_effect_under_slow_noise_is_named():
+    """A screw backlash under AR(1) noise with ρ = 0.9 (rec36's machine of the adversarial set, the cycling command,
+    the lash calibrated to ≈ 2σ), on an independent draw of the noise (its first replicate), the nominal fit given
+    a few per cent off the truth: slow noise and a lash both leave long runs of one sign; the lash alone is named."""
+    from jobs.adversarial_set import CALIBRATED, draw_truth, make_record, select
+
+    spec = select("ar09_backlash_cycling")[0]
+    rec, entry = make_record(spec, CALIBRATED[spec.key], replicate=1)
+    theta, _ = draw_truth(spec)
+    start = theta * np.exp(0.03 * np.random.default_rng(7).standard_normal(15))
+    res = D.discover(rec, nominal=start, settings=D.DiscoverSettings())
+    d = res.to_dict()
+    print(f"\n[threshold, AR(1) 0.9] added {d['accepted']}, compensating {[c['name'] for c in d['compensating']]}, "
+          f"rms {res.rmse_before_m * 1e6:.4g} -> {res.rmse_after_m * 1e6:.4g} um, {res.seconds:.0f} s")
+    assert [a["name"] for a in res.effects_added] == ["backlash"] and not res.unexplained
+    assert res.effects_added[0]["params"]["b_l"] == pytest.approx(CALIBRATED[spec.key]["b_l"][0], rel=0.2)
+    assert res.rmse_after_m < 1.5 * NOISE and d["noise_model"]["after"]["order"] >= 1
+
+
+@pytest.mark.slow
 def test_noise_loud_at_speed_is_not_an_effect_and_is_named():
     """rec19's machine of the adversarial set (no effect, parameters 30 % off the assigned values) with noise whose σ
     grows with slider B's speed (0.3 + |ẋ_B|/mean|ẋ_B|, rms 1 µm). Before the robust tests the loop ended with a

@@ -85,8 +85,8 @@ class DiscoverSettings:
       (:data:`.forward.AT_BOUND` of the way), its final polish also starts from the nominal fit as given with the
       magnitude at these fractions (< 1) of its distance from "off" — a lash or a threshold run to its bound sits
       where the SSE no longer moves with it (docs/discovery.md, *open problems*); empty: off. reanchor_rtol: when
-      the polish from the nominal fit as given moves an added effect's magnitude by more than this share of its
-      distance from "off", the nominal fit as given is polished once more at the magnitudes reached (≤ 0: off).
+      the polish from the nominal fit as given wins and changes an added effect's parameters by more than this share
+      of their values, the nominal fit as given is polished once more at the values reached (≤ 0: off).
     - routes: when the loop runs again from the further nominal fits it is given (:mod:`.routes`): ``unexplained``
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
