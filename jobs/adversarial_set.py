@@ -47,8 +47,8 @@ of effects the record cannot tell apart); *spurious* / *missed*; for a record ou
 *ambiguous-wrong* (nothing named, but library effects offered as the alternatives).
 
 The calibrated magnitudes are constants here (:data:`CALIBRATED`, with the measured ratios); ``--calibrate``
-measures them again (for the records selected, :mod:`jobs.adversarial_calibration`) and prints the new table. ``--duration`` shortens the records
-(tests); the calibration holds for 5-s records only.
+measures them again (for the records selected, :mod:`jobs.adversarial_calibration`) and prints the new table.
+``--duration`` shortens the records (tests); the calibration holds for 5-s records only.
 """
 from __future__ import annotations
 
