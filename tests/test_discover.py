@@ -855,7 +855,7 @@ def test_a_threshold_effect_under_slow_noise_is_named():
     from jobs.adversarial_set import CALIBRATED, draw_truth, make_record, select
 
     spec = select("ar09_backlash_cycling")[0]
-    rec, entry = make_record(spec, CALIBRATED[spec.key], replicate=1)
+    rec, _ = make_record(spec, CALIBRATED[spec.key], replicate=1)
     theta, _ = draw_truth(spec)
     start = theta * np.exp(0.03 * np.random.default_rng(7).standard_normal(15))
     res = D.discover(rec, nominal=start, settings=D.DiscoverSettings())
