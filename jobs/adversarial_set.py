@@ -420,7 +420,7 @@ def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple
     for spec in specs:
         if spec.calibrate and set(calibrated.get(spec.key, {})) != set(spec.calibrate):
             raise SystemExit(f"error: {spec.key} has no calibrated magnitude; run with --calibrate")
-        if replicates and spec.noise_m == 0:  # an encoder without Gaussian noise: nothing random to draw again
+        if replicates and replicate_count(spec, replicates) == 1:  # nothing random to draw again
             log(f"{NAMES[spec.key]}: no random noise (a quantised reading only), so no replicates: each would be "
                 "the same record")
         for k in range(replicate_count(spec, replicates)):

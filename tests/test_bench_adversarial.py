@@ -337,5 +337,6 @@ def test_calibration_finds_the_magnitude_whose_refit_leaves_the_target_ratio():
     rec = S.base_record(spec.command, 1.0)
     x, _ = S.clean_response(spec, theta, {"s_sat": out["value"]}, {"s_sat": out["value"]}, rec)
     r = C.refit_rms(spec, theta, rec, x)
-    assert math.sqrt(r * r + 1e-12) / 1e-6 == pytest.approx(out["ratio"], rel=1e-6)
+    sigma = S.effective_sigma(spec.noise_m, spec.quantum_m)
+    assert math.sqrt(r * r + sigma ** 2) / sigma == pytest.approx(out["ratio"], rel=1e-6)
     assert C.calibration_table({spec.key: {"s_sat": out}}).startswith(f'    "{spec.key}": {{"s_sat": (')

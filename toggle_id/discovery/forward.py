@@ -210,20 +210,26 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
     b_l = 0.326 mm the polish stalled (`xtol`) at 9.3 µm with b_l = 0.51 mm and the record was called unexplained;
     from the nominal fit as given at 0.51 mm it reaches 0.967 µm at b_l = 0.5002 mm."""
     n = model.n
-    current = fit_free(model, chosen.fit.theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
-                       rounds=settings.rounds)
     effect_names = [nm for nm in chosen.fit.free if nm not in free]
-    as_given = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names})  # the nominal fit as given
-    alt = fit_free(model, as_given, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
-                   rounds=settings.rounds)
+
+    def polish(theta: np.ndarray) -> Fit:
+        return fit_free(model, theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                        rounds=settings.rounds)
+
+    def as_given_with(theta: np.ndarray) -> np.ndarray:
+        """The nominal fit as given with the effects' values of ``theta``."""
+        return _with(anchor, {nm: theta[ALL_INDEX[nm]] for nm in effect_names})
+
+    current = polish(chosen.fit.theta)
+    as_given = as_given_with(current.theta)
+    alt = polish(as_given)
     if alt.sse < current.sse:
         say(f"  second start (nominal fit + effects) reached {alt.rmse(n) * 1e6:.4g} µm "
             f"instead of {current.rmse(n) * 1e6:.4g} µm")
         current = alt
         moved = moved_effects(as_given, current.theta, effect_names, settings.reanchor_rtol)
         if moved:
-            again = fit_free(model, _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effect_names}),
-                             chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
+            again = polish(as_given_with(current.theta))
             say(f"  {', '.join(moved)} moved on the way: from the nominal fit as given at the values reached, "
                 f"{again.rmse(n) * 1e6:.4g} µm")
             if again.sse < current.sse:
@@ -233,9 +239,7 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
     value = float(current.theta[ALL_INDEX[mag.name]])
     if settings.weaker_starts and at_bound(effect, value):
         for f in settings.weaker_starts:
-            start = _with(as_given, {mag.name: mag.off + f * (value - mag.off)})
-            weaker = fit_free(model, start, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
-                              rounds=settings.rounds)
+            weaker = polish(_with(as_given, {mag.name: mag.off + f * (value - mag.off)}))
             say(f"  {mag.name} at the edge of its domain ({value:.4g}): from {f:.3g} of it, "
                 f"{weaker.rmse(n) * 1e6:.4g} µm at {weaker.theta[ALL_INDEX[mag.name]]:.4g}")
             if weaker.sse < current.sse:
