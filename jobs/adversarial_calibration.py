@@ -60,15 +60,16 @@ def _search_coordinate(param: str, floor: float):
 def calibrate_param(spec: Spec, param: str, theta: np.ndarray, duration: float = DURATION, tol: float = 0.03,
                     max_evals: int = 9, log=print) -> dict:
     """The magnitude of ``param`` (the other effects of the record off) at which the refitted nominal model leaves
-    sqrt(RMS² + σ²)/σ ≈ ``spec.target`` (within ``tol``, relative): a search on a log scale — steps by the ratio
-    of the RMS errors (about linear in the magnitude for small effects) until the target is bracketed, then
+    sqrt(RMS² + σ²)/σ ≈ ``spec.target_of(param)`` (within ``tol``, relative): a search on a log scale — steps by the
+    ratio of the RMS errors (about linear in the magnitude for small effects) until the target is bracketed, then
     log-log interpolation kept inside the bracket."""
     from toggle_id.effects import effect_bounds
     from toggle_id.params import INDEX
 
     rec = base_record(spec.command, duration)
     sigma = effective_sigma(spec.noise_m, spec.quantum_m)
-    target_rms = sigma * math.sqrt(spec.target ** 2 - 1.0)
+    target = spec.target_of(param)
+    target_rms = sigma * math.sqrt(target ** 2 - 1.0)
     upper = np.inf if spec.outside else float(effect_bounds([param])[1][0])
     floor = 1.0 / (theta[INDEX["K_i"]] * float(np.max(np.abs(rec.v_in)))) if param == "s_sat" else 0.0
     to_u, from_u = _search_coordinate(param, floor)
@@ -90,9 +91,9 @@ def calibrate_param(spec: Spec, param: str, theta: np.ndarray, duration: float =
         evals.append({"value": m, "rms_fit_um": r * 1e6, "ratio": ratio})
         log(f"  {spec.key}: {param} = {m:.6g} -> refit RMS {r * 1e6:.4g} um, ratio {ratio:.3f} "
             f"({time.perf_counter() - t0:.0f} s)")
-        if best is None or abs(ratio - spec.target) < abs(best[1] - spec.target):
+        if best is None or abs(ratio - target) < abs(best[1] - target):
             best = (m, ratio, r)
-        if abs(ratio / spec.target - 1.0) <= tol:
+        if abs(ratio / target - 1.0) <= tol:
             break
         if r < target_rms:
             lo = (u, r) if lo is None or u > lo[0] else lo

@@ -38,13 +38,20 @@ The set (:data:`SPECS`):
   the bump, nor the bump make a library effect look supported;
 * two threshold effects under that AR(1) noise (added 2026-11-29, eighteenth session), each ≈ 2σ on the cycling
   command: the drive's voltage saturation and a screw backlash — a slow noise and an effect that acts only past a
-  threshold both leave long runs of one sign in the residual.
+  threshold both leave long runs of one sign in the residual;
+* *mixed* records (added 2026-11-29, nineteenth session): a library effect and one outside the library at once, as
+  measured data will have them — a cogging torque (≈ 2σ alone) with the friction bump (≈ 3σ alone) on the
+  simulation sweep, and with the quadratic drag (≈ 3σ alone) on the cycling command, both simulated by the
+  independent plant (which has the library's cogging term too, checked against the kernel in its tests). The right
+  answer names the cogging torque and calls the rest unexplained: the loop must neither let the unexplained
+  structure demote a real effect nor let it pass library stand-ins.
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
-The verdicts: *exact*; *ambiguous-correct* (nothing wrong named, and each true effect reported among a group
-of effects the record cannot tell apart); *spurious* / *missed*; for a record outside the library
-*unexplained-correct* (nothing named, structure flagged), *missed* (nothing named, no structure flagged) or
-*ambiguous-wrong* (nothing named, but library effects offered as the alternatives).
+The verdicts: *exact* (on a mixed record: the library effects named and the rest called unexplained; *+outside-missed*
+when the rest is not flagged); *ambiguous-correct* (nothing wrong named, and each true effect reported among a group of
+effects the record cannot tell apart); *spurious* / *missed*; for a record outside the library *unexplained-correct*
+(nothing named, structure flagged), *missed* (nothing named, no structure flagged) or *ambiguous-wrong* (nothing named,
+but library effects offered as the alternatives).
 
 The calibrated magnitudes are constants here (:data:`CALIBRATED`, with the measured ratios); ``--calibrate``
 measures them again (for the records selected, :mod:`jobs.adversarial_calibration`) and prints the new table.
@@ -81,10 +88,11 @@ class Spec:
     """One record of the set. ``key`` is for the manifest only; ``fixed`` holds effect parameters that only shape
     an effect (not calibrated); ``calibrate`` names the magnitudes calibrated (one per effect); ``outside`` is
     ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction``, ``scale_factor`` or ``deadband``
-    (tests/outside_plant.py)."""
+    (tests/outside_plant.py); ``targets`` overrides ``target`` for single magnitudes (a mixed record's outside
+    effect at 3σ beside a library effect at 2σ)."""
 
     key: str
-    category: str  # library | pair | noise | outside
+    category: str  # library | pair | noise | outside | mixed
     command: str   # simulation | experiment | cycling
     seed: int
     effects: tuple[str, ...] = ()
@@ -95,6 +103,11 @@ class Spec:
     noise_ar: float = 0.0
     quantum_m: float = 0.0
     target: float = 2.0
+    targets: dict = field(default_factory=dict)
+
+    def target_of(self, param: str) -> float:
+        """The calibration target of one magnitude: sqrt(RMS_fit² + σ²)/σ with it alone on the record."""
+        return float(self.targets.get(param, self.target))
 
 
 SPECS: tuple[Spec, ...] = (
@@ -151,6 +164,10 @@ SPECS: tuple[Spec, ...] = (
     Spec("ar09_voltage_saturation_cycling", "library", "cycling", 116, ("voltage_saturation",), calibrate=("s_sat",),
          noise_ar=0.9),
     Spec("ar09_backlash_cycling", "library", "cycling", 117, ("backlash",), calibrate=("b_l",), noise_ar=0.9),
+    Spec("mixed_cogging_bump_simulation", "mixed", "simulation", 501, ("cogging_torque",),
+         {"n_cog": 6.0, "phi_cog": 0.5}, ("a_cog", "F_b"), outside="bump", targets={"F_b": 3.0}),
+    Spec("mixed_cogging_drag_cycling", "mixed", "cycling", 502, ("cogging_torque",), {"n_cog": 6.0, "phi_cog": 0.5},
+         ("a_cog", "c_q"), outside="drag", targets={"c_q": 3.0}),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -200,11 +217,16 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "ar09_outside_bump_simulation": {"F_b": (157.565, 3.010)},  # refit RMS 2.84 um
     "ar09_voltage_saturation_cycling": {"s_sat": (0.0390166, 1.989)},  # refit RMS 1.72 um; steep (0.0408588: 32.9 um)
     "ar09_backlash_cycling": {"b_l": (4.35054e-06, 2.009)},  # refit RMS 1.74 um
+    "mixed_cogging_bump_simulation": {"a_cog": (0.143399, 2.001), "F_b": (276.528, 3.008)},  # each alone: refit RMS
+    # 1.73, 2.84 um (n_cog 6, phi_cog 0.5)
+    "mixed_cogging_drag_cycling": {"a_cog": (0.00519574, 2.002), "c_q": (1494.36, 3.014)},  # each alone: refit RMS
+    # 1.73, 2.84 um (at rest between the strokes the cogging holds the rotor: a small ripple moves x_B a lot)
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
 COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179, "pair_saturation_cogging": 2.592,
-                  "pair_ar09_load_cogging": 2.650}
+                  "pair_ar09_load_cogging": 2.650, "mixed_cogging_bump_simulation": 3.441,
+                  "mixed_cogging_drag_cycling": 3.213}
 
 # ------------------------------------------------------------------------------------------ truths and records
 def base_record(command: str, duration: float):
@@ -249,24 +271,41 @@ def draw_truth(spec: Spec) -> tuple[np.ndarray, dict]:
 
 
 def effect_values(spec: Spec, magnitudes: dict[str, float]) -> dict[str, float]:
-    """The extended (library) effect parameters of the record: the fixed shape ones and the magnitudes."""
+    """The extended (library) effect parameters of the record: the fixed shape ones and the magnitudes (of a mixed
+    record, its library effect's only)."""
+    from toggle_id.effects import ALL_INDEX
+
     if spec.outside == "saturation":  # the library's torque_constant_saturation, c_kt = 1/i_sat²
         return {"c_kt": float(magnitudes["i_sat"]) ** -2}
-    if spec.outside:
+    if not spec.effects:
         return {}
-    return {**spec.fixed, **{k: float(magnitudes[k]) for k in spec.calibrate}}
+    return {**spec.fixed, **{k: float(magnitudes[k]) for k in spec.calibrate if k in ALL_INDEX and k in magnitudes}}
+
+
+#: The independent plant's term of each outside effect: (its magnitude's name, its Outside keyword and value).
+_OUTSIDE_TERMS = {"bump": ("F_b", lambda m: {"bump": (m, BUMP_AT, BUMP_WIDTH)}),
+                  "saturation": ("i_sat", lambda m: {"i_sat": m}), "drag": ("c_q", lambda m: {"drag": m}),
+                  "scale": ("a_s", lambda m: {"scale": (m, SCALE_PITCH, SCALE_PHASE)}),
+                  "pin_friction": ("pin_mu", lambda m: {"pin_mu": m}),
+                  "scale_factor": ("e_s", lambda m: {"scale_factor": m}),
+                  "deadband": ("v_db", lambda m: {"deadband": m})}
 
 
 def outside_of(spec: Spec, magnitudes: dict[str, float]):
+    """The independent plant's effects of ``spec`` at ``magnitudes`` (those absent are off: a mixed record's
+    calibration switches on one effect at a time); a mixed record's library cogging torque is the plant's own."""
     from outside_plant import Outside
 
-    m = {k: float(v) for k, v in magnitudes.items()}
-    make = {"bump": lambda: Outside(bump=(m["F_b"], BUMP_AT, BUMP_WIDTH)),
-            "saturation": lambda: Outside(i_sat=m["i_sat"]), "drag": lambda: Outside(drag=m["c_q"]),
-            "scale": lambda: Outside(scale=(m["a_s"], SCALE_PITCH, SCALE_PHASE)),
-            "pin_friction": lambda: Outside(pin_mu=m["pin_mu"]), "scale_factor": lambda: Outside(scale_factor=m["e_s"]),
-            "deadband": lambda: Outside(deadband=m["v_db"])}
-    return make[spec.outside]() if spec.outside else Outside()
+    kw: dict = {}
+    if spec.outside:
+        param, term = _OUTSIDE_TERMS[spec.outside]
+        if param in magnitudes:
+            kw.update(term(float(magnitudes[param])))
+    if spec.category == "mixed":
+        lib = effect_values(spec, magnitudes)
+        if "a_cog" in lib:
+            kw["cogging"] = (lib["a_cog"], lib["n_cog"], lib["phi_cog"])
+    return Outside(**kw)
 
 
 def clean_response(spec: Spec, theta: np.ndarray, effects: dict, magnitudes: dict, rec) -> tuple[np.ndarray, np.ndarray]:
@@ -360,13 +399,15 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
         "effects": list(spec.effects),
         "effect_params": {e: {p.name: effects.get(p.name, p.off) for p in EFFECTS_BY_NAME[e].params}
                           for e in spec.effects},
-        "outside": outside_of(spec, magnitudes).to_dict() if spec.outside else {},
+        "outside": ({k: v for k, v in outside_of(spec, magnitudes).to_dict().items() if k not in spec.effects}
+                    if spec.outside else {}),
         "params": dict(zip(PARAM_NAMES, map(float, theta))), "perturbation": draw,
         "noise": {"model": "none" if spec.noise_m == 0 else ("ar1" if spec.noise_ar else "white"),
                   "sigma_m": spec.noise_m, "ar": spec.noise_ar, "quantum_m": spec.quantum_m,
                   "seed": seed, "effective_sigma_m": effective_sigma(spec.noise_m, spec.quantum_m)},
         "command": command, "duration_s": duration, "samples": rec.n, "simulator": simulator,
-        "calibration": ({"target_ratio": spec.target, "magnitudes": magnitudes,
+        "calibration": ({"target_ratio": ({k: spec.target_of(k) for k in spec.calibrate} if spec.targets
+                                          else spec.target), "magnitudes": magnitudes,
                          "measured_ratio": {k: float(v[1]) for k, v in calibrated.items()},
                          **({"combined_ratio": COMBINED_RATIO[spec.key]} if spec.key in COMBINED_RATIO else {}),
                          "valid_for_duration_s": DURATION} if spec.calibrate else None),

@@ -39,7 +39,9 @@ def noise_model_brief(noise_model) -> str | None:
 
 
 def verdict(entry: dict, report: dict) -> str:
-    """exact / spurious / missed / unexplained-correct (and combinations) for one record's discovery.json."""
+    """exact / spurious / missed / unexplained-correct (and combinations) for one record's discovery.json. A mixed
+    record (a library effect and one outside the library) is judged as an in-library one on its library effects,
+    and must also be called unexplained: ``+outside-missed`` when it is not."""
     truth = set(entry["effects"])
     accepted = set(accepted_effects(report))
     unexplained = bool(report.get("unexplained"))
@@ -51,14 +53,13 @@ def verdict(entry: dict, report: dict) -> str:
         if groups:
             return "ambiguous-wrong"  # nothing named, but only library effects offered as the alternatives
         return "unexplained-correct" if unexplained else "missed"
-    if accepted == truth and not groups:
-        return "exact"
     extra = accepted - truth
     missed = {m for m in truth - accepted if not any(m in g for g in groups)}
     wrong_groups = [g for g in groups if not g & truth]
     flags = [v for v, c in (("spurious", extra), ("ambiguous-wrong", wrong_groups), ("missed", missed)) if c]
     # nothing wrong named or offered, and each true effect named or among its group's alternatives
-    return "+".join(flags) or "ambiguous-correct"
+    found = "exact" if accepted == truth and not groups else "+".join(flags) or "ambiguous-correct"
+    return found + ("+outside-missed" if entry["category"] == "mixed" and not unexplained else "")
 
 
 def _validation(report: dict, key: str, scale: float | None = None):
@@ -79,7 +80,8 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         noise += f", {n['quantum_m'] * 1e6:g}-µm quantum"
     return {
         "record": entry["name"], "category": entry["category"], "command": entry["command"].get("sweep")
-        or entry["command"]["kind"], "truth": entry["effects"] or list(entry["outside"]) or [],
+        or entry["command"]["kind"], "truth": list(entry["effects"]) + [k for k in entry["outside"]
+                                                                        if k not in entry["effects"]],
         "noise": noise, "accepted": accepted_effects(report),
         "ambiguous": [" or ".join([a.get("name")] + [r.get("name") for r in a.get("indistinguishable_from") or []])
                       for a in report.get("ambiguous") or [] if isinstance(a, dict)],
@@ -120,11 +122,13 @@ def summarise(rows: list[dict]) -> dict:
     lib = [r for r in rows if r["category"] in ("library", "pair") and r["verdict"] != "error"]
     quiet = [r for r in rows if r["category"] in ("noise", "outside") and r["verdict"] != "error"]
     outside = [r for r in quiet if r["category"] == "outside"]
+    mixed = [r for r in rows if r["category"] == "mixed" and r["verdict"] != "error"]
     return {"exact_in_library": sum(r["verdict"] == "exact" for r in lib), "in_library": len(lib),
             "ambiguous_correct": sum(r["verdict"] == "ambiguous-correct" for r in lib),
             "exact_at_noise": sum(r["verdict"] == "exact" and (r["after_sigma"] or np.inf) <= 1.5 for r in lib),
             "nothing_accepted_quiet": sum(not r["accepted"] for r in quiet), "quiet": len(quiet),
             "unexplained_outside": sum(r["verdict"] == "unexplained-correct" for r in outside), "outside": len(outside),
+            "exact_mixed": sum(r["verdict"] == "exact" for r in mixed), "mixed": len(mixed),
             "errors": sum(r["verdict"] == "error" for r in rows), "records": len(rows)}
 
 
@@ -158,6 +162,8 @@ def results_markdown(rows: list[dict], summary: dict) -> str:
                if s.get("ambiguous_correct") else "") + "; nothing accepted on "
             f"{s['nothing_accepted_quiet']} of {s['quiet']} noise-only and outside records; outside records called "
             f"unexplained with nothing accepted: {s['unexplained_outside']} of {s['outside']}"
+            + (f"; mixed records with their library effects named and the rest called unexplained: "
+               f"{s['exact_mixed']} of {s['mixed']}" if s.get("mixed") else "")
             + (f"; {s['errors']} run(s) failed" if s["errors"] else "") + "."]
     where = [f"- {r['record']} ({', '.join(r['truth']) or 'no effect'}): {r['localisation']}"
              + (f"; periodic: {r['periodic']}" if r.get("periodic") else "") for r in rows if r.get("localisation")]

@@ -28,6 +28,12 @@ with physics outside the discovery library (``toggle_id/effects.py``):
   shifted towards zero, sign(v_in)·max(|v_in| − v_db, 0) — a threshold effect of the power stage or of an analogue
   input's offset compensation (the library's drive effects are a delay and a saturation at large commands).
 
+Two terms of the library are here too, written from docs/model.md §7, so that a record can hold a library
+effect and one outside the library at once (the adversarial set's *mixed* records) and as independent references of
+those kernel terms: a **cogging torque** (``cogging = (a_cog, n_cog, φ_cog)``: N·m, 1/rev, rad),
++Z·a_cog·sin(n_cog·Z·x_C + φ_cog) on slider C, and a motor-side **Coulomb torque** (``tau_c``, N·m),
+−Z·τ_c·tanh(ẋ_C/ε) on slider C.
+
 All are off by default; then this is the nominal plant of docs/model.md.
 """
 from __future__ import annotations
@@ -103,7 +109,8 @@ def x_B_of_q(q):
 @dataclass(frozen=True)
 class Outside:
     """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
-    A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless), ``deadband`` V."""
+    A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless), ``deadband`` V; and the
+    library's ``cogging = (a_cog N·m, n_cog 1/rev, φ_cog rad)`` and ``tau_c`` N·m."""
 
     bump: tuple[float, float, float] | None = None
     i_sat: float | None = None
@@ -112,6 +119,8 @@ class Outside:
     pin_mu: float | None = None
     scale_factor: float | None = None
     deadband: float | None = None
+    cogging: tuple[float, float, float] | None = None
+    tau_c: float | None = None
 
     def to_dict(self) -> dict:
         out: dict = {}
@@ -129,6 +138,10 @@ class Outside:
             out["scale_factor_error"] = {"e": float(self.scale_factor)}
         if self.deadband is not None:
             out["drive_dead_band"] = {"v_db": float(self.deadband)}
+        if self.cogging is not None:  # the library's terms, by the library's names
+            out["cogging_torque"] = dict(zip(("a_cog", "n_cog", "phi_cog"), map(float, self.cogging)))
+        if self.tau_c is not None:
+            out["coulomb_friction_motor"] = {"tau_c": float(self.tau_c)}
         return out
 
     def drive(self, v: float) -> float:
@@ -161,11 +174,16 @@ class Plant:
         sin5 = (H - R4 * math.sin(q + PHI)) / R5
         if abs(sin5) >= 1.0 or abs(R1 * math.sin(q) / R3) >= 1.0:
             raise OutOfRange(f"link 5 cannot be assembled at t = {t:.6g} s")
-        x_B, _, dx_B, dx_C, *_ = _kin(q, math)
+        x_B, x_C, dx_B, dx_C, *_ = _kin(q, math)
         if x_B <= 0.0:
             raise OutOfRange(f"x_B = {x_B:.6g} m at t = {t:.6g} s")
         vB, vC = dx_B * w, dx_C * w
         F_C = Z * self.torque_constant(i_q) * i_q - Z * Z * p["B_m"] * vC
+        if self.out.cogging is not None:
+            a_cog, n_cog, phi_cog = self.out.cogging
+            F_C += Z * a_cog * math.sin(n_cog * Z * x_C + phi_cog)
+        if self.out.tau_c is not None:
+            F_C -= Z * self.out.tau_c * math.tanh(vC / EPS)
         F_f = -p["mu"] * p["m_B"] * G * math.tanh(vB / EPS)
         if self.out.bump is not None:
             F_b, x_c, width = self.out.bump

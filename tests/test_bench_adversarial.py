@@ -22,6 +22,11 @@ def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects(
     cats = [s.category for s in S.SPECS]
     assert len(S.SPECS) >= 18
     assert cats.count("library") == 18 and cats.count("pair") == 4 and cats.count("outside") == 10
+    # a library effect and one outside it at once, on a sweep and on the cycling command
+    mixed = [s for s in S.SPECS if s.category == "mixed"]
+    assert {(s.command, s.outside) for s in mixed} == {("simulation", "bump"), ("cycling", "drag")}
+    assert all(s.effects == ("cogging_torque",) and s.target_of("a_cog") == 2.0 and
+               s.target_of(s.calibrate[1]) == 3.0 for s in mixed)
     # real effects under the noise that must not look like one: AR(1) ρ = 0.9 (five, one faint) and the encoder
     coloured = [(s.noise_m, s.noise_ar, s.quantum_m) for s in S.SPECS if s.category == "library" and
                 (s.noise_ar or s.quantum_m)]
@@ -47,8 +52,8 @@ def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects(
     # every calibrated magnitude is there, with a measured ratio near its target
     for s in S.SPECS:
         assert set(S.CALIBRATED.get(s.key, {})) == set(s.calibrate), s.key
-        for value, ratio in S.CALIBRATED.get(s.key, {}).values():
-            assert value > 0 and ratio == pytest.approx(s.target, rel=0.12), s.key
+        for param, (value, ratio) in S.CALIBRATED.get(s.key, {}).items():
+            assert value > 0 and ratio == pytest.approx(s.target_of(param), rel=0.12), s.key
     # names are unique and say nothing about the content
     names = list(S.NAMES.values())
     assert len(set(names)) == len(names) and all(n.startswith("rec") and n[3:].isdigit() for n in names)
@@ -124,6 +129,35 @@ def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp
         assert read_csv(tmp_path / r["file"]).n == 501
 
 
+def test_a_mixed_record_holds_a_library_effect_and_one_outside_the_library(tmp_path):
+    """The independent plant simulates both (the library's cogging term is its own too); the manifest keeps them
+    apart — the library effect under ``effects``, the other under ``outside`` — and the row's truth lists both."""
+    from outside_plant import Outside, simulate_outside
+
+    B.main(["--out", str(tmp_path), "--only", "mixed_cogging_bump_simulation", "--duration", "0.5"])
+    (r,) = json.loads((tmp_path / "manifest.json").read_text())["records"]
+    cal = S.CALIBRATED["mixed_cogging_bump_simulation"]
+    assert r["category"] == "mixed" and r["effects"] == ["cogging_torque"] and "outside_plant" in r["simulator"]
+    assert r["effect_params"]["cogging_torque"] == {"a_cog": cal["a_cog"][0], "n_cog": 6.0, "phi_cog": 0.5}
+    assert list(r["outside"]) == ["friction_bump"] and r["outside"]["friction_bump"]["F_b"] == cal["F_b"][0]
+    assert r["calibration"]["target_ratio"] == {"a_cog": 2.0, "F_b": 3.0}
+    rec = read_csv(tmp_path / r["file"])
+    theta = np.array([r["params"][n] for n in PARAM_NAMES])
+    base = S.base_record("simulation", 0.5)
+    both = Outside(bump=(cal["F_b"][0], S.BUMP_AT, S.BUMP_WIDTH), cogging=(cal["a_cog"][0], 6.0, 0.5))
+    clean, _, _ = simulate_outside(theta, base, both)
+    assert np.std(rec.x_B - clean) == pytest.approx(1e-6, rel=0.15)
+    bump_only, _, _ = simulate_outside(theta, base, Outside(bump=both.bump))
+    assert np.max(np.abs(clean - bump_only)) > 2e-6  # the cogging is in it
+    report = {"effects_added": [{"name": "cogging_torque"}], "unexplained": True}
+    row = V.result_row(r, report, 1.0, "r")
+    assert row["truth"] == ["cogging_torque", "friction_bump"] and row["verdict"] == "exact"
+    summary = V.summarise([row])
+    assert (summary["exact_mixed"], summary["mixed"]) == (1, 1)
+    assert "mixed records with their library effects named and the rest called unexplained: 1 of 1" in \
+        V.results_markdown([row], summary)
+
+
 def test_validation_records_are_the_same_machine_under_the_other_command(tmp_path):
     B.main(["--out", str(tmp_path), "--only", "dead_time,outside_bump_cycling", "--duration", "0.5", "--validation"])
     man = {r["key"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
@@ -185,6 +219,12 @@ def _entry(category, effects=(), name="rec99"):
     ("outside", [], [], True, "unexplained-correct"),
     ("outside", [], [], False, "missed"),
     ("outside", [], ["stribeck_friction"], True, "spurious"),
+    # a library effect and one outside the library: the first named, the rest called unexplained
+    ("mixed", ["cogging_torque"], ["cogging_torque"], True, "exact"),
+    ("mixed", ["cogging_torque"], ["cogging_torque"], False, "exact+outside-missed"),
+    ("mixed", ["cogging_torque"], [], True, "missed"),
+    ("mixed", ["cogging_torque"], ["cogging_torque", "stribeck_friction"], True, "spurious"),
+    ("mixed", ["cogging_torque"], ["stribeck_friction"], False, "spurious+missed+outside-missed"),
 ])
 def test_verdicts(category, truth, added, unexplained, expected):
     report = {"effects_added": [{"name": n} for n in added], "unexplained": unexplained,

@@ -139,3 +139,27 @@ def test_the_librarys_torque_saturation_is_the_independent_plants_saturating_tor
     assert np.max(np.abs(x - x0)) > 5e-6  # the saturation moves x_B by micrometres …
     assert np.max(np.abs(x - sim.x_B[0])) < 2e-8  # … and both simulators agree far below the encoder's resolution
     assert np.max(np.abs(i - sim.i_q[0])) < 1e-6 * np.ptp(i)
+
+
+@pytest.mark.parametrize("effect", ["cogging", "coulomb"])
+def test_the_librarys_cogging_and_coulomb_torques_are_the_independent_plants(effect):
+    """The kernel's cogging torque Z·a_cog·sin(n_cog·Z·x_C + φ_cog) and motor Coulomb torque −Z·τ_c·tanh(ẋ_C/ε)
+    against this plant's, written from docs/model.md §7 alone, on the cycling command (contacts and releases):
+    the same x_B and i_q far below the encoder's resolution, where the term itself moves x_B by micrometres."""
+    from toggle_id.effects import ALL_INDEX
+
+    rec = Record.from_cycling(duration=5.0)
+    theta = ASSIGNED * np.exp(0.1 * np.random.default_rng(7).standard_normal(ASSIGNED.size))
+    outside, library = ((Outside(cogging=(0.1, 6.0, 0.5)), {"a_cog": 0.1, "n_cog": 6.0, "phi_cog": 0.5})
+                        if effect == "cogging" else (Outside(tau_c=0.3), {"tau_c": 0.3}))
+    x, i, info = simulate_outside(theta, rec, outside)
+    assert info["status"] == 0 and info["contacts"] >= 3
+    th = extend(theta)
+    for k, v in library.items():
+        th[0, ALL_INDEX[k]] = v
+    sim = simulate(th, rec, PRECISE)
+    x0 = simulate(extend(theta), rec, PRECISE).x_B[0]
+    assert sim.status[0] == 0
+    assert np.max(np.abs(x - x0)) > 5e-6
+    assert np.max(np.abs(x - sim.x_B[0])) < 2e-8
+    assert np.max(np.abs(i - sim.i_q[0])) < 1e-6 * np.ptp(i)
