@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -26,8 +25,6 @@ class _Verdict:
 
     passed: bool
     reason: str = "judged"
-    #: the share of independent samples under the test's noise model (white: 1)
-    noise: object = field(default_factory=lambda: SimpleNamespace(effective_fraction=1.0))
 
     @property
     def checks(self) -> dict:
@@ -40,14 +37,13 @@ class _Verdict:
 class _Judge:
     """Supports a larger model when the smaller one's SSE exceeds it by more than ``margin``."""
 
-    def __init__(self, margin: float, independent: float = 1.0) -> None:
-        self.margin, self.independent = margin, independent
+    def __init__(self, margin: float) -> None:
+        self.margin = margin
         self.pairs: list[tuple[Fit, Fit]] = []
 
     def judge_pair(self, small: Fit, large: Fit) -> _Verdict:
         self.pairs.append((small, large))
-        return _Verdict(small.sse - large.sse > self.margin,
-                        noise=SimpleNamespace(effective_fraction=self.independent))
+        return _Verdict(small.sse - large.sse > self.margin)
 
 
 @dataclass
@@ -82,8 +78,7 @@ def test_the_knots_span_the_records_speed_and_position():
 
 def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_sse: dict[str, float],
          margin: float = 1.0, reading_sse: float | None = None, added: tuple[str, ...] = ("constant_load_force",
-                                                                                          "cogging_torque"),
-         strict: dict[str, float] | None = None, independent: float = 1.0, noise_floor: float = 0.0):
+                                                                                          "cogging_torque")):
     """catch_all on a final model of SSE 10 with a constant load force and a cogging torque accepted; the fit with
     the generic force reaches ``generic_sse``, with the generic reading error beside it ``reading_sse`` (default:
     the same); without effect a, ``without_sse[a]`` with the generic terms and ``alone_sse[a]`` without them. The
@@ -117,8 +112,8 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
         return Fit(fit.theta, tuple(nm for nm in fit.free if nm not in EFFECTS_BY_NAME[a["name"]].names),
                    without_sse[a["name"]])
 
-    kept, comp, report = catchall.catch_all(_Model(), _Judge(margin, independent), current, added, STATES, without,
-                                            DiscoverSettings(), said.append, strict, noise_floor)
+    kept, comp, report = catchall.catch_all(_Model(), _Judge(margin), current, added, STATES, without,
+                                            DiscoverSettings(), said.append)
     # the force's weights, then the model with them; the reading error's weights from there, then everything
     assert fitted[:4] == [catchall.FORCE_WEIGHTS, current.free + catchall.FORCE_WEIGHTS, catchall.SENSOR_WEIGHTS,
                           current.free + catchall.WEIGHTS]
@@ -227,96 +222,6 @@ def test_with_nothing_accepted_the_catch_all_reports_what_kind_of_thing_is_missi
     assert kept == [] and comp == [] and report["effects"] == {}
     assert report["supported"] and report["rmse_m"] == pytest.approx(np.sqrt(2.0 / 100))
     assert "catch-all: a generic slider force" in said[0]
-
-
-def test_an_effect_held_to_a_stricter_share_must_keep_it_beside_the_generic_terms(monkeypatch):
-    """``strict`` (effects that removed little of the structure energy): the cogging torque keeps 7/6 of its work
-    beside the generic force and stays at a required share of 0.5; at a share it does not reach it is compensating,
-    with what it keeps in the reason."""
-    sse = ({"constant_load_force": 2.1, "cogging_torque": 9.0}, {"constant_load_force": 30.0, "cogging_torque": 16.0})
-    kept, comp, report, _ = _run(monkeypatch, 2.0, *sse, strict={"cogging_torque": 0.5})
-    assert [a["name"] for a in kept] == ["cogging_torque"] and report["effects"]["cogging_torque"]["needed"]
-    kept, comp, report, _ = _run(monkeypatch, 2.0, sse[0], {"constant_load_force": 30.0, "cogging_torque": 24.0},
-                                 strict={"cogging_torque": 0.5})  # 7 of its 14: 50 % kept
-    assert [a["name"] for a in kept] == ["cogging_torque"]
-    kept, comp, report, _ = _run(monkeypatch, 2.0, sse[0], {"constant_load_force": 30.0, "cogging_torque": 26.0},
-                                 strict={"cogging_torque": 0.5})  # 7 of its 16: 44 %
-    assert kept == [] and {c["name"] for c in comp} == {"constant_load_force", "cogging_torque"}
-    assert "it keeps 43.8% of what it explains" in next(c for c in comp if c["name"] == "cogging_torque")["reason"]
-
-
-def test_under_slow_noise_an_effect_is_needed_only_where_the_test_beside_the_generic_terms_is_not_slow(monkeypatch):
-    """``noise_floor``: the cogging torque does its work beside the generic force, but that test's noise model leaves
-    1 % of the samples independent (below a floor of 2 %): compensating, and the reason says why; at 30 % it stays."""
-    sse = ({"constant_load_force": 2.1, "cogging_torque": 9.0}, {"constant_load_force": 30.0, "cogging_torque": 16.0})
-    kept, comp, report, said = _run(monkeypatch, 2.0, *sse, independent=0.01, noise_floor=0.02)
-    assert kept == [] and [c["name"] for c in comp] == ["constant_load_force", "cogging_torque"]
-    assert "still needed beside a generic force" in comp[1]["reason"] and "1.0% of the samples" in comp[1]["reason"]
-    assert report["effects"]["cogging_torque"]["noise_independent_fraction"] == 0.01
-    assert any("but under a noise model leaving 1.0%" in s for s in said)
-    kept, comp, report, said = _run(monkeypatch, 2.0, *sse, independent=0.3, noise_floor=0.02)
-    assert [a["name"] for a in kept] == ["cogging_torque"]
-
-
-@pytest.mark.parametrize("weak_kept, supported, expected", [
-    (True, True, ["load", "cogging"]), (False, True, ["load"]), (True, False, ["load"])])
-def test_an_effect_that_removed_little_structure_is_kept_only_where_the_catch_all_finds_it_doing_its_work(
-        monkeypatch, weak_kept, supported, expected):
-    """TogglePlant.explains with ``weak`` effects (below explain_fraction of the structure energy): each is judged by
-    the catch-all at the share explain_fraction; kept where the generic terms are supported and it is needed beside
-    them, else compensating with the engine's reason — and always when the catch-all decides nothing."""
-    from toggle_id.discovery import toggle_plant as TP
-
-    seen = {}
-
-    def fake_catch_all(model, judge, current, added, states, without, settings, say, strict=None, floor=0.0):
-        seen["added"], seen["strict"], seen["floor"] = [a["name"] for a in added], strict, floor
-        kept = [a for a in added if a["name"] == "load" or weak_kept or not supported]
-        comp = [dict(a, reason="the generic force does its work") for a in added if a not in kept]
-        return kept, comp, {"supported": supported, "effects": {"cogging": {"kept_fraction": 0.93}}}
-
-    monkeypatch.setattr(TP, "catch_all", fake_catch_all)
-    plant = TP.TogglePlant(_Model(), None, DiscoverSettings(), extend(ASSIGNED)[0], [], (), (), [], None,
-                           lambda s: None, None)
-    weak = [{"name": "cogging", "reason": "removes only 27% of the structure energy",
-             "structure_explained": {"fraction": 0.27}}]
-    kept, comp = plant.explains(Fit(extend(ASSIGNED)[0], (), 1.0), [{"name": "load"}], ({}, None, STATES),
-                                [{"name": "load"}, {"name": "cogging"}], weak)
-    assert seen["added"] == ["load", "cogging"] and seen["strict"] == {"cogging": DiscoverSettings().explain_fraction}
-    assert seen["floor"] == 0.0  # the noise is not slow: no floor on the check's own test
-    assert [a["name"] for a in kept] == expected
-    assert [c["name"] for c in comp] == [nm for nm in ("cogging",) if nm not in expected]
-    if "cogging" in expected:
-        assert "reason" not in kept[-1]
-    elif supported:
-        assert comp[0]["reason"] == "the generic force does its work"
-    else:
-        assert comp[0]["reason"] == "removes only 27% of the structure energy"
-
-
-def test_under_slow_noise_every_effect_must_show_its_work_beside_the_generic_terms(monkeypatch):
-    """TogglePlant.explains when the final residual's noise model is as slow as the motion: every accepted effect is
-    weak (the explain_fraction share required) and the catch-all's own test must not be slow (the floor passed on);
-    what it keeps is added, the rest compensating with the slow-noise reason."""
-    from toggle_id.discovery import toggle_plant as TP
-
-    seen = {}
-
-    def fake_catch_all(model, judge, current, added, states, without, settings, say, strict=None, floor=0.0):
-        seen["strict"], seen["floor"] = strict, floor
-        return [a for a in added if a["name"] == "cogging"], [], {
-            "supported": True, "effects": {"cogging": {"kept_fraction": 0.9}}}
-
-    monkeypatch.setattr(TP, "catch_all", fake_catch_all)
-    s = DiscoverSettings()
-    plant = TP.TogglePlant(_Model(), None, s, extend(ASSIGNED)[0], [], (), (), [], None, lambda m: None, None)
-    slow = {"slow": True, "effective_samples": 35}
-    added = [{"name": "load"}, {"name": "cogging"}]
-    kept, comp = plant.explains(Fit(extend(ASSIGNED)[0], (), 1.0), added, ({"slow_noise": slow}, None, STATES), added)
-    assert seen == {"strict": {"load": s.explain_fraction, "cogging": s.explain_fraction},
-                    "floor": s.min_effective_fraction}
-    assert [a["name"] for a in kept] == ["cogging"] and "reason" not in kept[0]
-    assert [c["name"] for c in comp] == ["load"] and "35 samples independent" in comp[0]["reason"]
 
 
 @pytest.mark.parametrize("left, supported, reading, kinds", [

@@ -536,10 +536,7 @@ def test_a_noise_model_as_slow_as_the_motion_leaves_structure_and_makes_every_ac
     assert slow["slow"] and slow["effective_fraction"] < 0.02 and "validation.path" in slow["text"]
     assert not slow_noise(fit_noise(wander), 0.0)["slow"]  # the check off
     said: list[str] = []
-    from toggle_id.discovery.settings import DiscoverSettings
-
-    # no plant states to fit the catch-all's generic terms on: nothing can rescue them
-    plant = SimpleNamespace(say=said.append, s=DiscoverSettings(), _fitting=lambda: None)
+    plant = SimpleNamespace(say=said.append)
     added = [{"name": "contact_nonlinear_stiffness"}, {"name": "cogging_torque"}]
     keep, demoted = TogglePlant.explains(plant, None, added, ({"slow_noise": slow}, None, None), added)
     assert keep == [] and [d["name"] for d in demoted] == ["contact_nonlinear_stiffness", "cogging_torque"]

@@ -359,8 +359,8 @@ class _StubPlant:
     def implausible(self, current, added):
         return [dict(a, reason="no machine's") for a in added if a["name"] in self.odd]
 
-    def explains(self, current, added, details, everyone, weak=()):
-        return added, list(weak)
+    def explains(self, current, added, details, everyone):
+        return added, []
 
     def demote(self, current, demoted, added):
         return self.fit(current.effects - {d["name"] for d in demoted})

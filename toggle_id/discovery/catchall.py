@@ -143,15 +143,11 @@ def figure(report: dict, title: str | None = None):
 
 
 def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
-              without: Callable[[Fit, dict], Fit], settings: DiscoverSettings, say: Callable[[str], None],
-              strict: dict[str, float] | None = None, noise_floor: float = 0.0
+              without: Callable[[Fit, dict], Fit], settings: DiscoverSettings, say: Callable[[str], None]
               ) -> tuple[list[dict], list[dict], dict]:
     """(kept, compensating, report) of the accepted effects ``added`` of the final model ``current`` (structure
     left in its residual; ``states``: its plant states). ``without(fit, a)``: ``fit`` refitted with effect ``a``
-    switched off. ``strict``: {effect: the share of its work it must keep beside the generic terms}, for effects
-    that must show more than ``catch_all_keep`` (those that removed little of the structure energy); ``noise_floor``
-    > 0: an effect is needed only where the noise model of that test leaves at least this share of the samples
-    independent (:func:`.residual.slow_noise`; the final model's did not). See the module docstring."""
+    switched off. See the module docstring."""
     n = model.n
     knots = knots_of(states, model.record.x_B)
 
@@ -215,25 +211,14 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         alone = a.get("_reduced") or without(current, a)
         gain = alone.sse - current.sse
         kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
-        independent = float(ev_a.noise.effective_fraction)
-        does_its_work = _supports(ev_a) and kept_fraction >= max(settings.catch_all_keep,
-                                                                 (strict or {}).get(a["name"], 0.0))
-        needed = does_its_work and independent >= noise_floor
+        needed = _supports(ev_a) and kept_fraction >= settings.catch_all_keep
         report["effects"][a["name"]] = {"rmse_without_m": small.rmse(n), "rmse_final_without_m": alone.rmse(n),
                                         "kept_fraction": kept_fraction, "evidence": ev_a.to_dict(),
-                                        "noise_independent_fraction": independent, "needed": needed}
+                                        "needed": needed}
         say(f"  without {a['name']}: rms {small.rmse(n) * 1e6:.4g} µm (it keeps {kept_fraction:.1%} of what it "
-            f"explains without the generic force; {ev_a.reason}) → " + ("still needed" if needed else "not needed")
-            + (f", but under a noise model leaving {independent:.1%} of the samples independent"
-               if does_its_work and not needed else ""))
+            f"explains without the generic force; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
         if needed:
             kept.append(a)
-        elif does_its_work:  # but under slow noise
-            compensating.append(dict(a, reason=(
-                f"lowers the error, and is still needed beside a generic force on slider B (rms "
-                f"{generic.rmse(n) * 1e6:.4g} µm with them, {small.rmse(n) * 1e6:.4g} µm without {a['name']}), but "
-                f"that test too ran under a noise model leaving {independent:.1%} of the samples independent: slow "
-                "noise and an error the model lacks cannot be told apart on this record")))
         else:
             compensating.append(dict(a, reason=(
                 "lowers the error, but a generic force on slider B (any function of its speed and position)"

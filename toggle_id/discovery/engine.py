@@ -12,14 +12,12 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
 - **backward elimination** (:func:`backward_eliminate`): after the forward steps, drop any accepted effect that
   the model without it — refitted — matches as well (the judge no longer passes the effect against it);
   repeat until every effect is needed;
-- **explaining or compensating** (:func:`split_explaining`): when the final residual still holds structure, an accepted
-  effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
-  (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity, current and input
-  express) — or, where another missing effect holds most of that energy (a record with an effect of the library and one
-  outside it), if the plant's last check (:meth:`Plant.explains`) finds it still doing at least ``explain_fraction`` of
-  its work beside terms that stand in for the missing physics; otherwise it lowers the error without explaining it and
-  is listed as *compensating*, never as added. The same holds on a second record of the machine (never fitted) when the
-  plant finds its prediction left with a material error that holds structure, not all of it within what the parameters'
+- **explaining or compensating** (:func:`split_explaining`): when the final residual still holds structure, an
+  accepted effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
+  (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
+  current and input express); otherwise it lowers the error without explaining it and is listed as
+  *compensating*, never as added. The same holds on a second record of the machine (never fitted) when the plant
+  finds its prediction left with a material error that holds structure, not all of it within what the parameters'
   uncertainty allows;
 - **ambiguity** (:mod:`.ties`): two supported effects whose fits the record cannot tell apart (Vuong's test of
   the non-nested models) are reported together, neither as added. A tie found while other effects were still
@@ -190,8 +188,8 @@ class Plant(Protocol):
     def structure(self, fit: Any) -> tuple[bool | None, Any]: ...
     def structure_energy(self, fit: Any, details: Any = None) -> float: ...
     def implausible(self, current: Any, added: Sequence[dict]) -> list[dict]: ...
-    def explains(self, current: Any, added: list[dict], details: Any, everyone: Sequence[dict],
-                 weak: Sequence[dict] = ()) -> tuple[list[dict], list[dict]]: ...
+    def explains(self, current: Any, added: list[dict], details: Any, everyone: Sequence[dict]
+                 ) -> tuple[list[dict], list[dict]]: ...
     def demote(self, current: Any, demoted: Sequence[dict], added: Sequence[dict]) -> Any: ...
     def validation_residual(self, fit: Any) -> np.ndarray | None: ...
     def validation_structure(self, fit: Any) -> bool: ...
@@ -260,13 +258,13 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
     compensating = plant.implausible(current, added) if added else []
     added = [a for a in added if a["name"] not in {c["name"] for c in compensating}]
     if left and added:
-        # structure is left: an effect explains only if it removed most of the structure energy it was added for,
-        # or (``weak``: it removed less) if the plant's last check finds it doing most of its work beside terms that
-        # stand in for the rest of the missing physics — a true effect beside one the library lacks (rec37)
-        added, weak = _split(plant, current, added, everyone, plant.structure_energy(current, details),
+        # structure is left: an effect explains only if it removed most of the structure energy it was added for
+        added, more = _split(plant, current, added, everyone, plant.structure_energy(current, details),
                              plant.structure_energy, explain_fraction)
-        added, more = plant.explains(current, added, details, everyone, weak)
         compensating += more
+        if added:
+            added, more = plant.explains(current, added, details, everyone)
+            compensating += more
     if plant.has_validation and added and plant.validation_structure(current):
         # a real effect predicts a record it was not fitted on: where the second record is left with structure, an
         # effect explains only if it removed most of that structure too (on the fitted record the noise model may

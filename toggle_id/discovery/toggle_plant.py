@@ -176,51 +176,31 @@ class TogglePlant:
             self.say(f"{a['name']}: {a['reason']}")
         return odd
 
-    def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict],
-                 weak: Sequence[dict] = ()) -> tuple[list[dict], list[dict]]:
+    def explains(self, current: Fit, added: list[dict], details: tuple, everyone: Sequence[dict]
+                 ) -> tuple[list[dict], list[dict]]:
         """The catch-all check (:func:`.catchall.catch_all`): an effect that a force of unknown shape on slider B
         makes unnecessary is compensating (the engine took out those no machine has first: :meth:`implausible`).
-        ``weak``: effects that removed less than ``explain_fraction`` of the structure energy (compensating as they
-        come, with the engine's reason); the check keeps one only where its generic terms are supported and it still
-        does at least ``explain_fraction`` of its work beside them — it explains something of its own while the
-        generic terms take what the library lacks (rec37 of the adversarial set: a cogging torque beside a friction
-        bump that holds most of the structure).
-        When the residual's noise model is too slow to be told from a slow error of the model
-        (:func:`.residual.slow_noise`), every effect is weak — the statistics that accepted it were prewhitened by a
-        noise model that may hold the error it stands in for (rec28 of the adversarial set) — and is kept only where
-        the check's test beside the generic terms ran under a noise model that is not slow itself (the generic terms
-        took the slow error: rec37, whose bump left 35 of 5001 samples independent)."""
+        Before it: when the residual's noise model is too slow to be told from a slow error of the model
+        (:func:`.residual.slow_noise`), every effect is compensating — the statistics that accepted it were
+        prewhitened by a noise model that may hold the error it stands in for (rec28 of the adversarial set)."""
         slow = (details[0] or {}).get("slow_noise") or {}
-        weak, floor = list(weak), 0.0
-        if slow.get("slow") and (added or weak):
+        if slow.get("slow") and added:
             why = (f"lowers the error, but was accepted under a noise model that leaves "
                    f"{slow['effective_samples']} samples independent: an error the model lacks and slow noise "
                    "cannot be told apart on this record")
-            self.say(f"{', '.join(a['name'] for a in added + weak)}: {why}")
-            added, weak, floor = [], [dict(a, reason=why) for a in added + weak], self.s.min_effective_fraction
+            self.say(f"{', '.join(a['name'] for a in added)}: {why}")
+            return [], [dict(a, reason=why) for a in added]
         self._fitting()
         states = details[2]
-        if not (self.s.catch_all and states and (added or weak)):
-            return added, weak
+        if not (self.s.catch_all and states and added):
+            return added, []
 
         def without(fit: Fit, a: dict) -> Fit:
             return _without(self.model, fit, a["name"], everyone, self.held, self.s)
 
-        strict = {a["name"]: self.s.explain_fraction for a in weak}
-        kept, more, self.catch_report = catch_all(self.model, self.referee, current, added + weak, states, without,
-                                                  self.s, self.say, strict, floor)
-        rescued = {a["name"] for a in kept} & set(strict) if self.catch_report["supported"] else set()
-        for a in weak:
-            if a["name"] in rescued:  # it explains something of its own: no longer compensating
-                a.pop("reason", None)
-                share = (f"removed {a['structure_explained']['fraction']:.0%} of the structure energy"
-                         if "structure_explained" in a else "was accepted under slow noise")
-                kept_share = self.catch_report["effects"][a["name"]]["kept_fraction"]
-                self.say(f"{a['name']}: {share}, but keeps {kept_share:.0%} of its work beside the generic terms, "
-                         "which take the rest: it explains, beside something the library lacks")
-        kept = [a for a in kept if a["name"] not in strict or a["name"] in rescued]
-        more += [a for a in weak if a["name"] not in rescued and a["name"] not in {m["name"] for m in more}]
-        return kept, more
+        added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
+                                                   self.say)
+        return added, more
 
     def missing_kinds(self, fit: Fit) -> set[str]:
         """The kinds of effect (:attr:`~toggle_id.effects.Effect.acts_on`) that a generic term of the catch-all check

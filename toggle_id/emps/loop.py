@@ -289,9 +289,9 @@ class EmpsPlant:
     def implausible(self, current: OEFitResult, added: Sequence[dict]) -> list[dict]:
         return []
 
-    def explains(self, current: OEFitResult, added: list[dict], details: dict, everyone: Sequence[dict],
-                 weak: Sequence[dict] = ()) -> tuple[list[dict], list[dict]]:
-        return added, list(weak)  # no generic terms here: what removed little of the structure stays compensating
+    def explains(self, current: OEFitResult, added: list[dict], details: dict, everyone: Sequence[dict]
+                 ) -> tuple[list[dict], list[dict]]:
+        return added, []
 
     def demote(self, current: OEFitResult, demoted: Sequence[dict], added: Sequence[dict]) -> OEFitResult:
         for d in demoted:
