@@ -254,6 +254,39 @@ def test_the_second_look_asks_the_catch_all_once_per_model_what_kind_of_term_is_
     assert calls == [fit, other]
 
 
+@pytest.mark.parametrize("n_cog, without, with_it, turns, expected", [
+    (6.04, (True, 6.03), (False, 6.0), 11.5, True),   # rec37: the ripple over ~70 periods, gone with the cogging
+    (6.04, (True, 6.03), (True, 6.02), 11.5, False),  # still there with it: it did not take it
+    (6.04, (False, 6.03), (False, 6.0), 11.5, False),  # not significant without it
+    (1.0, (True, 1.05), (False, 1.0), 11.5, False),   # rec01-like: a low count over ~12 periods, a localised error
+    (6.04, (True, 3.4), (False, 3.4), 11.5, False),   # another count
+    (6.3, (True, 6.3), (False, 6.3), 11.5, False),    # no whole count: no motor's cogging
+])
+def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_periods(n_cog, without, with_it, turns,
+                                                                                     expected):
+    """TogglePlant.own_signature: a cogging torque that removed little of the structure energy explains when the
+    residual of the model without it repeats at its whole count per revolution, significantly, over at least
+    signature_min_periods (20) periods, and the residual with it does not."""
+    from toggle_id.discovery import toggle_plant as TP
+
+    th = extend(ASSIGNED)[0].copy()
+    th[ALL_INDEX["n_cog"]] = n_cog
+    current, reduced = Fit(th, (), 1.0), Fit(extend(ASSIGNED)[0], (), 2.0)
+    states = {"motor_angle": np.linspace(0.0, 2 * np.pi * turns, 50)}
+
+    def fam(sig, count):
+        return {"periodic": {"families": {"motor_angle": {"significant": sig, "cycles_per_revolution": count,
+                                                          "repeats": f"{count} times per motor revolution"}}}}
+
+    plant = TP.TogglePlant(_Model(), None, DiscoverSettings(), th, [], (), (), [], None, lambda m: None, None)
+    plant.structure = lambda fit: (True, (fam(*(without if fit is reduced else with_it)), None, states))
+    why = plant.own_signature(current, {"name": "cogging_torque", "_reduced": reduced})
+    assert (why is not None) is expected
+    if expected:
+        assert "over 69 periods" in why and "explains the ripple" in why
+    assert plant.own_signature(current, {"name": "dead_time", "_reduced": reduced}) is None
+
+
 def test_the_trend_of_the_reading_error_is_its_straight_line_part():
     xs = np.linspace(0.02, 0.066, K.N_GS)
     line = catchall.trend_of({"xs_m": list(xs), "h_m": list(-3e-6 + 4e-4 * xs)})

@@ -311,6 +311,7 @@ class _StubPlant:
 
     def __init__(self, sse: dict, energy: dict, keep: frozenset = frozenset(), odd: frozenset = frozenset()) -> None:
         self.sse, self.energy, self.kept, self.odd, self.log = sse, energy, keep, odd, []
+        self.signature: dict[str, str] = {}
 
     def fit(self, names) -> _Fit:
         return _Fit(frozenset(names), self.sse[frozenset(names)])
@@ -358,6 +359,9 @@ class _StubPlant:
 
     def implausible(self, current, added):
         return [dict(a, reason="no machine's") for a in added if a["name"] in self.odd]
+
+    def own_signature(self, current, a):
+        return self.signature.get(a["name"])
 
     def explains(self, current, added, details, everyone):
         return added, []
@@ -409,6 +413,20 @@ def test_an_effect_that_leaves_the_structure_is_compensating_and_leaves_the_fina
     assert out.compensating[0]["structure_explained"]["fraction"] == pytest.approx(0.1)
     assert out.final.effects == frozenset() and out.with_compensating.effects == frozenset("a")
     assert out.structure == {"energy": 2.0} and any("compensating" in m for m in plant.log)
+
+
+def test_an_effect_that_left_the_structure_explains_where_the_plant_finds_its_own_signature_gone():
+    """As above (a removed 10 % of the structure energy), but the plant finds in the residual without a the signature a
+    was added for and none with it (a ripple the structure bins cannot see): a is added, with why, and stays in the
+    final model."""
+    sse = {frozenset(): 10.0, frozenset("a"): 5.0, frozenset("ab"): 4.9, frozenset("b"): 9.0}
+    energy = {frozenset(): 2.0, frozenset("a"): 1.8, frozenset("ab"): 1.8, frozenset("b"): 2.0}
+    plant = _StubPlant(sse, energy)
+    plant.signature = {"a": "repeats at its count without it"}
+    out = _run(plant)
+    assert [a["name"] for a in out.added] == ["a"] and out.compensating == []
+    assert out.added[0]["own_signature"] == "repeats at its count without it" and "reason" not in out.added[0]
+    assert out.final.effects == frozenset("a") and any(m.startswith("a: repeats") for m in plant.log)
 
 
 def test_an_effect_no_machine_has_is_compensating_even_when_no_structure_is_left():

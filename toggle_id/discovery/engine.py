@@ -15,8 +15,10 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
 - **explaining or compensating** (:func:`split_explaining`): when the final residual still holds structure, an
   accepted effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
   (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
-  current and input express); otherwise it lowers the error without explaining it and is listed as
-  *compensating*, never as added. The same holds on a second record of the machine (never fitted) when the plant
+  current and input express) — or, where the plant finds in the residual without it the signature it was added for
+  and none with it (:meth:`Plant.own_signature`: the toggle plant's cogging torque, whose ripple the position bins
+  cannot see, beside an effect the library lacks); otherwise it lowers the error without explaining it and is listed
+  as *compensating*, never as added. The same holds on a second record of the machine (never fitted) when the plant
   finds its prediction left with a material error that holds structure, not all of it within what the parameters'
   uncertainty allows;
 - **ambiguity** (:mod:`.ties`): two supported effects whose fits the record cannot tell apart (Vuong's test of
@@ -119,6 +121,12 @@ def _split(plant: Plant, current: Any, added: list[dict], everyone: Sequence[dic
     for d in [d for d in more if plant.keep(d, added)]:
         more.remove(d)
         added.append({k: v for k, v in d.items() if k != "reason"})
+    for d in list(more):  # it removed little of the structure energy, but the structure it was added for
+        why = plant.own_signature(current, d)
+        if why:
+            more.remove(d)
+            added.append({**{k: v for k, v in d.items() if k != "reason"}, "own_signature": why})
+            plant.say(f"{d['name']}: {why}")
     return added, more
 
 
@@ -185,6 +193,7 @@ class Plant(Protocol):
     def summary(self, fit: Any) -> dict: ...
     def error_text(self, fit: Any) -> str: ...
     def keep(self, a: dict, added: Sequence[dict]) -> bool: ...
+    def own_signature(self, current: Any, a: dict) -> str | None: ...
     def structure(self, fit: Any) -> tuple[bool | None, Any]: ...
     def structure_energy(self, fit: Any, details: Any = None) -> float: ...
     def implausible(self, current: Any, added: Sequence[dict]) -> list[dict]: ...

@@ -71,7 +71,11 @@ class DiscoverSettings:
       cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
       compensating, whether structure is left or not: a motor's cogging repeats a whole number of times per
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
-      position (:func:`.toggle_plant.implausible`).
+      position (:func:`.toggle_plant.implausible`). signature_min_periods: a cogging torque that removed little of the
+      structure energy (which position bins cannot see) still explains when the residual without it repeats at its
+      whole n_cog over at least this many periods of the record, significantly after the scan, and with it does not
+      (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library lacks; a localised
+      error fits a low count over a few periods only).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
@@ -159,6 +163,7 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     cogging_whole_tol: float = 0.1
+    signature_min_periods: float = 20.0
     ambiguity_alpha: float = 0.05
     encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
@@ -237,6 +242,10 @@ class DiscoverSettings:
         if not (isinstance(self.cogging_whole_tol, (int, float)) and not isinstance(self.cogging_whole_tol, bool)
                 and 0.0 <= float(self.cogging_whole_tol) <= 0.5):
             raise ConfigError(f"discover.cogging_whole_tol must lie in [0, 0.5], got {self.cogging_whole_tol!r}")
+        if isinstance(self.signature_min_periods, bool) or not isinstance(self.signature_min_periods, (int, float)) \
+                or not float(self.signature_min_periods) >= 3.0:
+            raise ConfigError("discover.signature_min_periods must be a number >= 3 (the periodic look's own "
+                              f"minimum), got {self.signature_min_periods!r}")
         if not (isinstance(self.ambiguity_alpha, (int, float)) and not isinstance(self.ambiguity_alpha, bool)
                 and 0.0 <= float(self.ambiguity_alpha) < 1.0):
             raise ConfigError(f"discover.ambiguity_alpha must lie in [0, 1), got {self.ambiguity_alpha!r}")

@@ -289,8 +289,10 @@ class EmpsPlant:
     def implausible(self, current: OEFitResult, added: Sequence[dict]) -> list[dict]:
         return []
 
-    def explains(self, current: OEFitResult, added: list[dict], details: dict, everyone: Sequence[dict]
-                 ) -> tuple[list[dict], list[dict]]:
+    def own_signature(self, current: OEFitResult, a: dict) -> None:  # none the structure bins cannot see
+        return None
+
+    def explains(self, current: OEFitResult, added: list[dict], details: dict, everyone: Sequence[dict]):
         return added, []
 
     def demote(self, current: OEFitResult, demoted: Sequence[dict], added: Sequence[dict]) -> OEFitResult:
