@@ -255,18 +255,19 @@ def test_the_second_look_asks_the_catch_all_once_per_model_what_kind_of_term_is_
 
 
 @pytest.mark.parametrize("n_cog, without, with_it, turns, expected", [
-    (6.04, (True, 6.03), (False, 6.0), 11.5, True),   # rec37: the ripple over ~70 periods, gone with the cogging
-    (6.04, (True, 6.03), (True, 6.02), 11.5, False),  # still there with it: it did not take it
-    (6.04, (False, 6.03), (False, 6.0), 11.5, False),  # not significant without it
-    (1.0, (True, 1.05), (False, 1.0), 11.5, False),   # rec01-like: a low count over ~12 periods, a localised error
-    (6.04, (True, 3.4), (False, 3.4), 11.5, False),   # another count
-    (6.3, (True, 6.3), (False, 6.3), 11.5, False),    # no whole count: no motor's cogging
+    (6.04, (True, 6.03), (False, 6.0), 2.34, True),   # rec37: its range of 14.7 rad holds 14 periods at n = 6
+    (6.04, (True, 6.03), (True, 6.02), 2.34, False),  # still there with it: it did not take it
+    (6.04, (False, 6.03), (False, 6.0), 2.34, False),  # not significant without it
+    (1.0, (True, 1.05), (False, 1.0), 2.34, False),   # rec01-like: a low count over 2 periods, a localised error
+    (6.04, (True, 3.4), (False, 3.4), 2.34, False),   # another count
+    (6.3, (True, 6.3), (False, 6.3), 2.34, False),    # no whole count: no motor's cogging
+    (6.04, (True, 6.03), (False, 6.0), 1.5, False),   # a range of 9 periods only
 ])
 def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_periods(n_cog, without, with_it, turns,
                                                                                      expected):
     """TogglePlant.own_signature: a cogging torque that removed little of the structure energy explains when the
     residual of the model without it repeats at its whole count per revolution, significantly, over at least
-    signature_min_periods (20) periods, and the residual with it does not."""
+    signature_min_periods (10) periods of the motor angle's range, and the residual with it does not."""
     from toggle_id.discovery import toggle_plant as TP
 
     th = extend(ASSIGNED)[0].copy()
@@ -283,7 +284,7 @@ def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_p
     why = plant.own_signature(current, {"name": "cogging_torque", "_reduced": reduced})
     assert (why is not None) is expected
     if expected:
-        assert "over 69 periods" in why and "explains the ripple" in why
+        assert "over 14 periods" in why and "explains the ripple" in why
     assert plant.own_signature(current, {"name": "dead_time", "_reduced": reduced}) is None
 
 

@@ -73,7 +73,7 @@ class DiscoverSettings:
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
       position (:func:`.toggle_plant.implausible`). signature_min_periods: a cogging torque that removed little of the
       structure energy (which position bins cannot see) still explains when the residual without it repeats at its
-      whole n_cog over at least this many periods of the record, significantly after the scan, and with it does not
+      whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and with it does not
       (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library lacks; a localised
       error fits a low count over a few periods only).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
@@ -163,7 +163,7 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     cogging_whole_tol: float = 0.1
-    signature_min_periods: float = 20.0
+    signature_min_periods: float = 10.0
     ambiguity_alpha: float = 0.05
     encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)

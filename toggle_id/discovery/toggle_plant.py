@@ -162,8 +162,9 @@ class TogglePlant:
         the adversarial set: −4 % beside a friction bump). It explains when the residual of the final model without it
         (refitted) repeats at its whole count per revolution n_cog (within ``cogging_whole_tol``), significantly
         after the periodic look's scan (:func:`.periodic.periodic`), over at least ``signature_min_periods`` periods
-        of the record — a localised error fits a low count over a few periods only (rec01: 1.11 per revolution) —
-        and the residual with it repeats at no such count."""
+        of the motor angle's range (rec37: 14.7 rad, 14 periods at n_cog = 6) — a localised error fits a low count
+        over a few periods only (rec01: 1.11 per revolution, 2.6 periods) — and the residual with it repeats at no
+        such count."""
         reduced = a.get("_reduced")
         if a["name"] != "cogging_torque" or reduced is None or not np.all(np.isfinite(reduced.theta)):
             return None
@@ -183,7 +184,7 @@ class TogglePlant:
         if not without or periods < self.s.signature_min_periods or ripple(current)[0]:
             return None
         return (f"removed little of the structure energy, whose position bins cannot see a ripple, but without it the "
-                f"residual repeats {without['repeats']} over {periods:.0f} periods of the record, and with it at no "
+                f"residual repeats {without['repeats']} over {periods:.0f} periods of its range, and with it at no "
                 f"count near n_cog = {n:.3g}: it explains the ripple, beside something the library lacks")
 
     def structure(self, fit: Fit) -> tuple[bool, tuple]:
