@@ -73,9 +73,9 @@ class DiscoverSettings:
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
       position (:func:`.toggle_plant.implausible`). signature_min_periods: a cogging torque that removed little of the
       structure energy (which position bins cannot see) still explains when the residual without it repeats at its
-      whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and with it does not
-      (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library lacks; a localised
-      error fits a low count over a few periods only).
+      whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and with
+      it does not (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library lacks;
+      a localised error fits a low count over a few periods only).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
