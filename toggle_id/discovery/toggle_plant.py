@@ -180,8 +180,11 @@ class TogglePlant:
             at_n = bool(fam.get("significant")) and abs(float(fam.get("cycles_per_revolution") or 0.0) - n) <= tol
             return (fam if at_n else {}), span * n / (2.0 * np.pi)
 
+        # the final model first: the engine has just looked at it, so its report is still at hand
+        if ripple(current)[0]:
+            return None
         without, periods = ripple(reduced)
-        if not without or periods < self.s.signature_min_periods or ripple(current)[0]:
+        if not without or periods < self.s.signature_min_periods:
             return None
         return (f"removed little of the structure energy, whose position bins cannot see a ripple, but without it the "
                 f"residual repeats {without['repeats']} over {periods:.0f} periods of its range, and with it at no "
