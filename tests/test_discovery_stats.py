@@ -541,3 +541,9 @@ def test_a_noise_model_as_slow_as_the_motion_leaves_structure_and_makes_every_ac
     keep, demoted = TogglePlant.explains(plant, None, added, ({"slow_noise": slow}, None, None), added)
     assert keep == [] and [d["name"] for d in demoted] == ["contact_nonlinear_stiffness", "cogging_torque"]
     assert all("cannot be told apart" in d["reason"] for d in demoted) and said
+    # an effect kept for its own fast signature (a ripple over many periods) is no stand-in for a slow error: it goes
+    # on to the catch-all check (off here), the others are compensating as before
+    plant = SimpleNamespace(say=said.append, _fitting=lambda: None, s=SimpleNamespace(catch_all=False))
+    ripple = {"name": "cogging_torque", "own_signature": "repeats at its count without it"}
+    keep, demoted = TogglePlant.explains(plant, None, [added[0], ripple], ({"slow_noise": slow}, None, None), added)
+    assert keep == [ripple] and [d["name"] for d in demoted] == ["contact_nonlinear_stiffness"]

@@ -217,25 +217,33 @@ class TogglePlant:
         makes unnecessary is compensating (the engine took out those no machine has first: :meth:`implausible`).
         Before it: when the residual's noise model is too slow to be told from a slow error of the model
         (:func:`.residual.slow_noise`), every effect is compensating — the statistics that accepted it were
-        prewhitened by a noise model that may hold the error it stands in for (rec28 of the adversarial set)."""
+        prewhitened by a noise model that may hold the error it stands in for (rec28 of the adversarial set) —
+        except an effect kept for its own fast signature (:meth:`own_signature`: a ripple over ten periods and more
+        of its range, tested under that same noise model), which no slow error stands in for: it goes on to the
+        catch-all check (rec37: its cogging, beside a friction bump that leaves 35 of 5001 samples independent)."""
         slow = (details[0] or {}).get("slow_noise") or {}
+        doubted: list[dict] = []
         if slow.get("slow") and added:
             why = (f"lowers the error, but was accepted under a noise model that leaves "
                    f"{slow['effective_samples']} samples independent: an error the model lacks and slow noise "
                    "cannot be told apart on this record")
-            self.say(f"{', '.join(a['name'] for a in added)}: {why}")
-            return [], [dict(a, reason=why) for a in added]
+            doubted = [dict(a, reason=why) for a in added if not a.get("own_signature")]
+            added = [a for a in added if a.get("own_signature")]
+            if doubted:
+                self.say(f"{', '.join(a['name'] for a in doubted)}: {why}")
+        if not added:
+            return [], doubted
         self._fitting()
         states = details[2]
-        if not (self.s.catch_all and states and added):
-            return added, []
+        if not (self.s.catch_all and states):
+            return added, doubted
 
         def without(fit: Fit, a: dict) -> Fit:
             return _without(self.model, fit, a["name"], everyone, self.held, self.s)
 
         added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
                                                    self.say)
-        return added, more
+        return added, doubted + more
 
     def missing_kinds(self, fit: Fit) -> set[str]:
         """The kinds of effect (:attr:`~toggle_id.effects.Effect.acts_on`) that a generic term of the catch-all check
