@@ -479,3 +479,41 @@ def test_a_sensor_offset_that_stands_in_for_a_wrong_scale_factor_is_compensating
     # 6.2e-4 on a 5-s experiment-sweep record of the same error; the text's claim is the order, checked here)
     assert 5e-4 / 3 < report["sensor_trend"]["scale_error"] < 3 * 5e-4
     assert 0.9e-6 < report["rmse_m"] < 1.1e-6
+
+
+def test_a_cogging_torque_is_probed_and_fitted_only_at_counts_the_record_holds_enough_periods_of():
+    """discover.cogging_min_periods: the floor on n_cog is 2π·periods over the motor angle's range (the angle from
+    the mechanism's kinematics, θ_r = Z·x_C); the model's fits keep to it from a start below it, and the
+    score tests and grids probe within it, each setting once."""
+    from toggle_id.discovery.model import Model, fit_free
+    from toggle_id.discovery.toggle_plant import cogging_floor
+    from toggle_id.plant import GEOMETRY, kinematics
+    from toggle_id.record import Record
+    from toggle_id.simulate import PRECISE, simulate
+
+    rec = Record.from_sweep("simulation", duration=1.0)
+    theta = extend(ASSIGNED)[0].copy()
+    theta[ALL_INDEX["a_cog"]], theta[ALL_INDEX["n_cog"]] = 0.3, 6.0
+    rec.x_B = simulate(theta[None, :], rec, PRECISE).x_B[0]
+    q = np.arccos(np.clip(rec.x_B / (GEOMETRY.r1 + GEOMETRY.r3), -1.0, 1.0))
+    span = float(np.ptp(GEOMETRY.Z * np.asarray(kinematics(q, GEOMETRY)["x_C"])))
+    floor = cogging_floor(rec, 10.0)
+    assert floor == pytest.approx(20.0 * np.pi / span) and 1.0 < floor < 6.0
+    at_rest = Record.from_sweep("simulation", duration=1.0)
+    at_rest.x_B = np.full(at_rest.n, float(rec.x_B[0]))
+    assert cogging_floor(at_rest, 10.0) == np.inf
+
+    model = Model(rec, parallel=False)
+    cog = EFFECTS_BY_NAME["cogging_torque"]
+    assert model.probes(cog) == list(cog.probe)  # no narrowed domain: the library's probes
+    model.bounds["n_cog"] = (floor, 48.0)
+    probes = model.probes(cog)
+    assert min(p["n_cog"] for p in probes) == pytest.approx(floor)
+    assert len(probes) == len(cog.probe) - 2 * sum(n < floor for n in (1, 2, 3, 4)) + 2  # the low counts: one each
+    start = theta.copy()
+    start[ALL_INDEX["n_cog"]] = 1.0
+    fit = fit_free(model, start, ("a_cog", "n_cog", "phi_cog"), 6)
+    assert fit.theta[ALL_INDEX["n_cog"]] >= floor
+    with pytest.raises(Exception, match="cogging_min_periods"):
+        DiscoverSettings(cogging_min_periods=2.0).validate()
+    DiscoverSettings(cogging_min_periods=0.0).validate()

@@ -66,10 +66,23 @@ class Model:
         #: samples the model takes as measured (bool (N,); None: none): glitches of the measurement
         #: (:func:`toggle_id.residuals.glitches`), which then weigh in no residual, sensitivity or test
         self.excluded: np.ndarray | None = None
+        #: feasible domains this record narrows (name → (low, high)), over the library's own: every fit of the
+        #: model keeps to them and the score tests and grids probe within them (:meth:`probes`)
+        self.bounds: dict[str, tuple[float, float]] = {}
 
     @property
     def n(self) -> int:
         return self.record.n
+
+    def probes(self, effect) -> list[dict]:
+        """The probe settings of ``effect`` (:attr:`~toggle_id.effects.Effect.probe`) moved into :attr:`bounds`,
+        each once, in order."""
+        out: list[dict] = []
+        for pr in effect.probe:
+            pr = {k: float(np.clip(v, *self.bounds[k])) if k in self.bounds else v for k, v in pr.items()}
+            if pr not in out:
+                out.append(pr)
+        return out
 
     def _settings_for(self, theta: np.ndarray, tier: SolverSettings | None = None) -> SolverSettings:
         tier = tier if tier is not None else self.settings
@@ -318,7 +331,7 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
     free = tuple(free)
     tier, step = (model.jacobian, model.jacobian_step or fd_rel_step) if coarse else (model.settings, fd_rel_step)
     idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
-    lo, hi = stage_bounds(list(free), bounds)
+    lo, hi = stage_bounds(list(free), {**model.bounds, **(bounds or {})})
     x0 = np.clip(theta[idx].astype(float), lo, hi)
     typ = _typical(free, theta)
     mask = (lo >= 0.0) & (x0 > 0.0)

@@ -77,7 +77,7 @@ def score_candidates(model: Model, theta: np.ndarray, r: np.ndarray, proj: Proje
     rows, owners = [], []
     for e in effects:
         base = _with(theta, _off_values(e))
-        for pr in e.probe:
+        for pr in model.probes(e):
             rows.append(_with(base, pr))
             owners.append((e, pr))
     Y = model.outputs(np.array(rows)) if rows else np.zeros((0, n))
@@ -172,7 +172,7 @@ def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Project
         grid = [({}, m) for m in effect.grid(theta, model.record.v_in, points)
                 if mag.lower <= m <= mag.upper and m != mag.off]
     else:
-        grid = [(pr, m) for pr in effect.probe for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points)]
+        grid = [(pr, m) for pr in model.probes(effect) for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points)]
     for pr, m in grid:
         setting = dict(pr)
         setting[mag.name] = float(m)
