@@ -486,7 +486,7 @@ def test_a_cogging_torque_is_probed_and_fitted_only_at_counts_the_record_holds_e
     the mechanism's kinematics, θ_r = Z·x_C); the model's fits keep to it from a start below it, and the
     score tests and grids probe within it, each setting once."""
     from toggle_id.discovery.model import Model, fit_free
-    from toggle_id.discovery.toggle_plant import cogging_floor
+    from toggle_id.discovery.toggle_plant import cogging_domain, cogging_floor
     from toggle_id.plant import GEOMETRY, kinematics
     from toggle_id.record import Record
     from toggle_id.simulate import PRECISE, simulate
@@ -514,6 +514,15 @@ def test_a_cogging_torque_is_probed_and_fitted_only_at_counts_the_record_holds_e
     start[ALL_INDEX["n_cog"]] = 1.0
     fit = fit_free(model, start, ("a_cog", "n_cog", "phi_cog"), 6)
     assert fit.theta[ALL_INDEX["n_cog"]] >= floor
+    said: list[str] = []
+    fresh = Model(rec, parallel=False)
+    pool = list(EFFECTS_BY_NAME.values())
+    assert cogging_domain(fresh, pool, 0.0, said.append) == pool and fresh.bounds == {} and not said
+    assert cogging_domain(fresh, pool, 10.0, said.append) == pool
+    assert fresh.bounds["n_cog"] == pytest.approx((floor, 48.0)) and "counts from" in said[-1]
+    rest = Model(at_rest, parallel=False)
+    assert cogging_domain(rest, pool, 10.0, said.append) == [e for e in pool if e is not cog]
+    assert rest.bounds == {} and "left out" in said[-1]
     with pytest.raises(Exception, match="cogging_min_periods"):
         DiscoverSettings(cogging_min_periods=2.0).validate()
     DiscoverSettings(cogging_min_periods=0.0).validate()

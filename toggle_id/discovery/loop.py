@@ -18,7 +18,7 @@ from ..simulate import PRECISE, extend
 from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symmetries
 from .model import Fit, Model, _with, parameter_uncertainty
 from .refit import Refit
-from .toggle_plant import TogglePlant, cogging_floor
+from .toggle_plant import TogglePlant, cogging_domain
 from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
@@ -87,17 +87,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
             raise ConfigError(f"unknown free parameter {k!r}")
     pool = [e for e in effects if settings.candidates is None or e.name in settings.candidates]
     pool = [e for e in pool if not any(p in free or p in fixed for p in e.names)]
-    if settings.cogging_min_periods > 0 and any(e.name == "cogging_torque" for e in pool):
-        n_min = cogging_floor(record, settings.cogging_min_periods)
-        n_hi = EFFECTS_BY_NAME["cogging_torque"].params[1].upper
-        if n_min >= n_hi:
-            pool = [e for e in pool if e.name != "cogging_torque"]
-            say(f"cogging_torque left out: the record's motor angle spans fewer than {settings.cogging_min_periods:g} "
-                f"periods of any count up to {n_hi:g} per revolution")
-        elif n_min > 1.0:
-            model.bounds["n_cog"] = (n_min, n_hi)
-            say(f"cogging_torque: counts from {n_min:.3g} per revolution, {settings.cogging_min_periods:g} periods "
-                "of the record's motor-angle range (discover.cogging_min_periods)")
+    pool = cogging_domain(model, pool, settings.cogging_min_periods, say)
     # one parameter per exact symmetry of x_B held during the polishes (the gauge): same fits, no flat directions
     held = tuple(GAUGE_HELD[s] for s in gauge_symmetries(free)) if settings.hold_gauge else ()
     free = tuple(nm for nm in free if nm not in held)

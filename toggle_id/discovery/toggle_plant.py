@@ -325,6 +325,25 @@ def cogging_floor(record, periods: float) -> float:
     return 2.0 * np.pi * float(periods) / span if span > 0 else float("inf")
 
 
+def cogging_domain(model: Model, pool: Sequence[Effect], periods: float, say: Callable[[str], None]) -> list[Effect]:
+    """The candidates of ``pool`` with the cogging torque's count narrowed on ``model`` (:attr:`Model.bounds`) to those
+    of which the record's motor-angle range holds ``periods`` periods (:func:`cogging_floor`; 0: as the library has
+    it), or left out when no count up to the library's bound does."""
+    if not periods > 0 or not any(e.name == "cogging_torque" for e in pool):
+        return list(pool)
+    n_min = cogging_floor(model.record, periods)
+    n_hi = EFFECTS_BY_NAME["cogging_torque"].params[1].upper
+    if n_min >= n_hi:
+        say(f"cogging_torque left out: the record's motor angle spans fewer than {periods:g} periods of any count up "
+            f"to {n_hi:g} per revolution")
+        return [e for e in pool if e.name != "cogging_torque"]
+    if n_min > 1.0:
+        model.bounds["n_cog"] = (n_min, n_hi)
+        say(f"cogging_torque: counts from {n_min:.3g} per revolution, {periods:g} periods of the record's motor-angle "
+            "range (discover.cogging_min_periods)")
+    return list(pool)
+
+
 def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], free: Sequence[str],
               settings: DiscoverSettings, say: Callable[[str], None]) -> tuple[Fit, np.ndarray]:
     """The nominal model polished on the whole record from every start; the best and its start."""
