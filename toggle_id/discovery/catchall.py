@@ -36,7 +36,9 @@ import numpy as np
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, GENERIC_FORCE, GENERIC_SENSOR, sensor_error
 from ..kernels.slots import N_GEN, N_GS
-from .model import Fit, Model, _off_values, _with, fit_free
+from .gauge import freed_with
+from .model import Fit, Model, _off_values, _std_errors, _with, fit_free
+from .refit import Refit, Scout, from_current
 from .settings import DiscoverSettings
 from .validation import Judge
 
@@ -143,11 +145,12 @@ def figure(report: dict, title: str | None = None):
 
 
 def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
-              without: Callable[[Fit, dict], Fit], settings: DiscoverSettings, say: Callable[[str], None]
-              ) -> tuple[list[dict], list[dict], dict]:
+              without: Callable[[Fit, dict], Fit], settings: DiscoverSettings, say: Callable[[str], None],
+              store: dict | None = None) -> tuple[list[dict], list[dict], dict]:
     """(kept, compensating, report) of the accepted effects ``added`` of the final model ``current`` (structure
     left in its residual; ``states``: its plant states). ``without(fit, a)``: ``fit`` refitted with effect ``a``
-    switched off. See the module docstring."""
+    switched off; ``store``: given, receives the fit with the generic terms (``generic``). See the module
+    docstring."""
     n = model.n
     knots = knots_of(states, model.record.x_B)
 
@@ -182,6 +185,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
             break
         generic = fit_free(model, best.theta, free, settings.baseline_nfev, settings.fd_rel_step,
                            rounds=settings.rounds)
+    if store is not None:
+        store["generic"] = generic
     ev = judge.judge_pair(current, generic)
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)
@@ -229,3 +234,50 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
                 f"{alone.rmse(n) * 1e6:.4g} → {current.rmse(n) * 1e6:.4g} µm). It stands in for something outside "
                 "the library")))
     return kept, compensating, report
+
+
+def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: Sequence[Scout],
+                   settings: DiscoverSettings, held: Sequence[str], iteration: int, say: Callable[[str], None]
+                   ) -> list[Refit]:
+    """The effects of ``scouts`` refitted beside the generic terms (``generic``: the model ``base`` with them, fitted
+    by :func:`catch_all`) — a forward step against a model that no longer bends to the missing physics. Each effect's
+    parameters are fitted on ``generic`` from its scout (:func:`.refit.from_current`), then everything; one the judge
+    supports there (every check, out of sample too) is refitted on ``base`` from the values reached and accepted
+    where it also lowers the error there in sample (:attr:`.refit.Refit.lowers_error`): beside physics the library
+    lacks, its out-of-sample gain may show only once that physics is taken (rec38 of the adversarial set: a cogging
+    torque beside a quadratic drag). Give it effects of no kind the generic terms contain (a force on the slider, an
+    error of the reading): those are judged by :func:`catch_all`. The generic terms are never part of a model the
+    loop reports."""
+    n = model.n
+    out = []
+    for sc in scouts:
+        eff = EFFECTS_BY_NAME[sc.name]
+        start = from_current(model, generic, sc, settings)
+        if start.theta is None:
+            continue
+        big = fit_free(model, start.theta, freed_with(generic.free, eff, held), settings.baseline_nfev,
+                       settings.fd_rel_step, rounds=settings.rounds)
+        ev = judge.judge_pair(generic, big)
+        values = {nm: float(big.theta[ALL_INDEX[nm]]) for nm in eff.names}
+        say(f"  beside the generic terms, {eff.name}: rms {generic.rmse(n) * 1e6:.4g} → {big.rmse(n) * 1e6:.4g} µm "
+            f"at {', '.join(f'{k} {v:.4g}' for k, v in values.items())} ({ev.reason})")
+        if not ev.passed:
+            continue
+        free = freed_with(base.free, eff, held)
+        fit = fit_free(model, _with(base.theta, values), free, settings.baseline_nfev, settings.fd_rel_step,
+                       rounds=settings.rounds)
+        rf = Refit(eff.name, iteration, fit, {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in eff.names}, base.sse,
+                   fit.sse, len(free) - len(base.free), len(free), 0.0, 1.0, float("inf"), False, "",
+                   {"beside_generic": {"rmse_generic_m": generic.rmse(n), "rmse_with_it_m": big.rmse(n),
+                                       "values": values}},
+                   std_errors=_std_errors(fit, eff.names, n))
+        rf.judge(judge.judge_pair(base, fit), base.sse)
+        rf.evidence["beside_generic"] = ev.to_dict()
+        if rf.lowers_error and not rf.accepted:
+            rf.accepted = True
+            rf.reason = ("supported beside a generic slider force and reading error (" + ev.reason + "), and without "
+                         "them significant in sample; " + rf.reason + " without them")
+        say(f"  refit {eff.name} from there, without the generic terms: rms {fit.rmse(n) * 1e6:.4g} µm, F {rf.F:.3g}, "
+            f"→ {'accepted' if rf.accepted else 'rejected: ' + rf.reason}")
+        out.append(rf)
+    return out

@@ -23,10 +23,13 @@ from .validation import Judge
 def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, free: Sequence[str],
                remaining: Sequence[Effect], settings: DiscoverSettings, it: int, held: Sequence[str],
                say: Callable[[str], None], on_refit: Callable[[Refit], None] | None,
-               second_look: Callable[[Fit], set[str]] | None = None) -> dict:
+               second_look: Callable[[Fit], set[str]] | None = None,
+               beside: Callable[[Fit, list], list[Refit]] | None = None) -> dict:
     """Scores, scouts and refits of one iteration; the candidate to add (or None). ``second_look(fit)``: the kinds
     of effect (:attr:`~toggle_id.effects.Effect.acts_on`) a generic term of the catch-all check finds missing
-    from ``fit``, asked when no refit is supported."""
+    from ``fit``, asked when no refit is supported. ``beside(fit, scouts)``: when still none is, the effects of
+    ``scouts`` (those of no kind) refitted beside the catch-all's generic terms
+    (:func:`.catchall.beside_generic`)."""
     n = model.n
     noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
     points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
@@ -123,6 +126,11 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                 "explains what is left (catch-all): refitting " + ", ".join(sc.name for sc in untried))
         for sc in untried:
             refit(from_current(model, base, sc, settings))
+    if beside is not None and not any(rf.accepted for rf in refits):
+        for rf in beside(base, [sc for sc in order if np.isfinite(sc.sse) and not EFFECTS_BY_NAME[sc.name].acts_on]):
+            refits.append(rf)
+            if on_refit is not None:
+                on_refit(rf)
     winners = [rf for rf in refits if rf.accepted]
     chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
     rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []

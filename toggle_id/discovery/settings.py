@@ -80,7 +80,10 @@ class DiscoverSettings:
       periods (:func:`.toggle_plant.cogging_floor`; 0: every count the library allows): over a few periods a
       sinusoid in the angle is a smooth function of the position, and a low count then stands in for a force the
       library lacks (rec38 of the adversarial set: n_cog 1.0006, 2.2 periods, beside a quadratic drag). A true
-      ripple of fewer periods is then left to the report's periodic look.
+      ripple of fewer periods is then left to the report's periodic look. beside_generic: when a forward step
+      supports nothing and the catch-all's generic terms are supported, the effects of no kind they contain (a
+      cogging torque, a dead time, a backlash, the saturations) are refitted beside them and accepted where the
+      judge supports them there and they lower the error without them (:func:`.catchall.beside_generic`).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
@@ -170,6 +173,7 @@ class DiscoverSettings:
     cogging_whole_tol: float = 0.1
     signature_min_periods: float = 10.0
     cogging_min_periods: float = 0.0
+    beside_generic: bool = False
     ambiguity_alpha: float = 0.05
     encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
@@ -220,7 +224,7 @@ class DiscoverSettings:
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
         if isinstance(self.glitch_k, bool) or not isinstance(self.glitch_k, (int, float)) or not self.glitch_k >= 0:
             raise ConfigError(f"discover.glitch_k must be a number ≥ 0 (0: off), got {self.glitch_k!r}")
-        for name in ("robust_structure", "encompassing", "prediction_error"):
+        for name in ("robust_structure", "encompassing", "prediction_error", "beside_generic"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.fd_tier not in FD_TIERS:

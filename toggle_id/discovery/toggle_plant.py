@@ -10,7 +10,7 @@ import numpy as np
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
 from ..residuals import glitch_text, plant_states
-from .catchall import catch_all, reading_needed
+from .catchall import beside_generic, catch_all, reading_needed
 from .engine import Step
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
@@ -113,7 +113,8 @@ class TogglePlant:
         n = self.model.n
         self._fitting()
         step = _iteration(self.model, self.referee, current, self.anchor, self.free, self.remaining(added), self.s,
-                          iteration, self.held, self.say, self.on_refit, self.missing_kinds)
+                          iteration, self.held, self.say, self.on_refit, self.missing_kinds,
+                          self._beside if self.s.beside_generic else None)
         self.all_refits.extend(step["refits"])
         if self.first_scores is None:
             self.first_scores = step["scores"]
@@ -265,12 +266,25 @@ class TogglePlant:
             self.catch_report = self._catch_all_alone(current, states)
 
     def _catch_all_alone(self, fit: Fit, states: dict) -> dict:
-        """The catch-all's report on ``fit`` with no effect to check (fitted once per model)."""
+        """The catch-all's report on ``fit`` with no effect to check (fitted once per model; the fit with the
+        generic terms kept beside it)."""
         self._fitting()
         if self._looked is None or self._looked[0] is not fit:
-            self._looked = fit, catch_all(self.model, self.referee, fit, [], states, lambda f, a: f, self.s,
-                                          self.say)[2]
+            store: dict = {}
+            report = catch_all(self.model, self.referee, fit, [], states, lambda f, a: f, self.s, self.say, store)[2]
+            self._looked = fit, report, store.get("generic")
         return self._looked[1]
+
+    def _beside(self, base: Fit, scouts: list) -> list[Refit]:
+        """The forward step's third look (``discover.beside_generic``): with nothing supported and the catch-all's
+        generic terms supported on ``base``, the effects of ``scouts`` refitted beside them
+        (:func:`.catchall.beside_generic`)."""
+        if not (scouts and self.missing_kinds(base)) or self._looked is None or self._looked[2] is None:
+            return []
+        self.say("  nothing supported, and the generic terms explain what is left: refitting "
+                 + ", ".join(sc.name for sc in scouts) + " beside them")
+        return beside_generic(self.model, self.referee, base, self._looked[2], scouts, self.s, self.held,
+                              len(self.iterations) + 1, self.say)
 
     def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
         """The final model without the compensating effects: the baseline when none explains, else refitted."""
