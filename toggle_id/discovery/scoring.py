@@ -172,7 +172,8 @@ def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Project
         grid = [({}, m) for m in effect.grid(theta, model.record.v_in, points)
                 if mag.lower <= m <= mag.upper and m != mag.off]
     else:
-        grid = [(pr, m) for pr in model.probes(effect) for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points)]
+        grid = [(pr, m) for pr in model.probes(effect)
+                for m in _magnitude_grid(effect, pr, lin.get(json_key(pr)), points)]
     for pr, m in grid:
         setting = dict(pr)
         setting[mag.name] = float(m)
