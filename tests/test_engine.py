@@ -86,6 +86,31 @@ def test_backward_eliminate_drops_what_the_judge_no_longer_supports():
     assert (frozenset(), frozenset({"real"})) in judged
 
 
+def test_backward_eliminate_judges_an_item_as_it_was_accepted_when_the_plant_knows_how():
+    """judge_item, given, decides in judge's place and sees the item (the toggle plant's judge_removal: an effect
+    accepted beside the catch-all's generic terms is kept where its removal costs in sample only)."""
+    from toggle_id.discovery.catchall import KeptBeside, removal_verdict
+
+    class Ev:
+        def __init__(self, checks):
+            self.checks, self.passed, self.reason = checks, all(checks.values()), "no better out of sample"
+
+        def to_dict(self):
+            return {"checks": self.checks, "passed": self.passed, "reason": self.reason}
+
+    in_only = {"f_test": True, "bic": True, "cross_validation": False}
+    items = [{"name": "beside", "evidence": {"beside_generic": {}}}, {"name": "plain", "evidence": {}}]
+    current, kept, eliminated = backward_eliminate(
+        frozenset({"beside", "plain"}), items, lambda cur, a, now: cur - {a["name"]},
+        lambda reduced, current: pytest.fail("judge_item decides"), lambda msg: None, str,
+        judge_item=lambda reduced, current, a: removal_verdict(Ev(in_only), a))
+    assert [k["name"] for k in kept] == ["beside"] and [e["name"] for e in eliminated] == ["plain"]
+    assert kept[0]["backward"]["passed"] and "beside the generic terms" in kept[0]["backward"]["reason"]
+    assert isinstance(removal_verdict(Ev(in_only), items[0]), KeptBeside)
+    nothing = {"f_test": False, "bic": True, "cross_validation": False}  # not even in sample: dropped as before
+    assert not removal_verdict(Ev(nothing), items[0]).passed
+
+
 def test_backward_eliminate_keeps_an_effect_another_refines():
     current, kept, eliminated = backward_eliminate(
         frozenset({"base", "refinement"}), [{"name": "base"}, {"name": "refinement"}],

@@ -30,7 +30,7 @@ of the slider's position and speed (a command or drive effect, a memory of the m
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -38,7 +38,7 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME, GENERIC_FORCE, GENERIC_SENSOR,
 from ..kernels.slots import N_GEN, N_GS
 from .gauge import freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free
-from .refit import Refit, Scout, from_current
+from .refit import Refit, Scout, from_current, in_sample
 from .settings import DiscoverSettings
 from .validation import Judge
 
@@ -281,3 +281,29 @@ def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: 
             f"→ {'accepted' if rf.accepted else 'rejected: ' + rf.reason}")
         out.append(rf)
     return out
+
+
+@dataclass
+class KeptBeside:
+    """Backward elimination's verdict on an effect accepted beside the generic terms (:func:`beside_generic`) whose
+    removal costs in sample but not out of sample: kept, as it was accepted — its out-of-sample gain shows only
+    once the physics the library lacks is taken by the generic terms (``evidence``: the judge's verdict)."""
+
+    evidence: object
+    passed: bool = True
+
+    @property
+    def reason(self) -> str:
+        return ("significant in sample; accepted beside the generic terms, where it was better out of sample ("
+                + self.evidence.reason + " without them)")
+
+    def to_dict(self) -> dict:
+        return {**self.evidence.to_dict(), "passed": True, "reason": self.reason}
+
+
+def removal_verdict(ev, item: dict):
+    """The verdict on removing ``item`` given the judge's ``ev``: ``ev`` itself, or :class:`KeptBeside` for an effect
+    accepted beside the generic terms whose removal ``ev`` finds significant in sample only."""
+    if ev.passed or "beside_generic" not in (item.get("evidence") or {}) or not in_sample(ev.checks):
+        return ev
+    return KeptBeside(ev)

@@ -48,13 +48,15 @@ class Verdict(Protocol):
 
 def backward_eliminate(current: Any, added: Sequence[dict], without: Callable[[Any, dict, Sequence[dict]], Any],
                        judge: Callable[[Any, Any], Verdict], say: Callable[[str], None],
-                       error_of: Callable[[Any], str], keep: Callable[[dict, Sequence[dict]], bool] = lambda a, s: False
+                       error_of: Callable[[Any], str], keep: Callable[[dict, Sequence[dict]], bool] = lambda a, s: False,
+                       judge_item: Callable[[Any, Any, dict], Verdict] | None = None
                        ) -> tuple[Any, list[dict], list[dict]]:
     """Backward elimination over the accepted effects ``added`` (dicts with ``name``; the latest last).
 
     ``without(current, a, added)``: the current model refitted with effect ``a`` off; ``judge(reduced, current)``:
     the verdict for the current model against it; ``error_of(fit)``: its error for the log line; ``keep(a,
-    added)``: True where ``a`` may not be removed (another effect refines it). Each kept item gets
+    added)``: True where ``a`` may not be removed (another effect refines it); ``judge_item(reduced, current, a)``:
+    given, the verdict in ``judge``'s place, knowing the item (how it was accepted). Each kept item gets
     ``backward`` (the verdict's dict) and ``_reduced`` (the model without it). Returns (model, kept, eliminated
     [{name, reason, evidence}])."""
     added = list(added)
@@ -66,7 +68,7 @@ def backward_eliminate(current: Any, added: Sequence[dict], without: Callable[[A
             if keep(a, added):
                 continue
             reduced = without(current, a, added)
-            ev = judge(reduced, current)
+            ev = judge_item(reduced, current, a) if judge_item is not None else judge(reduced, current)
             a["backward"] = ev.to_dict()
             a["_reduced"] = reduced
             say(f"backward: without {a['name']} {error_of(reduced)} — {'kept' if ev.passed else 'dropped: ' + ev.reason}")
@@ -167,7 +169,8 @@ class Plant(Protocol):
     refits a few candidates, each refit costing seconds; the EMPS plant refits them all). The verdict rules are
     the engine's (:func:`run_loop`) over :meth:`without` (the model refitted with an effect off, or a rival in its
     place, or — the item None — the rival beside the effects it has; None where the plant forbids it),
-    :meth:`judge` (the case for a larger model against a smaller: :class:`~.validation.Evidence`),
+    :meth:`judge` (the case for a larger model against a smaller: :class:`~.validation.Evidence`; a plant may also
+    have ``judge_removal(small, large, item)``, backward elimination's verdict knowing how the item was accepted),
     :meth:`residual`, :meth:`n_free`, :meth:`summary` (JSON-able) and :meth:`error_text` of a fit, :meth:`keep`
     (an item that may not be removed: another refines it), :meth:`structure` ((structure left?, the plant's
     details) of a fit's residual), :meth:`structure_energy`,
@@ -244,7 +247,7 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
     if backward and added:
         current, added, eliminated = backward_eliminate(
             current, added, lambda cur, a, now: plant.without(cur, a, now), plant.judge, plant.say,
-            plant.error_text, keep=plant.keep)
+            plant.error_text, keep=plant.keep, judge_item=getattr(plant, "judge_removal", None))
     if ambiguity_alpha > 0 and added:
         def swap(cur: Any, a: dict, rv: dict) -> Any:
             return None if plant.keep(a, added) else plant.without(cur, a, added, rv)

@@ -16,6 +16,14 @@ from .stats import f_test
 from .validation import Evidence, Judge
 
 
+def in_sample(checks: dict) -> bool:
+    """Whether the judge's ``checks`` (:attr:`.validation.Evidence.checks`) find the larger model significant in
+    sample: the F-test, its heteroscedasticity-robust twin where it was run, BIC and, under a coloured noise model,
+    the gain of the loop's own fits."""
+    return (bool(checks.get("f_test")) and bool(checks.get("robust_f_test", True)) and bool(checks.get("bic"))
+            and bool(checks.get("reported_fits", True)))
+
+
 @dataclass
 class Refit:
     """One candidate refitted: its fit, the F-test and BIC against the nominal baseline, and the verdict."""
@@ -48,11 +56,8 @@ class Refit:
 
     @property
     def lowers_error(self) -> bool:
-        """Significant in sample (F-test, its heteroscedasticity-robust twin where it was run, BIC and, under a
-        coloured noise model, the gain of the loop's own fits), whatever the out-of-sample checks say."""
-        checks = self.evidence.get("checks", {})
-        return (bool(checks.get("f_test")) and bool(checks.get("robust_f_test", True)) and bool(checks.get("bic"))
-                and bool(checks.get("reported_fits", True)))
+        """Significant in sample (:func:`in_sample`), whatever the out-of-sample checks say."""
+        return in_sample(self.evidence.get("checks", {}))
 
     def to_dict(self, n: int) -> dict:
         return {"name": self.name, "iteration": self.iteration, "params": self.params, "std_errors": self.std_errors,

@@ -10,7 +10,7 @@ import numpy as np
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
 from ..residuals import glitch_text, plant_states
-from .catchall import beside_generic, catch_all, reading_needed
+from .catchall import beside_generic, catch_all, reading_needed, removal_verdict
 from .engine import Step
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
@@ -140,6 +140,11 @@ class TogglePlant:
 
     def judge(self, small: Fit, large: Fit) -> Evidence:
         return self.referee.judge_pair(small, large)
+
+    def judge_removal(self, small: Fit, large: Fit, a: dict):
+        """Backward elimination's verdict on removing ``a`` (:func:`.catchall.removal_verdict`: an effect accepted
+        beside the generic terms is judged as it was accepted)."""
+        return removal_verdict(self.judge(small, large), a)
 
     def residual(self, fit: Fit) -> np.ndarray:
         return self.referee.residual(fit)
