@@ -242,7 +242,8 @@ def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: 
     """The effects of ``scouts`` refitted beside the generic terms (``generic``: the model ``base`` with them, fitted
     by :func:`catch_all`) — a forward step against a model that no longer bends to the missing physics. Each effect's
     parameters are fitted on ``generic`` from its scout (:func:`.refit.from_current`), then everything; one the judge
-    supports there (every check, out of sample too) is refitted on ``base`` from the values reached and accepted
+    supports there (every check, out of sample too) is refitted on ``base`` from the values reached (a cogging
+    torque's count held at its whole value, when it has one) and accepted
     where it also lowers the error there in sample (:attr:`.refit.Refit.lowers_error`): beside physics the library
     lacks, its out-of-sample gain may show only once that physics is taken (rec38 of the adversarial set: a cogging
     torque beside a quadratic drag). Give it effects of no kind the generic terms contain (a force on the slider, an
@@ -264,6 +265,13 @@ def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: 
         if not ev.passed:
             continue
         free = freed_with(base.free, eff, held)
+        n_cog = values.get("n_cog")
+        if n_cog is not None and abs(n_cog - round(n_cog)) <= settings.cogging_whole_tol:
+            # a motor's count, determined beside the generic terms, is held at its whole value from here on: without
+            # them it drifts to where the ripple stands in for the missing physics (rec38: to the floor of
+            # discover.cogging_min_periods, 4.53, at the same error as at 6.03)
+            values["n_cog"] = float(round(n_cog))
+            free = tuple(nm for nm in free if nm != "n_cog")
         fit = fit_free(model, _with(base.theta, values), free, settings.baseline_nfev, settings.fd_rel_step,
                        rounds=settings.rounds)
         rf = Refit(eff.name, iteration, fit, {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in eff.names}, base.sse,
