@@ -586,7 +586,8 @@ def test_an_effect_supported_beside_the_generic_terms_is_refitted_without_them_a
 
     monkeypatch.setattr(catchall, "fit_free", fake_fit)
     monkeypatch.setattr(catchall, "from_current", fake_from_current)
-    monkeypatch.setattr(catchall, "_std_errors", lambda *a: {})
+    errors_of = []
+    monkeypatch.setattr(catchall, "_std_errors", lambda fit, names, n: errors_of.append(tuple(names)) or {})
     said: list[str] = []
     scouts = [Scout("cogging_torque", 5.0, None, {}), Scout("dead_time", 5.0, None, {})]
     out = catchall.beside_generic(_Model(), Judge(), base, generic, scouts, DiscoverSettings(), (), 2, said.append)
@@ -600,6 +601,7 @@ def test_an_effect_supported_beside_the_generic_terms_is_refitted_without_them_a
     assert not np.any(start[K.GV_W0:K.GV_W0 + K.N_GEN])
     assert fitted[0][1] == generic.free + ("a_cog", "n_cog", "phi_cog")
     assert "beside_generic" in rf.evidence and len(said) == 3
+    assert errors_of == [("a_cog", "phi_cog")]  # of the free parameters only
     # out of sample no better, and no gain in sample either: not accepted
     monkeypatch.setattr(catchall, "fit_free", lambda model, start, free, *a, **k: Fit(
         start.copy(), tuple(free), 1.0 if set(catchall.WEIGHTS) <= set(free) else 9.9))

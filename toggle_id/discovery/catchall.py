@@ -278,7 +278,7 @@ def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: 
                    fit.sse, len(free) - len(base.free), len(free), 0.0, 1.0, float("inf"), False, "",
                    {"beside_generic": {"rmse_generic_m": generic.rmse(n), "rmse_with_it_m": big.rmse(n),
                                        "values": values}},
-                   std_errors=_std_errors(fit, eff.names, n))
+                   std_errors=_std_errors(fit, [nm for nm in eff.names if nm in free], n))
         rf.judge(judge.judge_pair(base, fit), base.sse)
         rf.evidence["beside_generic"] = ev.to_dict()
         if rf.lowers_error and not rf.accepted:
