@@ -48,7 +48,8 @@ class Verdict(Protocol):
 
 def backward_eliminate(current: Any, added: Sequence[dict], without: Callable[[Any, dict, Sequence[dict]], Any],
                        judge: Callable[[Any, Any], Verdict], say: Callable[[str], None],
-                       error_of: Callable[[Any], str], keep: Callable[[dict, Sequence[dict]], bool] = lambda a, s: False,
+                       error_of: Callable[[Any], str],
+                       keep: Callable[[dict, Sequence[dict]], bool] = lambda a, s: False,
                        judge_item: Callable[[Any, Any, dict], Verdict] | None = None
                        ) -> tuple[Any, list[dict], list[dict]]:
     """Backward elimination over the accepted effects ``added`` (dicts with ``name``; the latest last).
