@@ -26,6 +26,10 @@ the reading, and the check decides nothing. The generic terms are never part of 
 With nothing accepted and structure left, the same fits run for the report alone: whether what is missing acts
 like a force on the slider or an error of the reading, or — not supported — like neither: then it is no function
 of the slider's position and speed (a command or drive effect, a memory of the motion, something in time).
+
+With ``discover.beside_generic`` (off by default) a forward step that supports nothing while the generic terms are
+supported refits the effects of no kind they contain beside them (:func:`beside_generic`), and backward elimination
+judges such an effect as it was accepted (:func:`removal_verdict`).
 """
 from __future__ import annotations
 
@@ -243,8 +247,8 @@ def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: 
     by :func:`catch_all`) — a forward step against a model that no longer bends to the missing physics. Each effect's
     parameters are fitted on ``generic`` from its scout (:func:`.refit.from_current`), then everything; one the judge
     supports there (every check, out of sample too) is refitted on ``base`` from the values reached (a cogging
-    torque's count held at its whole value, when it has one) and accepted
-    where it also lowers the error there in sample (:attr:`.refit.Refit.lowers_error`): beside physics the library
+    torque's count held at its whole value, when it has one) and accepted where it also lowers the error there in
+    sample (:attr:`.refit.Refit.lowers_error`): beside physics the library
     lacks, its out-of-sample gain may show only once that physics is taken (rec38 of the adversarial set: a cogging
     torque beside a quadratic drag). Give it effects of no kind the generic terms contain (a force on the slider, an
     error of the reading): those are judged by :func:`catch_all`. The generic terms are never part of a model the
