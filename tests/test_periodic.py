@@ -99,3 +99,11 @@ def test_a_position_that_does_not_move_is_not_scanned():
     st = {"x_B": np.full(N, 0.03)}
     assert periodic(noise(3), st) == {"periodic": False, "alpha": 0.01, "families": {}, "strongest": None,
                                       "text": "the residual repeats with no position"}
+
+
+def test_a_count_per_revolution_is_whole_within_its_tolerance_and_an_angle_spans_its_range_in_turns():
+    from toggle_id.discovery.periodic import turns, whole_count
+
+    assert whole_count(6.04, 0.1) == 6 and whole_count(5.91, 0.1) == 6 and whole_count(3.4, 0.1) is None
+    assert whole_count(1.0006, 0.0) is None and whole_count(2.0, 0.0) == 2
+    assert turns(np.array([1.0, 1.0 + 3 * np.pi, 2.0])) == pytest.approx(1.5) and turns(np.zeros(3)) == 0.0

@@ -42,6 +42,7 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME, GENERIC_FORCE, GENERIC_SENSOR,
 from ..kernels.slots import N_GEN, N_GS
 from .gauge import freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free
+from .periodic import whole_count
 from .refit import Refit, Scout, from_current, in_sample
 from .settings import DiscoverSettings
 from .validation import Judge
@@ -269,12 +270,12 @@ def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: 
         if not ev.passed:
             continue
         free = freed_with(base.free, eff, held)
-        n_cog = values.get("n_cog")
-        if n_cog is not None and abs(n_cog - round(n_cog)) <= settings.cogging_whole_tol:
+        whole = whole_count(values["n_cog"], settings.cogging_whole_tol) if "n_cog" in values else None
+        if whole is not None:
             # a motor's count, determined beside the generic terms, is held at its whole value from here on: without
             # them it drifts to where the ripple stands in for the missing physics (rec38: to the floor of
             # discover.cogging_min_periods, 4.53, at the same error as at 6.03)
-            values["n_cog"] = float(round(n_cog))
+            values["n_cog"] = float(whole)
             free = tuple(nm for nm in free if nm != "n_cog")
         fit = fit_free(model, _with(base.theta, values), free, settings.baseline_nfev, settings.fd_rel_step,
                        rounds=settings.rounds)

@@ -41,6 +41,18 @@ CAUSES = {"x_B": "a linear scale's interpolation error, or a force that repeats 
           "motor_angle": "cogging, an encoder's eccentricity or a ball screw's lead error?"}
 
 
+def whole_count(count: float, tol: float) -> int | None:
+    """The whole number of times per revolution that ``count`` is, within ``tol`` (None: no whole number) — a
+    motor-side cause (a cogging, an encoder's eccentricity, a screw's lead error) repeats a whole number of times."""
+    k = round(float(count))
+    return int(k) if abs(float(count) - k) <= tol else None
+
+
+def turns(angle: np.ndarray) -> float:
+    """The revolutions an angle (rad) spans over a record: its range over 2π."""
+    return float(np.ptp(angle)) / (2.0 * np.pi)
+
+
 def _basis(x: np.ndarray, f: np.ndarray) -> np.ndarray:
     """sin and cos of 2π·f·x for each frequency f (cycles per unit of x): (N, 2·len(f)), sines first."""
     ph = 2.0 * np.pi * np.outer(x, f)
@@ -138,8 +150,8 @@ def periodic(r: np.ndarray, states: Mapping[str, np.ndarray], *, alpha: float = 
         fams[k]["beyond_strongest"] = k in also
     said = [sig[0], *also]
     first = fams[sig[0]]
-    fraction = first["cycles_per_revolution"] is not None and abs(
-        first["cycles_per_revolution"] - round(first["cycles_per_revolution"])) > whole_tol
+    fraction = first["cycles_per_revolution"] is not None and whole_count(first["cycles_per_revolution"],
+                                                                          whole_tol) is None
     if fraction:
         # no motor-side cause repeats a fraction of times per revolution: the error follows another position
         first["text"] = (f"the residual repeats {first['repeats']}, not a whole number of times per revolution as "

@@ -15,6 +15,7 @@ from .engine import Step
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
+from .periodic import turns, whole_count
 from .forward import _iteration, _polish_with_effect
 from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
@@ -176,15 +177,15 @@ class TogglePlant:
             return None
         n = float(current.theta[ALL_INDEX["n_cog"]])
         tol = self.s.cogging_whole_tol
-        if abs(n - round(n)) > tol:
+        if whole_count(n, tol) is None:
             return None
 
         def ripple(fit: Fit) -> tuple[dict, float]:
             diag, _, states = self.structure(fit)[1]
             fam = ((diag.get("periodic") or {}).get("families") or {}).get("motor_angle") or {}
-            span = float(np.ptp(states["motor_angle"])) if states and "motor_angle" in states else 0.0
+            revs = turns(states["motor_angle"]) if states and "motor_angle" in states else 0.0
             at_n = bool(fam.get("significant")) and abs(float(fam.get("cycles_per_revolution") or 0.0) - n) <= tol
-            return (fam if at_n else {}), span * n / (2.0 * np.pi)
+            return (fam if at_n else {}), revs * n
 
         # the final model first: the engine has just looked at it, so its report is still at hand
         if ripple(current)[0]:
@@ -329,7 +330,7 @@ def implausible(name: str, theta: np.ndarray, cogging_whole_tol: float) -> str |
     with a position — a scale's pitch along the stroke, a screw's lead error."""
     if name == "cogging_torque":
         n = float(theta[ALL_INDEX["n_cog"]])
-        if abs(n - round(n)) > cogging_whole_tol:
+        if whole_count(n, cogging_whole_tol) is None:
             return (f"lowers the error, but repeats {n:.3g} times per motor revolution, and a motor's cogging repeats "
                     "a whole number of times (its slots and poles): it stands in for something outside the library "
                     "that repeats with a position")
@@ -340,8 +341,8 @@ def cogging_floor(record, periods: float) -> float:
     """The lowest cogging count n_cog of which the motor-angle range of ``record`` (from its measured x_B through the
     mechanism, :func:`~toggle_id.residuals.plant_states`) holds ``periods`` periods: 2π·periods / range (inf for a
     record at rest). On the adversarial set's commands the range is 13.9–14.8 rad: 4.2–4.5 at 10 periods."""
-    span = float(np.ptp(plant_states(record.t, record.x_B)["motor_angle"]))
-    return 2.0 * np.pi * float(periods) / span if span > 0 else float("inf")
+    revs = turns(plant_states(record.t, record.x_B)["motor_angle"])
+    return float(periods) / revs if revs > 0 else float("inf")
 
 
 def cogging_domain(model: Model, pool: Sequence[Effect], periods: float, say: Callable[[str], None]) -> list[Effect]:
@@ -351,7 +352,7 @@ def cogging_domain(model: Model, pool: Sequence[Effect], periods: float, say: Ca
     if not periods > 0 or not any(e.name == "cogging_torque" for e in pool):
         return list(pool)
     n_min = cogging_floor(model.record, periods)
-    n_hi = EFFECTS_BY_NAME["cogging_torque"].params[1].upper
+    n_hi = next(p.upper for p in EFFECTS_BY_NAME["cogging_torque"].params if p.name == "n_cog")
     if n_min >= n_hi:
         say(f"cogging_torque left out: the record's motor angle spans fewer than {periods:g} periods of any count up "
             f"to {n_hi:g} per revolution")
