@@ -299,6 +299,23 @@ def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_p
     assert plant.own_signature(current, {"name": "dead_time", "_reduced": reduced}) is None
 
 
+def test_an_effect_accepted_beside_the_generic_terms_is_judged_there_not_by_the_structure_energy():
+    """TogglePlant.own_signature: an effect accepted beside the catch-all's generic terms (its evidence holds
+    beside_generic) is exempt from the structure-energy split — whatever its count — and goes on to the catch-all
+    check; the same effect accepted the ordinary way is not."""
+    from toggle_id.discovery import toggle_plant as TP
+
+    th = extend(ASSIGNED)[0].copy()
+    th[ALL_INDEX["n_cog"]] = 4.6  # no whole count: the ripple rule alone would not keep it
+    current, reduced = Fit(th, (), 1.0), Fit(extend(ASSIGNED)[0], (), 2.0)
+    plant = TP.TogglePlant(_Model(), None, DiscoverSettings(), th, [], (), (), [], None, lambda m: None, None)
+    beside = {"name": "cogging_torque", "_reduced": reduced,
+              "evidence": {"beside_generic": {"reason": "F 80.1, BIC −60, out of sample 1.2e-8 → 9.7e-9 m²"}}}
+    why = plant.own_signature(current, beside)
+    assert why is not None and "beside a generic slider force" in why and "out of sample 1.2e-8" in why
+    assert plant.own_signature(current, {"name": "dead_time", "evidence": beside["evidence"]}) is not None
+    assert plant.own_signature(current, {"name": "cogging_torque", "_reduced": reduced, "evidence": {}}) is None
+
 def test_the_trend_of_the_reading_error_is_its_straight_line_part():
     xs = np.linspace(0.02, 0.066, K.N_GS)
     line = catchall.trend_of({"xs_m": list(xs), "h_m": list(-3e-6 + 4e-4 * xs)})

@@ -16,8 +16,9 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
   accepted effect *explains* only if it removed at least ``explain_fraction`` of the structure energy
   (:func:`.localise.structure_energy`: the raw residual's energy that functions of position, velocity,
   current and input express) — or, where the plant finds in the residual without it the signature it was added for
-  and none with it (:meth:`Plant.own_signature`: the toggle plant's cogging torque, whose ripple the position bins
-  cannot see, beside an effect the library lacks); otherwise it lowers the error without explaining it and is listed
+  and none with it, or another reason that energy says nothing of it (:meth:`Plant.own_signature`: the toggle
+  plant's cogging torque, whose ripple the position bins cannot see, beside an effect the library lacks; an effect
+  accepted beside the catch-all's generic terms); otherwise it lowers the error without explaining it and is listed
   as *compensating*, never as added. The same holds on a second record of the machine (never fitted) when the plant
   finds its prediction left with a material error that holds structure, not all of it within what the parameters'
   uncertainty allows;
