@@ -135,6 +135,26 @@ def test_an_effect_the_generic_force_makes_unnecessary_is_compensating(monkeypat
     assert any("not needed" in s for s in said)
 
 
+
+def test_the_named_effects_values_beside_the_generic_terms_are_reported(monkeypatch):
+    """The catch-all's report gives each effect's values in the fit with the generic terms, and the conclusion
+    names them beside the final model's own for the effects it adds."""
+    from toggle_id.discovery.report import _conclusion
+
+    _, comp, report, _ = _run(monkeypatch, 2.0, {"constant_load_force": 2.1, "cogging_torque": 9.0},
+                              {"constant_load_force": 30.0, "cogging_torque": 16.0})
+    theta = extend(ASSIGNED)[0]
+    got = report["effects"]["cogging_torque"]["values_with_generic"]
+    assert set(got) == {"a_cog", "n_cog", "phi_cog"} and got["n_cog"] == pytest.approx(theta[ALL_INDEX["n_cog"]])
+    cog = {"name": "cogging_torque", "magnitude": {"name": "a_cog", "value": 0.0106, "unit": "N·m"}}
+    after = {"rms_m": 2.95e-6, "verdict": {"structure_left": True}, "localisation": {"text": "grows with speed"}}
+    text = _conclusion([cog], {"rms_m": 3.25e-6}, after, True, DiscoverSettings(), comp,
+                       catch={**report, "rmse_m": 1.0e-6})
+    assert f"named effects' values are cogging_torque a_cog {got['a_cog']:.4g}, n_cog {got['n_cog']:.4g}" in text
+    assert "constant_load_force F_load" not in text  # compensating: not named, its values not given
+    assert "named effects' values" not in _conclusion([], {"rms_m": 3.25e-6}, after, True, DiscoverSettings(), comp,
+                                                      catch={**report, "rmse_m": 1.0e-6})
+
 @pytest.mark.parametrize("reading_sse, needed", [(1.5, False), (0.5, True)])
 def test_the_reading_error_joins_the_generic_force_only_where_it_is_needed_beyond_it(monkeypatch, reading_sse,
                                                                                       needed):

@@ -135,6 +135,7 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                      f"position) takes the error to {catch['rmse_m'] * 1e6:.4g} µm, and an error of the position "
                      "reading of any shape adds nothing significant beside it: what is missing acts, at least in "
                      "part, like a force on the slider (its fitted shape: catch_all.png).")
+        text += _values_beside(added, catch)
     elif catch and in_record:
         text += (f" Neither a force on slider B nor an error of the position reading, both of unknown shape (generic, "
                  f"piecewise linear in the slider's speed and position), is supported ({catch['rmse_m'] * 1e6:.4g} µm "
@@ -160,6 +161,17 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                  f"{predicted.get('rmse_m', float('nan')) * 1e6:.4g} µm, no structure left)."
                  if not part else f" The validation record {predicted.get('record', '')}: {predicted['text']}.")
     return text
+
+
+def _values_beside(added: list[dict], catch: dict) -> str:
+    """The named effects' values beside the catch-all's generic terms (empty when it has none for them): where
+    structure is left, the final model's own values may stand in for part of what is missing."""
+    parts = [f"{a['name']} " + ", ".join(f"{k} {v:.4g}" for k, v in vals.items()) for a in added
+             if (vals := ((catch.get("effects") or {}).get(a["name"]) or {}).get("values_with_generic"))]
+    if not parts:
+        return ""
+    return (" Beside those generic terms the named effects' values are " + "; ".join(parts) + " (SI units); the "
+            "final model's own may stand in for part of what is missing, so take both as the range the record allows.")
 
 
 def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings: DiscoverSettings) -> list[str]:
