@@ -135,7 +135,6 @@ def test_an_effect_the_generic_force_makes_unnecessary_is_compensating(monkeypat
     assert any("not needed" in s for s in said)
 
 
-
 def test_the_named_effects_values_beside_the_generic_terms_are_reported(monkeypatch):
     """The catch-all's report gives each effect's values in the fit with the generic terms, and the conclusion
     names them beside the final model's own for the effects it adds."""
@@ -154,6 +153,7 @@ def test_the_named_effects_values_beside_the_generic_terms_are_reported(monkeypa
     assert "constant_load_force F_load" not in text  # compensating: not named, its values not given
     assert "named effects' values" not in _conclusion([], {"rms_m": 3.25e-6}, after, True, DiscoverSettings(), comp,
                                                       catch={**report, "rmse_m": 1.0e-6})
+
 
 @pytest.mark.parametrize("reading_sse, needed", [(1.5, False), (0.5, True)])
 def test_the_reading_error_joins_the_generic_force_only_where_it_is_needed_beyond_it(monkeypatch, reading_sse,
@@ -335,6 +335,7 @@ def test_an_effect_accepted_beside_the_generic_terms_is_judged_there_not_by_the_
     assert why is not None and "beside a generic slider force" in why and "out of sample 1.2e-8" in why
     assert plant.own_signature(current, {"name": "dead_time", "evidence": beside["evidence"]}) is not None
     assert plant.own_signature(current, {"name": "cogging_torque", "_reduced": reduced, "evidence": {}}) is None
+
 
 def test_the_trend_of_the_reading_error_is_its_straight_line_part():
     xs = np.linspace(0.02, 0.066, K.N_GS)

@@ -223,7 +223,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
         needed = _supports(ev_a) and kept_fraction >= settings.catch_all_keep
         # its values beside the generic terms: where the final model leaves structure, its own values may stand in
-        # for part of what is missing (rec38: a_cog 0.0106 N·m in its final model, 0.0058 when first fitted beside the generic terms; truth 0.0052)
+        # for part of what is missing (rec38: a_cog 0.0106 N·m in its final model, 0.0058 when first fitted beside
+        # the generic terms; truth 0.0052)
         values = {nm: float(generic.theta[ALL_INDEX[nm]]) for nm in EFFECTS_BY_NAME[a["name"]].names}
         report["effects"][a["name"]] = {"rmse_without_m": small.rmse(n), "rmse_final_without_m": alone.rmse(n),
                                         "kept_fraction": kept_fraction, "evidence": ev_a.to_dict(),

@@ -165,13 +165,13 @@ class TogglePlant:
     def own_signature(self, current: Fit, a: dict) -> str | None:
         """Why an accepted effect ``a`` that removed little of the structure energy explains all the same (None: it
         does not). A cogging torque: its ripple, periodic in the motor angle, is what the structure test's position,
-        velocity, current and input bins cannot see, so beside an effect the library lacks its share of that energy says nothing (rec37 of
-        the adversarial set: −4 % beside a friction bump). It explains when the residual of the final model without it
-        (refitted) repeats at its whole count per revolution n_cog (within ``cogging_whole_tol``), significantly
-        after the periodic look's scan (:func:`.periodic.periodic`), over at least ``signature_min_periods`` periods
-        of the motor angle's range (rec37: 14.7 rad, 14 periods at n_cog = 6) — a localised error fits a low count
-        over a few periods only (rec01: 1.11 per revolution, 2.6 periods) — and the residual with it repeats at no
-        such count.
+        velocity, current and input bins cannot see, so beside an effect the library lacks its share of that energy
+        says nothing (rec37 of the adversarial set: −4 % beside a friction bump). It explains when the residual of the
+        final model without it (refitted) repeats at its whole count per revolution n_cog (within
+        ``cogging_whole_tol``), significantly after the periodic look's scan (:func:`.periodic.periodic`), over at
+        least ``signature_min_periods`` periods of the motor angle's range (rec37: 14.7 rad, 14 periods at n_cog = 6) —
+        a localised error fits a low count over a few periods only (rec01: 1.11 per revolution, 2.6 periods) — and the
+        residual with it repeats at no such count.
 
         An effect accepted beside the generic terms (``discover.beside_generic``: its evidence holds
         ``beside_generic``) explains in the same way: the structure energy of the models without those terms is the
