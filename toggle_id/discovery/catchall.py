@@ -318,9 +318,15 @@ class KeptBeside:
         return {**self.evidence.to_dict(), "passed": True, "reason": self.reason}
 
 
+def accepted_beside(item: dict) -> dict | None:
+    """The judge's evidence beside the generic terms of an item :func:`beside_generic` accepted (None: the item was
+    accepted the ordinary way)."""
+    return (item.get("evidence") or {}).get("beside_generic")
+
+
 def removal_verdict(ev, item: dict):
     """The verdict on removing ``item`` given the judge's ``ev``: ``ev`` itself, or :class:`KeptBeside` for an effect
     accepted beside the generic terms whose removal ``ev`` finds significant in sample only."""
-    if ev.passed or "beside_generic" not in (item.get("evidence") or {}) or not in_sample(ev.checks):
+    if ev.passed or accepted_beside(item) is None or not in_sample(ev.checks):
         return ev
     return KeptBeside(ev)

@@ -10,7 +10,7 @@ import numpy as np
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
 from ..residuals import glitch_text, plant_states
-from .catchall import beside_generic, catch_all, reading_needed, removal_verdict
+from .catchall import accepted_beside, beside_generic, catch_all, reading_needed, removal_verdict
 from .engine import Step
 from .gauge import GAUGE_HELD, freed_with
 from .model import Fit, Model, _off_values, _with, fit_free, revived
@@ -178,7 +178,7 @@ class TogglePlant:
         missing physics' misfit, which the effect was never asked to remove; it goes on to the catch-all check
         (:meth:`explains`), which judges it beside them again (rec38 of the adversarial set: a cogging torque beside a
         quadratic drag, demoted at −0 % of that energy)."""
-        beside = (a.get("evidence") or {}).get("beside_generic")
+        beside = accepted_beside(a)
         if beside is not None:
             return ("removed little of the structure energy, which the physics the library lacks fills, but was "
                     "accepted beside a generic slider force and reading error that take that physics ("
