@@ -206,6 +206,46 @@ def test_search_is_seeded_and_rejects_with_a_status():
     assert all(e.ok or e.score == -np.inf for e in a) and all(e.status for e in a)
 
 
+class _BowlScorer:
+    """A stand-in for :class:`Scorer` with a known score surface: −‖u − target‖² in the unit cube of each family
+    (the steps family's candidates with u[0] < 0.1 are rejected); no simulation."""
+
+    def __init__(self, settings: ExciteSettings):
+        self.s, self.count = settings, 0
+        self.target = {"steps": np.full(6, 0.62), "cycling": np.full(7, 0.3)}
+
+    def evaluate(self, c: Candidate):
+        from toggle_id.excite.search import Evaluation
+
+        ev = Evaluation(self.count, c, "ok")
+        self.count += 1
+        if c.family == "steps" and c.u[0] < 0.1:
+            ev.status = "never clamps (stand-in)"
+            return ev
+        ev.score = -float(np.sum((np.array(c.u) - self.target[c.family]) ** 2))
+        return ev
+
+
+def test_the_refinement_climbs_from_the_best_of_each_family_within_its_budget():
+    settings = ExciteSettings.from_dict({"n_random": 4, "n_refine": 120, "refine_starts": 2,
+                                         "families": ["steps", "cycling"], "seed": 3})
+    a = search(_BowlScorer(settings))
+    b = search(_BowlScorer(settings))
+    assert [(e.candidate, e.status, e.score) for e in a] == [(e.candidate, e.status, e.score) for e in b]
+    assert len(a) == 2 * 4 + 120
+    random, refine = a[:8], a[8:]
+    assert len({e.candidate for e in a}) == len(a)  # nothing scored twice
+    for fam in ("steps", "cycling"):
+        first = max(e.score for e in random if e.ok and e.candidate.family == fam)
+        after = max(e.score for e in refine if e.ok and e.candidate.family == fam)
+        # 60 Nelder–Mead evaluations from the family's best random candidate go most of the way to the top (0)
+        assert after > 0.25 * first, (fam, first, after)
+    assert all(0.0 <= x <= 1.0 for e in refine for x in e.candidate.u)
+    one = search(_BowlScorer(ExciteSettings.from_dict({"n_random": 4, "n_refine": 7, "refine_starts": 1,
+                                                       "families": ["steps", "cycling"], "seed": 3})))
+    assert len(one) == 8 + 7 and len({e.candidate.family for e in one[8:]}) == 1
+
+
 # ---------------------------------------------------------------------------------------------- jobs.simulate
 def _write_input(path: Path, t: np.ndarray, v: np.ndarray) -> Path:
     np.savetxt(path, np.c_[t, v], delimiter=",", header="t,v_in", comments="", fmt="%.17g")

@@ -19,8 +19,9 @@ FAMILY_PARAMS: dict[str, tuple[tuple[str, float, float, bool], ...]] = {
     # v = A + B sin(ω(t)·τ), ω from 2π f0 to 2π f1 over the record (record.Sweep); A = offset·B, |A| + B ≤ v_max
     "sweep": (("amplitude", 0.01, 1.0, True), ("offset", -0.5, 1.5, False), ("f0_hz", 0.05, 2.0, True),
               ("f1_hz", 0.2, 8.0, True)),
-    # repeated open/close cycles (record.Cycling): close, hold, pause, open, dwell
-    "cycling": (("close_v", 0.02, 1.0, True), ("close_s", 0.05, 2.0, True), ("hold_v", 0.0, 0.5, False),
+    # repeated open/close cycles (record.Cycling): close, hold, pause, open, dwell; the close level down to 0.2 % of
+    # v_max: a creep into the clamp over seconds, where a motor-side friction shows against the slider's
+    "cycling": (("close_v", 0.002, 1.0, True), ("close_s", 0.05, 4.0, True), ("hold_v", 0.0, 0.5, False),
                 ("hold_s", 0.05, 0.5, True), ("open_v", 0.02, 1.0, True), ("open_s", 0.04, 2.0, True),
                 ("dwell_s", 0.05, 0.5, True)),
     # offset + a slow sine (the stroke: into the clamp and back) + amplitude · (Schroeder-phased sum of 8 sines

@@ -80,7 +80,8 @@ def linear_separation(record: Record, rival: Rival, y_a: np.ndarray, y_b: np.nda
                       return_step: bool = False):
     """First-order separation (m RMS): the part of y_A − y_B outside the range of B's sensitivities on ``record``
     (the least-squares step of B's free parameters taken exactly, in the linear model). NaN on failure. With
-    ``return_step`` also B's vector moved by that step (the Gauss–Newton point; None on failure)."""
+    ``return_step`` also B's vector moved by that step (the Gauss–Newton point; None on failure or when the step
+    overflows)."""
     d = y_a - y_b
     if not np.all(np.isfinite(d)):
         return (float("nan"), None) if return_step else float("nan")
@@ -100,10 +101,11 @@ def linear_separation(record: Record, rival: Rival, y_a: np.ndarray, y_b: np.nda
     du[keep] = coef / norms[keep]
     mask, scale = _coords(rival.free_b, rival.theta_b)
     theta = rival.theta_b.copy()
-    for j, nm in enumerate(rival.free_b):
-        i = ALL_INDEX[nm]
-        theta[i] = theta[i] * np.exp(du[j]) if mask[j] else theta[i] + du[j] * scale[j]
-    return sep, theta
+    with np.errstate(over="ignore", invalid="ignore"):  # a step too long to take is no Gauss–Newton point
+        for j, nm in enumerate(rival.free_b):
+            i = ALL_INDEX[nm]
+            theta[i] = theta[i] * np.exp(du[j]) if mask[j] else theta[i] + du[j] * scale[j]
+    return sep, (theta if np.all(np.isfinite(theta)) else None)
 
 
 def refit_separation(record: Record, rival: Rival, y_a: np.ndarray, *, max_nfev: int, rounds: int,

@@ -1,5 +1,5 @@
 """The seeded search for the input that tells the rivals apart: random candidates of every family, then a local
-refinement around the best (a (1+1) evolution strategy in the family's unit cube), every candidate scored by the
+refinement of the best few (bounded Nelder–Mead in the family's unit cube), every candidate scored by the
 first-order separations and the resolved singular values; the best few verified by full refits.
 
 A candidate's *score* is the smallest share of its goals it meets: for each effect rival its separation / σ over
@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import minimize
 
 from ..data import X_B_L
 from ..record import Record
@@ -138,8 +139,10 @@ class Scorer:
 
 
 def search(scorer: Scorer, say: Callable[[str], None] = lambda m: None) -> list[Evaluation]:
-    """Random candidates of every family (``n_random`` each), then ``n_refine`` local steps around the best;
-    seeded by ``settings.seed``: the same seed gives the same candidates and scores."""
+    """Random candidates of every family (``n_random`` each), then a local refinement of the best candidate of each
+    of the ``refine_starts`` best families: bounded Nelder–Mead in the family's unit cube (:func:`_refine`),
+    ``n_refine`` evaluations in all. Seeded by ``settings.seed``: the same seed gives the same candidates and
+    scores."""
     s = scorer.s
     rng = np.random.default_rng(np.random.SeedSequence([s.seed, 16]))
     evals: list[Evaluation] = []
@@ -158,19 +161,52 @@ def search(scorer: Scorer, say: Callable[[str], None] = lambda m: None) -> list[
         for _ in range(s.n_random):
             run(Candidate(fam, tuple(float(x) for x in rng.random(dimension(fam))), int(rng.integers(2 ** 31))),
                 "random")
-    valid = [e for e in evals if e.ok]
-    if not valid:
-        return evals
-    best = max(valid, key=lambda e: e.score)
-    radius = s.refine_radius
-    for _ in range(s.n_refine):
-        u = np.clip(np.array(best.candidate.u) + radius * rng.standard_normal(len(best.candidate.u)), 0.0, 1.0)
-        ev = run(Candidate(best.candidate.family, tuple(float(x) for x in u), best.candidate.seed), "refine")
-        if ev.ok and ev.score > best.score:
-            best, radius = ev, min(1.5 * radius, 0.5)
-        else:
-            radius *= 0.6
+    best_of: dict[str, Evaluation] = {}
+    for e in evals:
+        if e.ok and (e.candidate.family not in best_of or e.score > best_of[e.candidate.family].score):
+            best_of[e.candidate.family] = e
+    starts = sorted(best_of.values(), key=lambda e: -e.score)[:s.refine_starts]
+    for k, start in enumerate(starts):
+        budget = s.n_refine // len(starts) + (1 if k < s.n_refine % len(starts) else 0)
+        _refine(start, budget, s.refine_radius, lambda c: run(c, "refine"))
     return evals
+
+
+def _refine(start: Evaluation, budget: int, radius: float, run: Callable[[Candidate], Evaluation]) -> None:
+    """Bounded Nelder–Mead (scipy) on ``start``'s family's unit cube, maximising the score, at most ``budget``
+    evaluations; the first simplex is ``start`` and a step of ``radius`` along each axis (inwards at a bound).
+    A rejected candidate counts as worse than any accepted one; no candidate is scored twice. Deterministic."""
+    if budget < 1:
+        return
+    u0 = np.array(start.candidate.u)
+    simplex = [u0]
+    for i in range(len(u0)):
+        u = u0.copy()
+        u[i] = u[i] + radius if u[i] + radius <= 1.0 else u[i] - radius
+        simplex.append(u)
+    seen = {tuple(u0): -start.score}  # candidates already scored (the start; a point the simplex comes back to)
+    left = [budget]
+
+    def loss(u: np.ndarray) -> float:
+        key = tuple(float(x) for x in np.clip(u, 0.0, 1.0))
+        if key not in seen:
+            if left[0] <= 0:
+                raise _Spent
+            left[0] -= 1
+            ev = run(Candidate(start.candidate.family, key, start.candidate.seed))
+            seen[key] = -ev.score if ev.ok and np.isfinite(ev.score) else 1.0
+        return seen[key]
+
+    try:
+        minimize(loss, u0, method="Nelder-Mead", bounds=[(0.0, 1.0)] * len(u0),
+                 options={"initial_simplex": np.array(simplex), "maxfev": 100 * (budget + len(u0)), "xatol": 1e-3,
+                          "fatol": 1e-4})
+    except _Spent:
+        pass
+
+
+class _Spent(Exception):
+    """The refinement's budget of evaluations is spent."""
 
 
 def verify_best(scorer: Scorer, evals: Sequence[Evaluation], say: Callable[[str], None] = lambda m: None
