@@ -351,19 +351,20 @@ def test_excite_job_end_to_end(tmp_path, job_env):
 # ---------------------------------------------------------------------------------------------- acceptance
 @pytest.mark.slow
 @pytest.mark.integration
-@pytest.mark.xfail(strict=True, reason="issue 16 not met: 0.78 σ after refitting with |v_in| <= 0.3 V (README)")
-def test_issue_16_acceptance(tmp_path, job_env):
-    """Issue 16 on the paper's sweep with a 0.3 N·m motor Coulomb torque (1 µm noise), default settings: the
-    proposed input separates the torque from slider friction by ≥ 3 σ after refitting, the discover job names it
-    on a record simulated under that input with RMS ≤ 1.5 σ, and the 8th singular value gains ≥ 10× (or the rank
-    rises). Measured (README): 0.78 σ, so this check fails today — the criterion is kept as the issue states it."""
+@pytest.mark.xfail(strict=True, reason="issue 16 not met: 1.4 σ after refitting with |v_in| <= 0.3 V (README)")
+def test_issue_16_acceptance_torque(tmp_path, job_env):
+    """Issue 16's first point, on the paper's sweep with a 0.3 N·m motor Coulomb torque (1 µm noise), the job asked
+    to tell the torque from slider friction (``excite.parameters=false``; the parameters are the second point): the
+    proposed input separates them by ≥ 3 σ after refitting, and the discover job names the torque on a record
+    simulated under that input with RMS ≤ 1.5 σ. Measured (README): 1.38 σ, so this check fails today, at its first
+    assertion (the discover job runs only once the input separates the rivals) — kept as the issue states it."""
     from conftest import run_job
 
     proc = run_job("jobs.run", "+experiment=excite", f"hydra.run.dir={tmp_path / 'run'}", "data.effects.tau_c=0.3",
-                   "progress=false", cwd=tmp_path, env=job_env, timeout=1800)
+                   "excite.parameters=false", "progress=false", cwd=tmp_path, env=job_env, timeout=1800)
     assert proc.returncode == 0, proc.stderr[-3000:]
     d = json.loads((tmp_path / "run" / "excite.json").read_text())
-    par = d["parameters"]
+    assert d["rivals"][0]["predicted_separation_sigma"] >= 3.0
     proc = run_job("jobs.simulate", "out=under.csv", f"input.path={tmp_path / 'run' / 'excitation.csv'}",
                    "effects.tau_c=0.3", "noise_m=1e-6", "seed=1", cwd=tmp_path, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -371,6 +372,20 @@ def test_issue_16_acceptance(tmp_path, job_env):
                    f"hydra.run.dir={tmp_path / 'disc'}", "progress=false", cwd=tmp_path, env=job_env, timeout=3600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     disc = json.loads((tmp_path / "disc" / "discovery.json").read_text())
-    assert d["rivals"][0]["predicted_separation_sigma"] >= 3.0
     assert "coulomb_friction_motor" in disc["accepted"] and disc["rmse_after_m"] <= 1.5e-6
-    assert par["met"]
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_issue_16_acceptance_parameters(tmp_path, job_env):
+    """Issue 16's second point, on the default record (no effect, paper's sweep): the proposed input raises the
+    numerical rank of x_B, or its 8th resolved singular value by ≥ 10×, and the report says which parameters
+    become identifiable (a list, possibly empty: README)."""
+    from conftest import run_job
+
+    proc = run_job("jobs.run", "+experiment=excite", "excite.rivals=[]", f"hydra.run.dir={tmp_path / 'run'}",
+                   "progress=false", cwd=tmp_path, env=job_env, timeout=1800)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    par = json.loads((tmp_path / "run" / "excite.json").read_text())["parameters"]
+    assert par["met"] and (par["rank_after"] > par["rank_before"] or par["sv_gain"] >= 10.0)
+    assert isinstance(par["become_identifiable"], list)
