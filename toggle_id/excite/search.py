@@ -139,9 +139,10 @@ class Scorer:
 
 
 def search(scorer: Scorer, say: Callable[[str], None] = lambda m: None) -> list[Evaluation]:
-    """Random candidates of every family (``n_random`` each), then a local refinement of the best candidate of each
-    of the ``refine_starts`` best families: bounded Nelder–Mead in the family's unit cube (:func:`_refine`),
-    ``n_refine`` evaluations in all. Seeded by ``settings.seed``: the same seed gives the same candidates and
+    """Random candidates of every family (until ``n_random`` are accepted, at most ``random_tries`` times as many
+    tries: a family most of whose inputs leave the stroke still gets its starting points), then a local refinement
+    of the best candidate of each of the ``refine_starts`` best families: bounded Nelder–Mead in the family's unit
+    cube (:func:`_refine`), ``n_refine`` evaluations in all. Seeded by ``settings.seed``: the same seed gives the same candidates and
     scores."""
     s = scorer.s
     rng = np.random.default_rng(np.random.SeedSequence([s.seed, 16]))
@@ -158,9 +159,13 @@ def search(scorer: Scorer, say: Callable[[str], None] = lambda m: None) -> list[
         return ev
 
     for fam in s.families:
-        for _ in range(s.n_random):
-            run(Candidate(fam, tuple(float(x) for x in rng.random(dimension(fam))), int(rng.integers(2 ** 31))),
-                "random")
+        valid = 0
+        for _ in range(s.random_tries * s.n_random):
+            ev = run(Candidate(fam, tuple(float(x) for x in rng.random(dimension(fam))), int(rng.integers(2 ** 31))),
+                     "random")
+            valid += ev.ok
+            if valid >= s.n_random:
+                break
     best_of: dict[str, Evaluation] = {}
     for e in evals:
         if e.ok and (e.candidate.family not in best_of or e.score > best_of[e.candidate.family].score):

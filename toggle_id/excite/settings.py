@@ -72,9 +72,10 @@ class ExciteSettings:
       ``x_B_min`` (m): slider B must stay above it; ``clamp_margin`` (m): x_B must pass x_B^L by this much to
       count as clamped; ``min_clamp_samples``: samples before the first clamp; ``min_exits``: times the
       slider must leave the clamp again ("into the clamp and back").
-    - Search: ``families`` (of :data:`FAMILIES`), ``n_random`` random candidates per family, then the best
-      candidate of each of the ``refine_starts`` best families refined by bounded Nelder–Mead in the unit cube of the
-      family's parameters (first simplex ``refine_radius`` wide), ``n_refine`` evaluations in all; ``seed``.
+    - Search: ``families`` (of :data:`FAMILIES`), ``n_random`` accepted random candidates per family (at most
+      ``random_tries`` × ``n_random`` tries), then the best candidate of each of the ``refine_starts`` best families
+      refined by bounded Nelder–Mead in the unit cube of the family's parameters (first simplex ``refine_radius``
+      wide), ``n_refine`` evaluations in all; ``seed``.
     - Scores: ``refit_top`` candidates (the best by the linearised score) verified by full refits of
       ``refit_nfev`` residual evaluations (``refit_rounds`` restarts); ``rival_nfev``: the fit of rival A to the
       record (``rival_rms_sigma``: a rival whose A or B leaves more than this many σ on the record is reported as
@@ -97,7 +98,8 @@ class ExciteSettings:
     min_exits: int = 1              # ... and leave the clamp again at least this often ("into the clamp and back")
     # the search (seeded: the same seed gives the same candidates and scores)
     families: tuple[str, ...] = FAMILIES  # of FAMILIES (toggle_id/excite/inputs.py FAMILY_PARAMS)
-    n_random: int = 6               # random candidates per family (uniform in the family's unit cube)
+    n_random: int = 6               # random candidates accepted per family (uniform in the family's unit cube) ...
+    random_tries: int = 3           # ... in at most this many times as many tries
     refine_starts: int = 2          # local refinement of the best candidate of each of this many best families ...
     n_refine: int = 120             # ... bounded Nelder–Mead, this many evaluations in all ...
     refine_radius: float = 0.15     # ... its first simplex this wide in the unit cube
@@ -158,7 +160,7 @@ class ExciteSettings:
         number("rival_rms_sigma", 0.0, 1e6)
         number("sv_gain_target", 0.0, 1e9)
         for name, lo in (("min_clamp_samples", 1), ("min_exits", 0), ("n_random", 1), ("n_refine", 0), ("seed", 0),
-                         ("refine_starts", 1), ("refit_top", 1), ("refit_nfev", 1), ("refit_rounds", 1), ("rival_nfev", 1),
+                         ("refine_starts", 1), ("random_tries", 1), ("refit_top", 1), ("refit_nfev", 1), ("refit_rounds", 1), ("rival_nfev", 1),
                          ("sv_index", 1)):
             whole(name, lo)
         if self.sv_index > 15:
