@@ -142,8 +142,8 @@ def search(scorer: Scorer, say: Callable[[str], None] = lambda m: None) -> list[
     """Random candidates of every family (until ``n_random`` are accepted, at most ``random_tries`` times as many
     tries: a family most of whose inputs leave the stroke still gets its starting points), then a local refinement
     of the best candidate of each of the ``refine_starts`` best families: bounded Nelder–Mead in the family's unit
-    cube (:func:`_refine`), ``n_refine`` evaluations in all. Seeded by ``settings.seed``: the same seed gives the same candidates and
-    scores."""
+    cube (:func:`_refine`), ``n_refine`` evaluations in all. Seeded by ``settings.seed``: the same seed gives the
+    same candidates and scores."""
     s = scorer.s
     rng = np.random.default_rng(np.random.SeedSequence([s.seed, 16]))
     evals: list[Evaluation] = []
@@ -177,6 +177,10 @@ def search(scorer: Scorer, say: Callable[[str], None] = lambda m: None) -> list[
     return evals
 
 
+class _Spent(Exception):
+    """The refinement's budget of evaluations is spent."""
+
+
 def _refine(start: Evaluation, budget: int, radius: float, run: Callable[[Candidate], Evaluation]) -> None:
     """Bounded Nelder–Mead (scipy) on ``start``'s family's unit cube, maximising the score, at most ``budget``
     evaluations; the first simplex is ``start`` and a step of ``radius`` along each axis (inwards at a bound).
@@ -208,10 +212,6 @@ def _refine(start: Evaluation, budget: int, radius: float, run: Callable[[Candid
                           "fatol": 1e-4})
     except _Spent:
         pass
-
-
-class _Spent(Exception):
-    """The refinement's budget of evaluations is spent."""
 
 
 def verify_best(scorer: Scorer, evals: Sequence[Evaluation], say: Callable[[str], None] = lambda m: None

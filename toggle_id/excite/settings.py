@@ -160,8 +160,8 @@ class ExciteSettings:
         number("rival_rms_sigma", 0.0, 1e6)
         number("sv_gain_target", 0.0, 1e9)
         for name, lo in (("min_clamp_samples", 1), ("min_exits", 0), ("n_random", 1), ("n_refine", 0), ("seed", 0),
-                         ("refine_starts", 1), ("random_tries", 1), ("refit_top", 1), ("refit_nfev", 1), ("refit_rounds", 1), ("rival_nfev", 1),
-                         ("sv_index", 1)):
+                         ("refine_starts", 1), ("random_tries", 1), ("refit_top", 1), ("refit_nfev", 1),
+                         ("refit_rounds", 1), ("rival_nfev", 1), ("sv_index", 1)):
             whole(name, lo)
         if self.sv_index > 15:
             raise ConfigError(f"excite.sv_index must be at most 15 (the parameters), got {self.sv_index}")
