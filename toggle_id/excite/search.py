@@ -194,20 +194,22 @@ def _refine(start: Evaluation, budget: int, radius: float, run: Callable[[Candid
         u[i] = u[i] + radius if u[i] + radius <= 1.0 else u[i] - radius
         simplex.append(u)
     seen = {tuple(u0): -start.score}  # candidates already scored (the start; a point the simplex comes back to)
-    left = [budget]
+    left = budget
 
     def loss(u: np.ndarray) -> float:
+        nonlocal left
         key = tuple(float(x) for x in np.clip(u, 0.0, 1.0))
         if key not in seen:
-            if left[0] <= 0:
+            if left <= 0:
                 raise _Spent
-            left[0] -= 1
+            left -= 1
             ev = run(Candidate(start.candidate.family, key, start.candidate.seed))
             seen[key] = -ev.score if ev.ok and np.isfinite(ev.score) else 1.0
         return seen[key]
 
     try:
         minimize(loss, u0, method="Nelder-Mead", bounds=[(0.0, 1.0)] * len(u0),
+                 # the budget of new candidates (_Spent) ends it, not scipy's count, which includes repeated points
                  options={"initial_simplex": np.array(simplex), "maxfev": 100 * (budget + len(u0)), "xatol": 1e-3,
                           "fatol": 1e-4})
     except _Spent:
