@@ -15,6 +15,7 @@ from toggle_id.discovery.stats import (
     lagged_basis,
     piecewise_basis,
     robust_f,
+    separation,
     structure_test,
     vuong,
 )
@@ -386,6 +387,41 @@ def test_vuong_prefers_the_fit_without_a_structured_miss(rho, miss):
     assert v["favours"] == "a" and v["z"] > 3
     w = vuong(noise, b, a, 1, 1)  # symmetric
     assert w["favours"] == "b" and w["z"] == pytest.approx(-v["z"], rel=1e-9)
+
+
+@pytest.mark.parametrize("rho, rms", [(0.0, 0.04), (0.9, 0.25)])
+def test_separation_predicts_what_vuongs_test_does_on_the_record(rho, rms):
+    """The expected z and power of a tie, from the two fits alone, against Vuong's test run on many draws of the
+    noise with one of the two models true: the mean z and the share of draws that name it agree with them."""
+    _, b0 = _vuong_pair(rms, rho, seed=0)
+    e0 = _vuong_pair(rms, rho, seed=0)[0]
+    delta = b0 - e0  # the two models' predictions differ by this (the miss of b when a is the truth)
+    sep = separation(fit_noise(e0, 8), e0, b0)
+    assert sep["difference_rms_m"] == pytest.approx(rms, rel=1e-9)
+    assert 0.5 < sep["expected_z"] < 3.0 and 0.05 < sep["power"] < 0.9  # a case where the answer is uncertain
+    zs = []
+    for seed in range(1, 161):
+        e = ar1(rho, seed=seed) if rho else np.random.default_rng(seed).standard_normal(N)
+        zs.append(vuong(fit_noise(e, 8), e, e + delta, 1, 1)["z"])
+    zs = np.asarray(zs)
+    assert np.mean(zs) == pytest.approx(sep["expected_z"], abs=0.25)
+    assert np.mean(np.abs(zs) > stats.norm.isf(0.025)) == pytest.approx(sep["power"], abs=0.12)
+    # a difference of the needed size names the true model with the target probability (the formula's own
+    # consistency, and on draws)
+    grown = separation(fit_noise(e0, 8), e0, e0 + delta * sep["needed_rms_m"] / rms)
+    assert grown["power"] == pytest.approx(0.8, abs=0.01)
+    hits = [vuong(fit_noise(e, 8), e, e + delta * sep["needed_rms_m"] / rms, 1, 1)["p_value"] < 0.05
+            for e in ((ar1(rho, seed=s) if rho else np.random.default_rng(s).standard_normal(N))
+                      for s in range(200, 300))]
+    assert np.mean(hits) == pytest.approx(0.8, abs=0.12)
+
+
+def test_separation_of_identical_fits_is_zero_and_of_broken_ones_unknown():
+    e = np.random.default_rng(4).standard_normal(N)
+    same = separation(fit_noise(e, 0), e, e.copy())
+    assert same["expected_z"] == 0.0 and same["power"] == pytest.approx(0.05) and same["needed_rms_m"] == np.inf
+    broken = separation(fit_noise(e, 0), e, np.full(N, np.nan))
+    assert np.isnan(broken["expected_z"]) and np.isnan(broken["power"])
 
 
 def test_vuong_charges_the_extra_parameters_of_the_larger_model():

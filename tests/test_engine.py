@@ -134,6 +134,33 @@ def test_two_fits_that_differ_by_less_than_the_noise_can_tell_are_tied_and_a_wor
     out = indistinguishable(chosen, 1, [(twin, 1), (worse, 1)], noise_max_order=8, alpha=0.05)
     assert [o["tied"] for o in out] == [True, False]
     assert out[1]["z"] > 3 and out[1]["favours"] == "a"
+    # each test says how far apart the two fits are: the twin by its scatter alone (≈ 0.042 σ RMS), the worse
+    # one by its miss, which any test tells apart
+    assert out[0]["separation"]["difference_rms_m"] == pytest.approx(0.03 * np.sqrt(2), rel=0.05)
+    assert out[1]["separation"]["difference_rms_m"] == pytest.approx(0.2, rel=0.02)
+    assert out[1]["separation"]["power"] > 0.999 and out[0]["separation"]["power"] < out[1]["separation"]["power"]
+
+
+def test_the_report_says_whether_a_tie_is_the_records_or_the_tests():
+    from toggle_id.discovery.report import _conclusion, separation_text
+
+    sep = {"difference_rms_m": 3.1e-8, "sigma_e_m": 1e-6, "expected_z": 1.1, "power": 0.29, "needed_rms_m": 7.9e-8,
+           "target_power": 0.8, "alpha": 0.05}
+    rival = {"name": "B", "params": {"k": 1.0}, "vuong": {"z": 0.35, "p_value": 0.73, "separation": sep}}
+    text = separation_text("A", rival)
+    assert text == ("the two fits differ by 0.031 µm RMS on the record: were either the truth, Vuong's test would "
+                    "name it with probability 0.29 (expected z 1.10) — the tie is the record's, not the test's; a "
+                    "record on which they differ by 0.079 µm RMS would name it with probability 0.8")
+    # the final model's test, when there is one, is the one reported
+    final = {**rival, "vuong_final": {"z": 0.5, "p_value": 0.6, "separation": {**sep, "power": 0.4}}}
+    assert "probability 0.40" in separation_text("A", final)
+    added = [{"name": "A", "magnitude": {"name": "a", "value": 1.0, "unit": "N"}, "indistinguishable_from": [rival]}]
+    after = {"rms_m": 1e-6, "verdict": {"structure_left": False}}
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    assert text in _conclusion([], {"rms_m": 3e-6}, after, False, DiscoverSettings(), ambiguous=added)
+    nan = {**rival, "vuong": {**rival["vuong"], "separation": {**sep, "expected_z": float("nan")}}}
+    assert separation_text("A", nan) == "A and B: their separation could not be measured"
 
 
 def test_a_tie_found_while_an_effect_was_missing_is_judged_again_on_the_final_model():

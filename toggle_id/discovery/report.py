@@ -74,6 +74,18 @@ class DiscoveryResult:
                 **self.extra}
 
 
+def separation_text(name: str, rival: dict) -> str:
+    """What the record can say of a tie between ``name`` and ``rival`` (its last Vuong test's ``separation``,
+    :func:`.stats.separation`): how far apart the two fits are, and the power any test has on that."""
+    sep = rival.get("vuong_final", rival.get("vuong", {}))["separation"]
+    if not np.isfinite(sep.get("expected_z", np.nan)):
+        return f"{name} and {rival['name']}: their separation could not be measured"
+    return (f"the two fits differ by {sep['difference_rms_m'] * 1e6:.3g} µm RMS on the record: were either the "
+            f"truth, Vuong's test would name it with probability {sep['power']:.2f} (expected z "
+            f"{sep['expected_z']:.2f}) — the tie is the record's, not the test's; a record on which they differ by "
+            f"{sep['needed_rms_m'] * 1e6:.3g} µm RMS would name it with probability {sep['target_power']:.2g}")
+
+
 def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings,
                 compensating: list[dict] = (), predicted: dict | None = None, ambiguous: list[dict] = (),
                 catch: dict | None = None) -> str:
@@ -97,6 +109,8 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
                  "them apart (Vuong's test: " + ", ".join(f"z {r.get('vuong_final', r['vuong'])['z']:.2f}"
                                                         for r in a["indistinguishable_from"]) +
                  "".join(f"; {_with_both(a['name'], r)}" for r in a["indistinguishable_from"] if "encompassing" in r) +
+                 "".join(f"; {separation_text(a['name'], r)}" for r in a["indistinguishable_from"]
+                         if "separation" in r.get("vuong_final", r.get("vuong", {}))) +
                  f"); the final model uses {a['name']}, the better fit. To separate them: a second record of the "
                  "machine under another command (validation.path=…), or the experiment that +experiment=excite "
                  "excite.discovery=<this discovery.json> proposes.")
@@ -285,6 +299,8 @@ def summary_text(res: DiscoveryResult) -> str:
                          f"{r.get('vuong_final', r['vuong'])['z']:.2f}, "
                          f"p {r.get('vuong_final', r['vuong'])['p_value']:.2g}" +
                          (f"; {_with_both(a['name'], r)}" if "encompassing" in r else "") +
+                         (f"; {separation_text(a['name'], r)}"
+                          if "separation" in r.get("vuong_final", r.get("vuong", {})) else "") +
                          (f"; on the validation record z {r['vuong_validation']['z']:.2f}"
                           if "vuong_validation" in r else "") + ")" for r in a["indistinguishable_from"])
                      + " — the record cannot tell them apart")

@@ -5,7 +5,8 @@
   "the effect is real" its residual is the noise, under "it is not" the two residuals are alike).
 - :func:`robust_f`: the F statistic corrected for a noise level that varies along the record (HC3 sandwich).
 - :func:`block_cv`: time-block cross-validation of a fit, linearised at the fitted point.
-- :func:`vuong`: which of two *non-nested* fits (two different effects) the record prefers, or neither.
+- :func:`vuong`: which of two *non-nested* fits (two different effects) the record prefers, or neither;
+  :func:`separation`: how far apart the two fits are against the noise, and so what any test can do on the record.
 - :func:`structure_test`: is the whitened residual predicted by functions of the states or the input?
   A regression on prewhitened piecewise-constant bases (one family per signal) — the specification test that
   separates "the model misses something" from "the noise is coloured".
@@ -125,6 +126,34 @@ def vuong(noise: NoiseModel, r_a: np.ndarray, r_b: np.ndarray, k_a: int, k_b: in
     p = float(2.0 * stats.norm.sf(abs(z)))
     return {"z": float(z), "p_value": p, "favours": ("a" if z > 0 else "b") if p < 0.05 else None, "n": int(n),
             "lags": L}
+
+
+def separation(noise: NoiseModel, r_a: np.ndarray, r_b: np.ndarray, alpha: float = 0.05, power: float = 0.8
+               ) -> dict:
+    """How far apart two fits are against the noise, and what Vuong's test can do with that on this record.
+
+    δ = r_b − r_a is the difference of the two fitted models' predictions. Were either model the truth (Gaussian
+    noise, both fits exact), Vuong's statistic would be about ``expected_z`` = ‖A(q)δ‖ / (2σ_e) — δ whitened by
+    ``noise``, σ_e the innovation standard deviation of ``r_a`` — and would name the true model at level
+    ``alpha`` with probability ``power`` = Φ(z − z_α/2) + Φ(−z − z_α/2). So a small ``expected_z`` says that no
+    test can tell the two apart on this record: the tie is the record's, not the test's. ``needed_rms_m``: the
+    RMS of δ at which a record of the same length and noise would name the true model with probability
+    ``power`` (default 0.8), δ of the same shape — what a second record must separate them by. Returns
+    {difference_rms_m, sigma_e_m, expected_z, power, needed_rms_m, target_power, alpha}."""
+    r_a, r_b = np.asarray(r_a, float), np.asarray(r_b, float)
+    d = r_b - r_a
+    w = noise.whiten(np.vstack([r_a, d]))[:, noise.order:]
+    rms = float(np.sqrt(np.mean(d * d))) if d.size else float("nan")
+    s_e = float(np.sqrt(np.mean(w[0] ** 2))) if w.shape[1] else float("nan")
+    if not (np.isfinite(s_e) and s_e > 0 and np.all(np.isfinite(w[1]))):
+        return {"difference_rms_m": rms, "sigma_e_m": s_e, "expected_z": float("nan"), "power": float("nan"),
+                "needed_rms_m": float("nan"), "target_power": float(power), "alpha": float(alpha)}
+    z = float(np.sqrt(w[1] @ w[1]) / (2.0 * s_e))
+    crit = float(stats.norm.isf(alpha / 2.0))
+    pw = float(stats.norm.sf(crit - z) + stats.norm.cdf(-crit - z))
+    need = (crit + float(stats.norm.isf(1.0 - power))) / z * rms if z > 0 else float("inf")
+    return {"difference_rms_m": rms, "sigma_e_m": s_e, "expected_z": z, "power": pw, "needed_rms_m": float(need),
+            "target_power": float(power), "alpha": float(alpha)}
 
 
 def fold_of(n: int, block: int, folds: int) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import stats
 
 from .noise import fit_noise
-from .stats import vuong
+from .stats import separation, vuong
 
 
 def tie_band(best_sse: float, n: int, alpha: float) -> float:
@@ -41,12 +41,13 @@ def indistinguishable(r_chosen: np.ndarray, k_chosen: int, others: Sequence[tupl
                       noise_max_order: int, alpha: float) -> list[dict]:
     """Vuong's test of the chosen fit (residual ``r_chosen``, ``k_chosen`` parameters added) against each other
     supported fit (residual, parameters added), every residual whitened by the noise model of the chosen one's.
-    Returns, per other fit, the test's dict with ``tied``: True when it is not significant at ``alpha``."""
+    Returns, per other fit, the test's dict with ``tied``: True when it is not significant at ``alpha``, and
+    ``separation`` (:func:`.stats.separation`: how far apart the two fits are, and what any test could do)."""
     noise = fit_noise(r_chosen, noise_max_order)
     out = []
     for r, k in others:
         v = vuong(noise, r_chosen, r, k_chosen, k)
-        out.append({**v, "tied": bool(v["p_value"] >= alpha)})
+        out.append({**v, "tied": bool(v["p_value"] >= alpha), "separation": separation(noise, r_chosen, r, alpha)})
     return out
 
 
