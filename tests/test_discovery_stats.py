@@ -17,6 +17,7 @@ from toggle_id.discovery.stats import (
     robust_f,
     separation,
     structure_test,
+    vuong_power,
     vuong,
 )
 
@@ -414,6 +415,12 @@ def test_separation_predicts_what_vuongs_test_does_on_the_record(rho, rms):
             for e in ((ar1(rho, seed=s) if rho else np.random.default_rng(s).standard_normal(N))
                       for s in range(200, 300))]
     assert np.mean(hits) == pytest.approx(0.8, abs=0.12)
+
+
+def test_vuong_power_is_the_size_at_zero_and_grows_to_one():
+    assert vuong_power(0.0) == pytest.approx(0.05)
+    assert vuong_power(1.1) == pytest.approx(stats.norm.cdf(1.1 - 1.959964) + stats.norm.cdf(-1.1 - 1.959964))
+    assert vuong_power(-2.0) == vuong_power(2.0) and vuong_power(6.0) > 0.9999
 
 
 def test_separation_of_identical_fits_is_zero_and_of_broken_ones_unknown():

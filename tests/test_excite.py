@@ -339,6 +339,10 @@ def test_excite_job_end_to_end(tmp_path, job_env):
     assert pair["theta_a"]["c_kt"] == 1e-6 and pair["theta_b"]["k3"] > 0 and "k3" in pair["free_b"]
     if d["proposed"] is not None:
         assert rv["predicted_separation_um"] >= 0 and "predicted_separation_sigma" in rv
+        # the power of Vuong's test on a record under the proposed input, from the separation and its length
+        z = np.sqrt(1001) * rv["predicted_separation_sigma"] / 2.0
+        assert rv["expected_vuong_z"] == pytest.approx(z) and 0.05 <= rv["vuong_power"] <= 1.0
+        assert f"probability {rv['vuong_power']:.3g}" in (tmp_path / "run" / "excite.txt").read_text()
         ex = read_csv(tmp_path / "run" / "excitation.csv", require_x_B=False, expect_rate_hz=1000.0)
         assert ex.n == 1001 and np.max(np.abs(ex.v_in)) <= 0.3
         assert (tmp_path / "run" / "excite.png").stat().st_size > 10_000

@@ -13,6 +13,7 @@ import numpy as np
 from .. import mlflow_run
 from .. import params as P
 from ..data import write_csv
+from ..discovery.stats import vuong_power
 from ..effects import ALL_INDEX
 from ..errors import ConfigError, DataError
 from ..identify import identify
@@ -191,6 +192,10 @@ def _report(s: ExciteSettings, record: Record, rivals, evals: list[Evaluation], 
         d["predicted_separation_um"] = 1e6 * sep
         d["predicted_separation_sigma"] = sep / sigma
         d["separated"] = bool(np.isfinite(sep) and sep / sigma >= s.separation_target)
+        # what a record under the proposed input would let Vuong's test do (white noise σ, both models exact)
+        n_prop = int(round(s.duration * s.rate_hz)) + 1
+        d["expected_vuong_z"] = float(np.sqrt(n_prop) * sep / (2.0 * sigma)) if np.isfinite(sep) else float("nan")
+        d["vuong_power"] = vuong_power(d["expected_vuong_z"]) if np.isfinite(sep) else float("nan")
         # the best verified input for this rival alone
         per = max((e for e in verified if e.refit_m), key=lambda e: e.refit_m.get(r.name, -np.inf), default=None)
         if per is not None:

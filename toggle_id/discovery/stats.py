@@ -128,6 +128,15 @@ def vuong(noise: NoiseModel, r_a: np.ndarray, r_b: np.ndarray, k_a: int, k_b: in
             "lags": L}
 
 
+def vuong_power(expected_z: float, alpha: float = 0.05) -> float:
+    """The probability that Vuong's two-sided test at level ``alpha`` names the true one of two models whose
+    statistic has mean ``expected_z`` (unit variance): Φ(z − z_α/2) + Φ(−z − z_α/2). For two models whose
+    predictions differ by δ under white noise σ over n samples, z = √n·RMS(δ)/(2σ)."""
+    crit = float(stats.norm.isf(alpha / 2.0))
+    z = abs(float(expected_z))
+    return float(stats.norm.sf(crit - z) + stats.norm.cdf(-crit - z))
+
+
 def separation(noise: NoiseModel, r_a: np.ndarray, r_b: np.ndarray, alpha: float = 0.05, power: float = 0.8
                ) -> dict:
     """How far apart two fits are against the noise, and what Vuong's test can do with that on this record.
@@ -149,9 +158,8 @@ def separation(noise: NoiseModel, r_a: np.ndarray, r_b: np.ndarray, alpha: float
         return {"difference_rms_m": rms, "sigma_e_m": s_e, "expected_z": float("nan"), "power": float("nan"),
                 "needed_rms_m": float("nan"), "target_power": float(power), "alpha": float(alpha)}
     z = float(np.sqrt(w[1] @ w[1]) / (2.0 * s_e))
-    crit = float(stats.norm.isf(alpha / 2.0))
-    pw = float(stats.norm.sf(crit - z) + stats.norm.cdf(-crit - z))
-    need = (crit + float(stats.norm.isf(1.0 - power))) / z * rms if z > 0 else float("inf")
+    pw = vuong_power(z, alpha)
+    need = (float(stats.norm.isf(alpha / 2.0)) + float(stats.norm.isf(1.0 - power))) / z * rms if z > 0 else float("inf")
     return {"difference_rms_m": rms, "sigma_e_m": s_e, "expected_z": z, "power": pw, "needed_rms_m": float(need),
             "target_power": float(power), "alpha": float(alpha)}
 

@@ -71,7 +71,10 @@ def summary_text(report: Mapping) -> str:
                      f"{r['predicted_separation_sigma']:.3g} σ (σ = {sigma_um:.3g} µm; on the record's input "
                      f"{r['record_separation_um']:.3g} µm first-order) — "
                      + ("separated" if r["separated"] else "not separated") +
-                     f" at {report['targets']['separation_sigma']:g} σ")
+                     f" at {report['targets']['separation_sigma']:g} σ" +
+                     (f"; a record under it would let Vuong's test (white noise σ) name the true one with probability "
+                      f"{r['vuong_power']:.3g} (expected z {r['expected_vuong_z']:.3g})"
+                      if np.isfinite(r.get("vuong_power", np.nan)) else ""))
     par = report.get("parameters")
     if par:
         k = par["sv_index"]
