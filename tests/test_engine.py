@@ -154,6 +154,9 @@ def test_the_report_says_whether_a_tie_is_the_records_or_the_tests():
     # the final model's test, when there is one, is the one reported
     final = {**rival, "vuong_final": {"z": 0.5, "p_value": 0.6, "separation": {**sep, "power": 0.4}}}
     assert "probability 0.40" in separation_text("A", final)
+    strong = {**rival, "vuong": {**rival["vuong"], "separation": {**sep, "power": 0.9, "expected_z": 3.2}}}
+    assert "the tie is the record's" not in separation_text("A", strong)
+    assert "should show more often than not" in separation_text("A", strong)
     added = [{"name": "A", "magnitude": {"name": "a", "value": 1.0, "unit": "N"}, "indistinguishable_from": [rival]}]
     after = {"rms_m": 1e-6, "verdict": {"structure_left": False}}
     from toggle_id.discovery.settings import DiscoverSettings

@@ -159,7 +159,8 @@ def separation(noise: NoiseModel, r_a: np.ndarray, r_b: np.ndarray, alpha: float
                 "needed_rms_m": float("nan"), "target_power": float(power), "alpha": float(alpha)}
     z = float(np.sqrt(w[1] @ w[1]) / (2.0 * s_e))
     pw = vuong_power(z, alpha)
-    need = (float(stats.norm.isf(alpha / 2.0)) + float(stats.norm.isf(1.0 - power))) / z * rms if z > 0 else float("inf")
+    z_need = float(stats.norm.isf(alpha / 2.0)) + float(stats.norm.isf(1.0 - power))
+    need = z_need / z * rms if z > 0 else float("inf")
     return {"difference_rms_m": rms, "sigma_e_m": s_e, "expected_z": z, "power": pw, "needed_rms_m": float(need),
             "target_power": float(power), "alpha": float(alpha)}
 
