@@ -149,14 +149,15 @@ def test_the_report_says_whether_a_tie_is_the_records_or_the_tests():
     rival = {"name": "B", "params": {"k": 1.0}, "vuong": {"z": 0.35, "p_value": 0.73, "separation": sep}}
     text = separation_text("A", rival)
     assert text == ("the two fits differ by 0.031 µm RMS on the record: were either the truth, Vuong's test would "
-                    "name it with probability 0.29 (expected z 1.10) — the tie is the record's, not the test's; a "
+                    "name it with probability 0.29 (expected z 1.10) — a tie this record gives 71% of the time: the record's, not "
+                    "the test's; a "
                     "record on which they differ by 0.079 µm RMS would name it with probability 0.8")
     # the final model's test, when there is one, is the one reported
     final = {**rival, "vuong_final": {"z": 0.5, "p_value": 0.6, "separation": {**sep, "power": 0.4}}}
     assert "probability 0.40" in separation_text("A", final)
-    strong = {**rival, "vuong": {**rival["vuong"], "separation": {**sep, "power": 0.9, "expected_z": 3.2}}}
-    assert "the tie is the record's" not in separation_text("A", strong)
-    assert "should show more often than not" in separation_text("A", strong)
+    strong = {**rival, "vuong": {**rival["vuong"], "separation": {**sep, "power": 0.95, "expected_z": 3.6}}}
+    assert "the record's, not the test's" not in separation_text("A", strong)
+    assert "should give only 5% of the time: a fit stopped short" in separation_text("A", strong)
     added = [{"name": "A", "magnitude": {"name": "a", "value": 1.0, "unit": "N"}, "indistinguishable_from": [rival]}]
     after = {"rms_m": 1e-6, "verdict": {"structure_left": False}}
     from toggle_id.discovery.settings import DiscoverSettings

@@ -80,9 +80,10 @@ def separation_text(name: str, rival: dict) -> str:
     sep = rival.get("vuong_final", rival.get("vuong", {}))["separation"]
     if not np.isfinite(sep.get("expected_z", np.nan)):
         return f"{name} and {rival['name']}: their separation could not be measured"
-    why = ("the tie is the record's, not the test's" if sep["power"] < 0.5 else
-           "a difference the record should show more often than not: a fit stopped short of its optimum, or noise "
-           "unlike its model, may hide it")
+    miss = 1.0 - sep["power"]
+    why = (f"a tie this record gives {miss:.0%} of the time: the record's, not the test's" if sep["power"] < 0.9 else
+           f"a tie this record should give only {miss:.0%} of the time: a fit stopped short of its optimum, or noise "
+           "unlike its model, may hide the difference")
     return (f"the two fits differ by {sep['difference_rms_m'] * 1e6:.3g} µm RMS on the record: were either the "
             f"truth, Vuong's test would name it with probability {sep['power']:.2f} (expected z "
             f"{sep['expected_z']:.2f}) — {why}; a record on which they differ by "
