@@ -280,6 +280,66 @@ def test_a_tie_is_settled_by_the_model_with_both_effects():
     assert ("D instead of A", "final + D") in judged and judged.count(("D instead of A", "final + D")) == 1
 
 
+@dataclass
+class _Case:
+    """A judge's case with its numbers: F-tests at p, p_robust; BIC and cross-validation as given."""
+    p: float
+    p_robust: float
+    bic: bool = True
+    cv: bool = True
+    alpha: float = 1e-3
+
+    @property
+    def passed(self) -> bool:
+        return all(self.to_dict()["checks"].values())
+
+    def to_dict(self) -> dict:
+        return {"p_value": self.p, "p_value_robust": self.p_robust, "F": 1.0,
+                "checks": {"f_test": self.p < self.alpha, "robust_f_test": self.p_robust < self.alpha,
+                           "bic": self.bic, "cross_validation": self.cv}}
+
+
+@pytest.mark.parametrize("beside_rival, beside_effect, pair_alpha, outcome", [
+    (_Case(1.4e-4, 2.2e-3), _Case(0.6, 0.7), 0.05, "named"),          # rec20's numbers: A needed at 0.05, B not
+    (_Case(1.4e-4, 2.2e-3), _Case(0.6, 0.7), 0.0, "tied"),            # the pairwise reading off
+    (_Case(0.03, 0.04, bic=False), _Case(0.6, 0.7), 0.05, "tied"),    # rec08's: BIC still says no
+    (_Case(0.6, 0.7), _Case(1.4e-4, 2.2e-3), 0.05, "rival"),          # the reverse names the rival
+    (_Case(0.01, 0.02), _Case(0.02, 0.03), 0.05, "tied"),             # both needed at 0.05: still tied
+    (_Case(0.01, 0.02, cv=False), _Case(0.6, 0.7), 0.05, "tied"),     # not better out of sample: no name
+    (_Case(1e-5, 1e-5), _Case(1e-5, 1e-5), 0.05, "tied"),             # both needed at the judge's level: stays
+])
+def test_a_tie_neither_is_needed_in_at_the_judges_level_is_read_at_the_pairwise_level(
+        beside_rival, beside_effect, pair_alpha, outcome):
+    cases = {("B instead of A", "final + B"): beside_rival, ("final", "final + B"): beside_effect}
+    added = [{"name": "A", "iteration": 1, "F": 50.0, "evidence": {"of": "A"},
+              "indistinguishable_from": [{"name": "B", "F": 40.0, "params": {"b": 1.0}}]}]
+    log = []
+    final = settle_ties_by_encompassing("final", added, lambda cur, a, rv: f"{rv['name']} instead of {a['name']}",
+                                        lambda cur, rv: f"{cur} + {rv['name']}",
+                                        lambda small, large: cases[(small, large)], lambda fit: {"fit": fit},
+                                        log.append, pair_alpha=pair_alpha)
+    item = added[0]
+    if outcome == "named":
+        assert final == "final" and item["indistinguishable_from"] == []
+        assert "at the pairwise level 0.05" in item["ties_resolved"][0]["reason"]
+        assert item["ties_resolved"][0]["encompassing"]["at_pair_alpha"] is True
+    elif outcome == "rival":
+        assert final == "B instead of A" and item["name"] == "B" and item["replaced"]["name"] == "A"
+    else:
+        assert final == "final" and [r["name"] for r in item["indistinguishable_from"]] == ["B"]
+        assert "ties_resolved" not in item
+    assert ("resolved" in log[-1]) == (outcome != "tied")
+
+
+def test_passes_at_rereads_only_the_f_tests():
+    from toggle_id.discovery.ties import passes_at
+
+    case = _Case(0.01, 0.02).to_dict()
+    assert not all(case["checks"].values()) and passes_at(case, 0.05) and not passes_at(case, 0.005)
+    assert not passes_at(_Case(0.01, 0.02, bic=False).to_dict(), 0.05)
+    assert not passes_at({"passed": True}, 0.05)  # a case without checks is never re-read as passing
+
+
 def test_the_report_says_what_the_model_with_both_needs():
     from toggle_id.discovery.report import _with_both
 

@@ -259,7 +259,7 @@ def verdict_rules(plant: Plant, current: Any, added: list[dict], *, backward: bo
         if encompassing:
             current = settle_ties_by_encompassing(current, added, swap,
                                                   lambda cur, rv: plant.without(cur, None, added, rv), plant.judge,
-                                                  plant.summary, plant.say)
+                                                  plant.summary, plant.say, pair_alpha=ambiguity_alpha)
         if plant.has_validation:
             current = settle_ties_out_of_sample(current, added, swap, plant.validation_residual, plant.n_free,
                                                 plant.summary, noise_max_order, ambiguity_alpha, plant.say)

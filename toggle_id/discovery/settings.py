@@ -88,7 +88,9 @@ class DiscoverSettings:
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
       test leaves is judged by the model with both effects (:func:`.ties.settle_ties_by_encompassing`): an effect
-      needed beside its rival, and the rival not beside it, is named.
+      needed beside its rival, and the rival not beside it, is named — by the judge at ``alpha``, and where that
+      needs neither, with the F-tests at ``ambiguity_alpha`` (the pairwise level; BIC and cross-validation as
+      judged).
     - stronger_starts: a refit that is significant by its own fit but dismissed is repeated from these
       multiples (≥ 1) of its magnitude's distance from "off" (the larger of the refit's and the grid's best),
       from the baseline's nominal parameters; where one ends lower it is converged and judged again — a refit
