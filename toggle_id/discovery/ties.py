@@ -127,7 +127,7 @@ def settle_ties_by_encompassing(current: Any, added: list[dict], swap: Callable[
     rule: each F-test at that level, every other check (BIC, cross-validation, a second record, the loop's own
     fits) as the judge made it (:func:`passes_at`). When one effect is needed beside the other there and not the
     reverse, it is named. With one of the two the truth, naming the other takes the rival's F-test beside the
-    true effect past BIC's ln n (p ≈ 0.003 for one parameter over 5000 samples) and cross-validation, so the
+    true effect past BIC's ln n (p ≈ 0.0035 for one parameter over 5000 samples) and cross-validation, so the
     rule adds at most that rate of wrong names; it resolves no tie the judge's level left with both needed, and
     undoes none it resolved. Edits ``added`` in place."""
     def decide(cur: Any, a: dict, rv: dict, swapped: Any) -> tuple[str, dict]:
