@@ -22,7 +22,7 @@ from ..excite.rivals import build_rivals, discovery_base, specs_from_discovery
 from ..excite.score import spectrum, sv_at
 from ..excite.search import Evaluation, Scorer, resolved_sv, search, verify_best
 from ..excite.settings import ExciteSettings
-from ..record import Record
+from ..record import Record, time_grid
 from .common import (fast_settings, flat_config, jsonable_config, make_tracker, publish_report, solver_tier,
                      validate_config)
 from .records import build_record
@@ -192,10 +192,10 @@ def _report(s: ExciteSettings, record: Record, rivals, evals: list[Evaluation], 
         d["predicted_separation_um"] = 1e6 * sep
         d["predicted_separation_sigma"] = sep / sigma
         d["separated"] = bool(np.isfinite(sep) and sep / sigma >= s.separation_target)
-        # what a record under the proposed input would let Vuong's test do (white noise σ, both models exact)
-        n_prop = int(round(s.duration * s.rate_hz)) + 1
-        d["expected_vuong_z"] = float(np.sqrt(n_prop) * sep / (2.0 * sigma)) if np.isfinite(sep) else float("nan")
-        d["vuong_power"] = vuong_power(d["expected_vuong_z"]) if np.isfinite(sep) else float("nan")
+        # what a record under the proposed input would let Vuong's test do (white noise σ, both models exact;
+        # NaN where nothing was verified)
+        d["expected_vuong_z"] = float(np.sqrt(time_grid(s.duration, s.rate_hz).size) * sep / (2.0 * sigma))
+        d["vuong_power"] = vuong_power(d["expected_vuong_z"])
         # the best verified input for this rival alone
         per = max((e for e in verified if e.refit_m), key=lambda e: e.refit_m.get(r.name, -np.inf), default=None)
         if per is not None:

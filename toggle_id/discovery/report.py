@@ -74,10 +74,18 @@ class DiscoveryResult:
                 **self.extra}
 
 
+def _last_vuong(rival: dict) -> dict:
+    """A tied rival's latest Vuong test: on the final model when the tie was judged again there."""
+    return rival.get("vuong_final", rival["vuong"])
+
+
 def separation_text(name: str, rival: dict) -> str:
     """What the record can say of a tie between ``name`` and ``rival`` (its last Vuong test's ``separation``,
-    :func:`.stats.separation`): how far apart the two fits are, and the power any test has on that."""
-    sep = rival.get("vuong_final", rival.get("vuong", {}))["separation"]
+    :func:`.stats.separation`): how far apart the two fits are, and the power any test has on that; "" where the
+    test has none."""
+    sep = _last_vuong(rival).get("separation")
+    if sep is None:
+        return ""
     if not np.isfinite(sep.get("expected_z", np.nan)):
         return f"{name} and {rival['name']}: their separation could not be measured"
     miss = 1.0 - sep["power"]
@@ -110,11 +118,10 @@ def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool,
     for a in ambiguous:
         names = [a["name"]] + [r["name"] for r in a["indistinguishable_from"]]
         text += (" Ambiguous: " + " or ".join(names) + " — each explains the record, and the record cannot tell "
-                 "them apart (Vuong's test: " + ", ".join(f"z {r.get('vuong_final', r['vuong'])['z']:.2f}"
+                 "them apart (Vuong's test: " + ", ".join(f"z {_last_vuong(r)['z']:.2f}"
                                                         for r in a["indistinguishable_from"]) +
                  "".join(f"; {_with_both(a['name'], r)}" for r in a["indistinguishable_from"] if "encompassing" in r) +
-                 "".join(f"; {separation_text(a['name'], r)}" for r in a["indistinguishable_from"]
-                         if "separation" in r.get("vuong_final", r.get("vuong", {}))) +
+                 "".join(f"; {t}" for r in a["indistinguishable_from"] if (t := separation_text(a["name"], r))) +
                  f"); the final model uses {a['name']}, the better fit. To separate them: a second record of the "
                  "machine under another command (validation.path=…), or the experiment that +experiment=excite "
                  "excite.discovery=<this discovery.json> proposes.")
@@ -300,11 +307,9 @@ def summary_text(res: DiscoveryResult) -> str:
         lines.append(f"ambiguous: {a['name']} ({a['magnitude']['name']} = {a['magnitude']['value']:.5g} "
                      f"{a['magnitude']['unit']}) or " + " or ".join(
                          f"{r['name']} ({', '.join(f'{k} = {v:.5g}' for k, v in r['params'].items())}; Vuong z "
-                         f"{r.get('vuong_final', r['vuong'])['z']:.2f}, "
-                         f"p {r.get('vuong_final', r['vuong'])['p_value']:.2g}" +
+                         f"{_last_vuong(r)['z']:.2f}, p {_last_vuong(r)['p_value']:.2g}" +
                          (f"; {_with_both(a['name'], r)}" if "encompassing" in r else "") +
-                         (f"; {separation_text(a['name'], r)}"
-                          if "separation" in r.get("vuong_final", r.get("vuong", {})) else "") +
+                         (f"; {t}" if (t := separation_text(a["name"], r)) else "") +
                          (f"; on the validation record z {r['vuong_validation']['z']:.2f}"
                           if "vuong_validation" in r else "") + ")" for r in a["indistinguishable_from"])
                      + " — the record cannot tell them apart")
