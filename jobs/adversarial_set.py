@@ -44,7 +44,10 @@ The set (:data:`SPECS`):
   simulation sweep, and with the quadratic drag (≈ 3σ alone) on the cycling command, both simulated by the
   independent plant (which has the library's cogging term too, checked against the kernel in its tests). The right
   answer names the cogging torque and calls the rest unexplained: the loop must neither let the unexplained
-  structure demote a real effect nor let it pass library stand-ins.
+  structure demote a real effect nor let it pass library stand-ins;
+* no effect with gross errors (added 2026-12-01): white noise σ = 1 µm and, on 1 % of the samples, an extra error of
+  standard deviation 10 µm (Tukey's contaminated normal: an encoder that glitches and comes back; the simulation
+  sweep) — heavy tails that a Gaussian noise model does not have must not look like an effect either.
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact* (on a mixed record: the library effects named and the rest called unexplained; *+outside-missed*
@@ -102,6 +105,8 @@ class Spec:
     noise_m: float = SIGMA
     noise_ar: float = 0.0
     quantum_m: float = 0.0
+    outlier_fraction: float = 0.0
+    outlier_m: float = 0.0
     target: float = 2.0
     targets: dict = field(default_factory=dict)
 
@@ -168,6 +173,7 @@ SPECS: tuple[Spec, ...] = (
          {"n_cog": 6.0, "phi_cog": 0.5}, ("a_cog", "F_b"), outside="bump", targets={"F_b": 3.0}),
     Spec("mixed_cogging_drag_cycling", "mixed", "cycling", 502, ("cogging_torque",), {"n_cog": 6.0, "phi_cog": 0.5},
          ("a_cog", "c_q"), outside="drag", targets={"c_q": 3.0}),
+    Spec("noise_outliers", "noise", "simulation", 305, outlier_fraction=0.01, outlier_m=10e-6),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -379,14 +385,16 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
     if spec.outside:
         rec = base_record(kind, duration)
         x, i = clean_response(spec, theta, effects, magnitudes, rec)
-        rec.x_B = measure(x, noise_m=spec.noise_m, noise_ar=spec.noise_ar, quantum_m=spec.quantum_m, seed=seed)
+        rec.x_B = measure(x, noise_m=spec.noise_m, noise_ar=spec.noise_ar, quantum_m=spec.quantum_m,
+                          outlier_fraction=spec.outlier_fraction, outlier_m=spec.outlier_m, seed=seed)
         rec.i_q = i
         simulator = "tests/outside_plant.py (scipy DOP853, rtol 1e-11)"
     else:
         data = {"source": "simulated", "command": "cycling" if kind == "cycling" else "sweep",
                 "sweep": kind if kind != "cycling" else "simulation", "duration": duration,
                 "params": dict(zip(PARAM_NAMES, map(float, theta))), "effects": effects, "noise_m": spec.noise_m,
-                "noise_ar": spec.noise_ar, "quantum_m": spec.quantum_m, "noise_seed": seed}
+                "noise_ar": spec.noise_ar, "quantum_m": spec.quantum_m, "outlier_fraction": spec.outlier_fraction,
+                "outlier_m": spec.outlier_m, "noise_seed": seed}
         rec, _ = build_record(data)
         simulator = "toggle_id.simulate (PRECISE)"
     rec.name = name
@@ -404,7 +412,10 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
         "params": dict(zip(PARAM_NAMES, map(float, theta))), "perturbation": draw,
         "noise": {"model": "none" if spec.noise_m == 0 else ("ar1" if spec.noise_ar else "white"),
                   "sigma_m": spec.noise_m, "ar": spec.noise_ar, "quantum_m": spec.quantum_m,
-                  "seed": seed, "effective_sigma_m": effective_sigma(spec.noise_m, spec.quantum_m)},
+                  **({"outlier_fraction": spec.outlier_fraction, "outlier_m": spec.outlier_m}
+                     if spec.outlier_fraction else {}),
+                  "seed": seed, "effective_sigma_m": effective_sigma(spec.noise_m, spec.quantum_m,
+                                                                     spec.outlier_fraction, spec.outlier_m)},
         "command": command, "duration_s": duration, "samples": rec.n, "simulator": simulator,
         "calibration": ({"target_ratio": ({k: spec.target_of(k) for k in spec.calibrate} if spec.targets
                                           else spec.target), "magnitudes": magnitudes,
@@ -418,13 +429,16 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
         entry["jobs_simulate"] = " ".join(
             ["python -m jobs.simulate", f"out={name}.csv", f"command={data['command']}", f"sweep={data['sweep']}",
              f"duration={duration}", f"noise_m={spec.noise_m}", f"noise_ar={spec.noise_ar}",
-             f"quantum_m={spec.quantum_m}", f"seed={seed}", *over])
+             f"quantum_m={spec.quantum_m}",
+             *([f"outlier_fraction={spec.outlier_fraction}", f"outlier_m={spec.outlier_m}"]
+               if spec.outlier_fraction else []), f"seed={seed}", *over])
     return rec, entry
 
 
-def effective_sigma(noise_m: float, quantum_m: float) -> float:
-    """Standard deviation of the recorded x_B's error: Gaussian noise and the quantisation's q/√12."""
-    return float(math.sqrt(noise_m ** 2 + quantum_m ** 2 / 12.0))
+def effective_sigma(noise_m: float, quantum_m: float, outlier_fraction: float = 0.0, outlier_m: float = 0.0) -> float:
+    """Standard deviation of the recorded x_B's error: Gaussian noise, the gross errors' √f·s and the
+    quantisation's q/√12."""
+    return float(math.sqrt(noise_m ** 2 + outlier_fraction * outlier_m ** 2 + quantum_m ** 2 / 12.0))
 
 
 # ------------------------------------------------------------------------------------------ generation

@@ -78,6 +78,8 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
              (f" AR(1) ρ {n['ar']:g}" if n["ar"] else " white"))
     if n["quantum_m"]:
         noise += f", {n['quantum_m'] * 1e6:g}-µm quantum"
+    if n.get("outlier_fraction"):
+        noise += f", gross errors {n['outlier_m'] * 1e6:g} µm on {n['outlier_fraction']:.0%}"
     return {
         "record": entry["name"], "category": entry["category"], "command": entry["command"].get("sweep")
         or entry["command"]["kind"], "truth": list(entry["effects"]) + [k for k in entry["outside"]

@@ -1,9 +1,11 @@
 """`python -m jobs.simulate out=FILE.csv [command=sweep|cycling] [sweep=simulation|experiment] [params.NAME=VALUE ...]
-[effects.NAME=VALUE ...] [noise_m=SIGMA] [noise_ar=RHO] [quantum_m=Q] [seed=N] [input.path=INPUT.csv]`
+[effects.NAME=VALUE ...] [noise_m=SIGMA] [noise_ar=RHO] [quantum_m=Q]
+[outlier_fraction=F outlier_m=S] [seed=N] [input.path=INPUT.csv]`
 
 Simulates the plant (PRECISE tier) and writes a record in the CSV format of docs/model.md §8 (t, v_in, x_B, i_q):
 the paper's swept sine or the open/close cycling command (``command=cycling``), x_B with white or AR(1)
-Gaussian noise (``noise_ar``) and optionally quantised to an encoder's resolution (``quantum_m``).
+Gaussian noise (``noise_ar``), gross errors on a fraction of the samples (``outlier_fraction``,
+``outlier_m``) and optionally quantised to an encoder's resolution (``quantum_m``).
 ``input.path=INPUT.csv`` simulates under any given input instead: a CSV with columns ``t`` (s) and ``v_in`` (V),
 uniformly sampled at ``rate_hz``, |v_in| ≤ ``input.v_max``, at most ``input.max_duration`` s (e.g. the
 ``excitation.csv`` of ``+experiment=excite``); a bad file is one line on stderr and exit status 2. The last line
@@ -29,7 +31,8 @@ def write_record(cfg: dict, cwd: str) -> Path:
     out = cfg.get("out")
     if not out or out == "???":
         raise ConfigError("out must name the CSV file to write (out=FILE.csv)")
-    keys = ("command", "sweep", "duration", "rate_hz", "params", "effects", "noise_m", "noise_ar", "quantum_m", "x_B0")
+    keys = ("command", "sweep", "duration", "rate_hz", "params", "effects", "noise_m", "noise_ar", "quantum_m",
+            "outlier_fraction", "outlier_m", "x_B0")
     data = {k: cfg[k] for k in keys if k in cfg}
     data.update(source="simulated", noise_seed=cfg.get("seed", 0))
     try:

@@ -40,8 +40,10 @@ def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects(
     # a threshold effect among two at once (the drive's voltage saturation beside a cogging torque)
     assert any("voltage_saturation" in s.effects for s in S.SPECS if s.category == "pair")
     assert {s.effects[0] for s in S.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
-    noise = {(s.noise_m, s.noise_ar, s.quantum_m) for s in S.SPECS if s.category == "noise"}
-    assert noise == {(1e-6, 0.0, 0.0), (1e-6, 0.5, 0.0), (1e-6, 0.9, 0.0), (0.0, 0.0, 1e-6)}
+    noise = {(s.noise_m, s.noise_ar, s.quantum_m, s.outlier_fraction) for s in S.SPECS if s.category == "noise"}
+    assert noise == {(1e-6, 0.0, 0.0, 0.0), (1e-6, 0.5, 0.0, 0.0), (1e-6, 0.9, 0.0, 0.0), (0.0, 0.0, 1e-6, 0.0),
+                     (1e-6, 0.0, 0.0, 0.01)}  # the last: gross errors (an encoder that glitches) on 1 % of samples
+    assert S.effective_sigma(1e-6, 0.0, 0.01, 10e-6) == pytest.approx(np.sqrt(2) * 1e-6)
     assert {s.outside for s in S.SPECS if s.category == "outside"} == {"bump", "drag", "scale", "pin_friction",
                                                                         "scale_factor", "deadband"}
     # the paper's sweep (0.04-0.06 V) never enters the dead band: there it is an offset of the command; the cycling
@@ -380,3 +382,28 @@ def test_calibration_finds_the_magnitude_whose_refit_leaves_the_target_ratio():
     sigma = S.effective_sigma(spec.noise_m, spec.quantum_m)
     assert math.sqrt(r * r + sigma ** 2) / sigma == pytest.approx(out["ratio"], rel=1e-6)
     assert C.calibration_table({spec.key: {"s_sat": out}}).startswith(f'    "{spec.key}": {{"s_sat": (')
+
+
+def test_the_gross_error_record_is_what_its_jobs_simulate_command_writes(tmp_path):
+    """The noise-only record with gross errors (1 % of samples, 10 µm): the manifest's command line, run through
+    ``jobs.simulate``'s own writer, gives the same x_B — the options reach a user's command too."""
+    from jobs.simulate import write_record
+
+    B.main(["--out", str(tmp_path), "--only", "noise_outliers", "--duration", "0.5"])
+    (r,) = json.loads((tmp_path / "manifest.json").read_text())["records"]
+    assert r["noise"]["outlier_fraction"] == 0.01 and r["noise"]["outlier_m"] == 10e-6
+    assert r["noise"]["effective_sigma_m"] == pytest.approx(np.sqrt(2) * 1e-6)
+    cfg: dict = {"params": {}, "effects": {}}
+    for token in r["jobs_simulate"].split()[3:]:
+        key, value = token.split("=", 1)
+        head, _, tail = key.partition(".")
+        value = value if key in ("out", "command", "sweep") else float(value)
+        (cfg[head].__setitem__(tail, value) if tail else cfg.__setitem__(key, value))
+    cfg["seed"] = int(cfg["seed"])
+    assert cfg["outlier_fraction"] == 0.01
+    path = write_record({**cfg, "out": "again.csv"}, str(tmp_path))
+    mine, again = read_csv(tmp_path / r["file"]), read_csv(path)
+    np.testing.assert_array_equal(again.x_B, mine.x_B)
+    clean = read_csv(write_record({**cfg, "out": "clean.csv", "outlier_fraction": 0.0}, str(tmp_path)))
+    hit = clean.x_B != mine.x_B  # the gross errors, and nothing else, tell the two apart
+    assert 0 < hit.sum() < 0.03 * mine.n

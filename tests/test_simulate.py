@@ -281,6 +281,33 @@ def test_ar1_noise_has_its_lag_one_correlation_and_keeps_the_marginal_sigma(rho)
     assert np.std(starts) == pytest.approx(sigma, rel=0.06)
 
 
+def test_gross_errors_hit_their_fraction_of_the_samples_with_their_spread_and_nothing_else():
+    """Tukey's contaminated normal: a fraction f of the samples carries an extra N(0, s²); the noise before it is
+    the noise of a record without gross errors, number for number (they are drawn after it)."""
+    from toggle_id.record import gross_errors, measure
+
+    g = gross_errors(200_000, 0.01, 10e-6, np.random.default_rng(3))
+    hit = g != 0.0
+    assert hit.mean() == pytest.approx(0.01, rel=0.05)
+    assert np.std(g[hit]) == pytest.approx(10e-6, rel=0.05)
+    x = np.zeros(5000)
+    plain = measure(x, noise_m=1e-6, seed=11)
+    dirty = measure(x, noise_m=1e-6, outlier_fraction=0.01, outlier_m=10e-6, seed=11)
+    changed = dirty != plain
+    assert 0 < changed.sum() < 0.02 * x.size and np.array_equal(dirty[~changed], plain[~changed])
+    assert np.array_equal(measure(x, noise_m=1e-6, outlier_fraction=0.0, outlier_m=10e-6, seed=11), plain)
+    with pytest.raises(ValueError, match="fraction of gross errors"):
+        gross_errors(10, 1.0, 1e-6, np.random.default_rng(0))
+
+
+def test_a_record_with_gross_errors_says_so_in_its_metadata():
+    from toggle_id.app.records import build_record
+
+    rec, _ = build_record(_sim_data(duration=1.0, outlier_fraction=0.02, outlier_m=5e-6))
+    assert rec.meta["noise"] == {"model": "white", "sigma_m": 1e-6, "ar": 0.0, "quantum_m": 0.0,
+                                 "outlier_fraction": 0.02, "outlier_m": 5e-6}
+
+
 def test_read_only_inputs_run_the_kernel_compiled_for_writeable_ones():
     """Ray hands its workers read-only arrays (the record, the population, a restart state). They must run the
     kernel specialisation compiled for writeable ones, with the same result: another signature would compile every
@@ -357,6 +384,8 @@ def test_cycling_record_round_trips_through_csv_to_the_same_simulation(tmp_path)
     ({"quantum_m": "fine"}, "data.quantum_m"), ({"command": "zigzag"}, "data.command"),
     ({"noise_m": -1.0}, "data.noise_m"), ({"noise_seed": -3}, "data.noise_seed"),
     ({"noise_seed": 1.5}, "data.noise_seed"), ({"duration": 0.0}, "duration"),
+    ({"outlier_fraction": 1.0}, "data.outlier_fraction"), ({"outlier_fraction": -0.01}, "data.outlier_fraction"),
+    ({"outlier_m": -1e-6}, "data.outlier_m"), ({"outlier_m": "big"}, "data.outlier_m"),
 ])
 def test_bad_synthetic_record_options_are_one_line_config_errors(override, needle):
     from toggle_id.app.records import build_record

@@ -239,12 +239,30 @@ def quantise(x: np.ndarray, quantum: float) -> np.ndarray:
     return np.round(np.asarray(x, dtype=float) / quantum) * quantum
 
 
+def gross_errors(n: int, fraction: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """``n`` samples of gross errors (Tukey's contaminated normal): each sample, with probability ``fraction``,
+    carries an extra Gaussian error of standard deviation ``sigma`` (m) — an encoder's glitches, a reading that
+    jumps and comes back. ``fraction = 0`` draws nothing from ``rng`` (zeros)."""
+    if not (np.isfinite(fraction) and 0.0 <= fraction < 1.0):
+        raise ValueError(f"the fraction of gross errors must be in [0, 1), got {fraction}")
+    if not (np.isfinite(sigma) and sigma >= 0.0):
+        raise ValueError(f"the gross errors' standard deviation must be a non-negative number, got {sigma}")
+    if fraction == 0.0 or sigma == 0.0:
+        return np.zeros(n)
+    hit = rng.random(n) < fraction
+    return np.where(hit, sigma * rng.standard_normal(n), 0.0)
+
+
 def measure(x_true: np.ndarray, *, noise_m: float = 0.0, noise_ar: float = 0.0, quantum_m: float = 0.0,
-            seed: int = 0) -> np.ndarray:
-    """The recorded x_B of a synthetic record: the true x_B plus AR(1) noise (``noise_m``, ``noise_ar``), then
-    quantised to multiples of ``quantum_m``. The noise comes from ``numpy.random.default_rng(seed)``."""
+            outlier_fraction: float = 0.0, outlier_m: float = 0.0, seed: int = 0) -> np.ndarray:
+    """The recorded x_B of a synthetic record: the true x_B plus AR(1) noise (``noise_m``, ``noise_ar``) and
+    gross errors on a fraction ``outlier_fraction`` of the samples (standard deviation ``outlier_m``), then
+    quantised to multiples of ``quantum_m``. The noise comes from ``numpy.random.default_rng(seed)``; the gross
+    errors are drawn after it, so a record without them has the numbers it had before they existed."""
     if not (np.isfinite(noise_m) and noise_m >= 0.0):
         raise ValueError(f"the noise standard deviation must be a non-negative number, got {noise_m}")
     rng = np.random.default_rng(int(seed))
-    x = np.asarray(x_true, dtype=float) + ar1_noise(np.size(x_true), noise_m, noise_ar, rng)
+    n = np.size(x_true)
+    x = np.asarray(x_true, dtype=float) + ar1_noise(n, noise_m, noise_ar, rng)
+    x = x + gross_errors(n, outlier_fraction, outlier_m, rng)
     return quantise(x, quantum_m)

@@ -52,7 +52,9 @@ def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
     (the paper's swept sine named by ``sweep``, in continuous time) or ``cycling`` (the open/close cycling
     command :data:`toggle_id.record.CYCLING`, defined by its samples). Its x_B is the PRECISE simulation of the
     truth plus Gaussian noise of standard deviation ``noise_m`` — white, or AR(1) with lag-1 coefficient
-    ``noise_ar`` ∈ [0, 1) at the same marginal σ — rounded to multiples of ``quantum_m`` (an encoder; 0: off).
+    ``noise_ar`` ∈ [0, 1) at the same marginal σ — with gross errors of standard deviation ``outlier_m`` on a
+    fraction ``outlier_fraction`` of the samples (0: none), rounded to multiples of ``quantum_m`` (an encoder;
+    0: off).
     """
     source = data.get("source")
     if source == "joint":
@@ -87,9 +89,9 @@ def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
     return rec, theta
 
 
-def noise_model(data: Mapping) -> tuple[float, float, float, int]:
-    """(noise_m, noise_ar, quantum_m, noise_seed) of a simulated record's ``data`` node, checked (one-line
-    ConfigError)."""
+def noise_model(data: Mapping) -> dict:
+    """{noise_m, noise_ar, quantum_m, outlier_fraction, outlier_m, seed} of a simulated record's ``data`` node,
+    checked (one-line ConfigError)."""
     noise = _number(data, "noise_m", 0.0)
     if not (np.isfinite(noise) and noise >= 0):
         raise ConfigError(f"data.noise_m must be a non-negative number, got {noise}")
@@ -99,27 +101,37 @@ def noise_model(data: Mapping) -> tuple[float, float, float, int]:
     quantum = _number(data, "quantum_m", 0.0)
     if not (np.isfinite(quantum) and quantum >= 0):
         raise ConfigError(f"data.quantum_m must be a non-negative number (m; 0: no quantisation), got {quantum}")
+    fraction = _number(data, "outlier_fraction", 0.0)
+    if not (np.isfinite(fraction) and 0.0 <= fraction < 1.0):
+        raise ConfigError(f"data.outlier_fraction must be a fraction of the samples in [0, 1), got {fraction}")
+    outlier = _number(data, "outlier_m", 0.0)
+    if not (np.isfinite(outlier) and outlier >= 0):
+        raise ConfigError(f"data.outlier_m must be a non-negative number (m; 0: no gross errors), got {outlier}")
     seed = data.get("noise_seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"data.noise_seed must be a non-negative integer, got {seed!r}")
-    return noise, rho, quantum, int(seed)
+    return {"noise_m": noise, "noise_ar": rho, "quantum_m": quantum, "outlier_fraction": fraction,
+            "outlier_m": outlier, "seed": int(seed)}
 
 
 def measure_truth(rec: Record, data: Mapping) -> np.ndarray:
     """Fill the input-only record ``rec`` with the PRECISE response of ``data``'s truth (params, effects): x_B
     with its noise model (:func:`noise_model`), i_q noiseless, the truth and noise in ``meta``. Returns the
     truth's extended vector."""
-    noise, rho, quantum, seed = noise_model(data)
+    noise = noise_model(data)
     theta = truth_vector(data)
     sim = simulate(theta[None, :], rec, PRECISE)
     if sim.status[0] != 0:
         raise ConfigError(f"the truth of data.params/effects cannot be simulated under {rec.name!r} "
                           f"({sim.status_counts()})")
-    rec.x_B = measure(sim.x_B[0], noise_m=noise, noise_ar=rho, quantum_m=quantum, seed=seed)
+    rec.x_B = measure(sim.x_B[0], **noise)
     rec.i_q = sim.i_q[0].copy()
-    rec.meta.update({"truth": {n: float(v) for n, v in zip(ALL_NAMES, theta)}, "noise_m": noise,
-                     "noise": {"model": "none" if noise == 0 else "ar1" if rho > 0 else "white", "sigma_m": noise,
-                               "ar": rho, "quantum_m": quantum}})
+    sigma, rho = noise["noise_m"], noise["noise_ar"]
+    brief = {"model": "none" if sigma == 0 else "ar1" if rho > 0 else "white", "sigma_m": sigma, "ar": rho,
+             "quantum_m": noise["quantum_m"]}
+    if noise["outlier_fraction"] and noise["outlier_m"]:
+        brief.update(outlier_fraction=noise["outlier_fraction"], outlier_m=noise["outlier_m"])
+    rec.meta.update({"truth": {n: float(v) for n, v in zip(ALL_NAMES, theta)}, "noise_m": sigma, "noise": brief})
     return theta
 
 
