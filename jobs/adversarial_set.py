@@ -47,7 +47,9 @@ The set (:data:`SPECS`):
   structure demote a real effect nor let it pass library stand-ins;
 * no effect with gross errors (added 2026-12-01): white noise σ = 1 µm and, on 1 % of the samples, an extra error of
   standard deviation 10 µm (Tukey's contaminated normal: an encoder that glitches and comes back; the simulation
-  sweep) — heavy tails that a Gaussian noise model does not have must not look like an effect either.
+  sweep) — heavy tails that a Gaussian noise model does not have must not look like an effect either — and a
+  screw backlash under those gross errors (cycling), ≈ 2σ of that noise (σ_eff = √(σ² + f·s²) ≈ 1.41 µm): a
+  threshold effect, whose sharp turns a glitch detector must not take for glitches.
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact* (on a mixed record: the library effects named and the rest called unexplained; *+outside-missed*
@@ -174,6 +176,8 @@ SPECS: tuple[Spec, ...] = (
     Spec("mixed_cogging_drag_cycling", "mixed", "cycling", 502, ("cogging_torque",), {"n_cog": 6.0, "phi_cog": 0.5},
          ("a_cog", "c_q"), outside="drag", targets={"c_q": 3.0}),
     Spec("noise_outliers", "noise", "simulation", 305, outlier_fraction=0.01, outlier_m=10e-6),
+    Spec("outliers_backlash_cycling", "library", "cycling", 118, ("backlash",), calibrate=("b_l",),
+         outlier_fraction=0.01, outlier_m=10e-6),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -227,6 +231,7 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     # 1.73, 2.84 um (n_cog 6, phi_cog 0.5)
     "mixed_cogging_drag_cycling": {"a_cog": (0.00519574, 2.002), "c_q": (1494.36, 3.014)},  # each alone: refit RMS
     # 1.73, 2.84 um (at rest between the strokes the cogging holds the rotor: a small ripple moves x_B a lot)
+    "outliers_backlash_cycling": {"b_l": (7.26307e-06, 1.999)},  # refit RMS 2.45 um (σ_eff 1.41 um: gross errors)
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.

@@ -21,7 +21,7 @@ from toggle_id.simulate import PRECISE, extend, simulate
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
     cats = [s.category for s in S.SPECS]
     assert len(S.SPECS) >= 18
-    assert cats.count("library") == 18 and cats.count("pair") == 4 and cats.count("outside") == 10
+    assert cats.count("library") == 19 and cats.count("pair") == 4 and cats.count("outside") == 10
     # a library effect and one outside it at once, on a sweep and on the cycling command
     mixed = [s for s in S.SPECS if s.category == "mixed"]
     assert {(s.command, s.outside) for s in mixed} == {("simulation", "bump"), ("cycling", "drag")}
@@ -31,6 +31,8 @@ def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects(
     coloured = [(s.noise_m, s.noise_ar, s.quantum_m) for s in S.SPECS if s.category == "library" and
                 (s.noise_ar or s.quantum_m)]
     assert sorted(coloured) == [(0.0, 0.0, 1e-6)] + [(1e-6, 0.9, 0.0)] * 5
+    # and a threshold effect under gross errors, whose sharp turns are no glitches
+    assert [s.effects for s in S.SPECS if s.category == "library" and s.outlier_fraction] == [("backlash",)]
     # threshold effects under that slow noise: both leave long runs of one sign in the residual
     assert {s.effects[0] for s in S.SPECS if s.category == "library" and s.noise_ar == 0.9} >= {
         "voltage_saturation", "backlash"}
