@@ -89,29 +89,29 @@ def build_record(data: Mapping) -> tuple[Record, np.ndarray | None]:
     return rec, theta
 
 
+#: The noise options of a simulated record: key -> (upper bound, exclusive; None: none), what the value must be.
+_NOISE_OPTIONS = {
+    "noise_m": (None, "a non-negative number"),
+    "noise_ar": (1.0, "an AR(1) coefficient in [0, 1)"),
+    "quantum_m": (None, "a non-negative number (m; 0: no quantisation)"),
+    "outlier_fraction": (1.0, "a fraction of the samples in [0, 1)"),
+    "outlier_m": (None, "a non-negative number (m; 0: no gross errors)"),
+}
+
+
 def noise_model(data: Mapping) -> dict:
     """{noise_m, noise_ar, quantum_m, outlier_fraction, outlier_m, seed} of a simulated record's ``data`` node,
     checked (one-line ConfigError)."""
-    noise = _number(data, "noise_m", 0.0)
-    if not (np.isfinite(noise) and noise >= 0):
-        raise ConfigError(f"data.noise_m must be a non-negative number, got {noise}")
-    rho = _number(data, "noise_ar", 0.0)
-    if not (np.isfinite(rho) and 0.0 <= rho < 1.0):
-        raise ConfigError(f"data.noise_ar must be an AR(1) coefficient in [0, 1), got {rho}")
-    quantum = _number(data, "quantum_m", 0.0)
-    if not (np.isfinite(quantum) and quantum >= 0):
-        raise ConfigError(f"data.quantum_m must be a non-negative number (m; 0: no quantisation), got {quantum}")
-    fraction = _number(data, "outlier_fraction", 0.0)
-    if not (np.isfinite(fraction) and 0.0 <= fraction < 1.0):
-        raise ConfigError(f"data.outlier_fraction must be a fraction of the samples in [0, 1), got {fraction}")
-    outlier = _number(data, "outlier_m", 0.0)
-    if not (np.isfinite(outlier) and outlier >= 0):
-        raise ConfigError(f"data.outlier_m must be a non-negative number (m; 0: no gross errors), got {outlier}")
+    out = {}
+    for key, (upper, what) in _NOISE_OPTIONS.items():
+        value = _number(data, key, 0.0)
+        if not (np.isfinite(value) and value >= 0.0 and (upper is None or value < upper)):
+            raise ConfigError(f"data.{key} must be {what}, got {value}")
+        out[key] = value
     seed = data.get("noise_seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ConfigError(f"data.noise_seed must be a non-negative integer, got {seed!r}")
-    return {"noise_m": noise, "noise_ar": rho, "quantum_m": quantum, "outlier_fraction": fraction,
-            "outlier_m": outlier, "seed": int(seed)}
+    return {**out, "seed": int(seed)}
 
 
 def measure_truth(rec: Record, data: Mapping) -> np.ndarray:
