@@ -17,7 +17,6 @@ from jobs.adversarial_set import (
     clean_response,
     draw_truth,
     effect_values,
-    effective_sigma,
 )
 
 #: First guesses of the calibration (a magnitude of about the right order on the 5-s records).
@@ -67,7 +66,7 @@ def calibrate_param(spec: Spec, param: str, theta: np.ndarray, duration: float =
     from toggle_id.params import INDEX
 
     rec = base_record(spec.command, duration)
-    sigma = effective_sigma(spec.noise_m, spec.quantum_m, spec.outlier_fraction, spec.outlier_m)
+    sigma = spec.sigma_eff
     target = spec.target_of(param)
     target_rms = sigma * math.sqrt(target ** 2 - 1.0)
     upper = np.inf if spec.outside else float(effect_bounds([param])[1][0])
@@ -131,7 +130,7 @@ def calibrate(specs: list[Spec], duration: float = DURATION, log=print) -> dict[
             x, _ = clean_response(spec, theta, effect_values(spec, mags), mags, rec)
             r = refit_rms(spec, theta, rec, x)
             # as each effect's own calibration
-            sigma = effective_sigma(spec.noise_m, spec.quantum_m, spec.outlier_fraction, spec.outlier_m)
+            sigma = spec.sigma_eff
             log(f"  {spec.key}: both effects on -> refit RMS {r * 1e6:.4g} um, ratio "
                 f"{math.sqrt(r * r + sigma ** 2) / sigma:.3f} (COMBINED_RATIO)")
     return out

@@ -112,6 +112,17 @@ class Spec:
     target: float = 2.0
     targets: dict = field(default_factory=dict)
 
+    @property
+    def noise(self) -> dict[str, float]:
+        """The record's measurement model, as :func:`toggle_id.record.measure` and ``data=simulated`` take it."""
+        return {"noise_m": self.noise_m, "noise_ar": self.noise_ar, "quantum_m": self.quantum_m,
+                "outlier_fraction": self.outlier_fraction, "outlier_m": self.outlier_m}
+
+    @property
+    def sigma_eff(self) -> float:
+        """Standard deviation of the record's measurement error (:func:`effective_sigma`)."""
+        return effective_sigma(self.noise_m, self.quantum_m, self.outlier_fraction, self.outlier_m)
+
     def target_of(self, param: str) -> float:
         """The calibration target of one magnitude: sqrt(RMS_fit² + σ²)/σ with it alone on the record."""
         return float(self.targets.get(param, self.target))
@@ -390,16 +401,14 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
     if spec.outside:
         rec = base_record(kind, duration)
         x, i = clean_response(spec, theta, effects, magnitudes, rec)
-        rec.x_B = measure(x, noise_m=spec.noise_m, noise_ar=spec.noise_ar, quantum_m=spec.quantum_m,
-                          outlier_fraction=spec.outlier_fraction, outlier_m=spec.outlier_m, seed=seed)
+        rec.x_B = measure(x, **spec.noise, seed=seed)
         rec.i_q = i
         simulator = "tests/outside_plant.py (scipy DOP853, rtol 1e-11)"
     else:
         data = {"source": "simulated", "command": "cycling" if kind == "cycling" else "sweep",
                 "sweep": kind if kind != "cycling" else "simulation", "duration": duration,
-                "params": dict(zip(PARAM_NAMES, map(float, theta))), "effects": effects, "noise_m": spec.noise_m,
-                "noise_ar": spec.noise_ar, "quantum_m": spec.quantum_m, "outlier_fraction": spec.outlier_fraction,
-                "outlier_m": spec.outlier_m, "noise_seed": seed}
+                "params": dict(zip(PARAM_NAMES, map(float, theta))), "effects": effects, **spec.noise,
+                "noise_seed": seed}
         rec, _ = build_record(data)
         simulator = "toggle_id.simulate (PRECISE)"
     rec.name = name
@@ -419,8 +428,7 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
                   "sigma_m": spec.noise_m, "ar": spec.noise_ar, "quantum_m": spec.quantum_m,
                   **({"outlier_fraction": spec.outlier_fraction, "outlier_m": spec.outlier_m}
                      if spec.outlier_fraction else {}),
-                  "seed": seed, "effective_sigma_m": effective_sigma(spec.noise_m, spec.quantum_m,
-                                                                     spec.outlier_fraction, spec.outlier_m)},
+                  "seed": seed, "effective_sigma_m": spec.sigma_eff},
         "command": command, "duration_s": duration, "samples": rec.n, "simulator": simulator,
         "calibration": ({"target_ratio": ({k: spec.target_of(k) for k in spec.calibrate} if spec.targets
                                           else spec.target), "magnitudes": magnitudes,
