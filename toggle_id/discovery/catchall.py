@@ -27,7 +27,7 @@ With nothing accepted and structure left, the same fits run for the report alone
 like a force on the slider or an error of the reading, or — not supported — like neither: then it is no function
 of the slider's position and speed (a command or drive effect, a memory of the motion, something in time).
 
-With ``discover.beside_generic`` (off by default) a forward step that supports nothing while the generic terms are
+With ``discover.beside_generic`` (on by default) a forward step that supports nothing while the generic terms are
 supported refits the effects of no kind they contain beside them (:func:`beside_generic`), and backward elimination
 judges such an effect as it was accepted (:func:`removal_verdict`).
 """

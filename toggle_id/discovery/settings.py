@@ -75,15 +75,15 @@ class DiscoverSettings:
       structure energy (which position bins cannot see) still explains when the residual without it repeats at its
       whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and with
       it does not (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library lacks;
-      a localised error fits a low count over a few periods only). cogging_min_periods: the cogging torque is
-      probed and fitted only at counts n_cog of which the record's motor-angle range holds at least this many
-      periods (:func:`.toggle_plant.cogging_floor`; 0: every count the library allows): over a few periods a
+      a localised error fits a low count over a few periods only). cogging_min_periods (10 by default): the cogging
+      torque is probed and fitted only at counts n_cog of which the record's motor-angle range holds at least this
+      many periods (:func:`.toggle_plant.cogging_floor`; 0: every count the library allows): over a few periods a
       sinusoid in the angle is a smooth function of the position, and a low count then stands in for a force the
       library lacks (rec38 of the adversarial set: n_cog 1.0006, 2.2 periods, beside a quadratic drag). A true
-      ripple of fewer periods is then left to the report's periodic look. beside_generic: when a forward step
-      supports nothing and the catch-all's generic terms are supported, the effects of no kind they contain (a
-      cogging torque, a dead time, a backlash, the saturations) are refitted beside them and accepted where the
-      judge supports them there and they lower the error without them (:func:`.catchall.beside_generic`).
+      ripple of fewer periods is then left to the report's periodic look. beside_generic (on by default): when a
+      forward step supports nothing and the catch-all's generic terms are supported, the effects of no kind they
+      contain (a cogging torque, a dead time, a backlash, the saturations) are refitted beside them and accepted
+      where the judge supports them there and they lower the error without them (:func:`.catchall.beside_generic`).
     - ambiguity_alpha: two supported effects whose fits the record cannot tell apart — Vuong's test of the two
       non-nested models (:func:`.stats.vuong`) not significant at this level — are reported together as
       *ambiguous*, never one of them as added (0: off, the better fit is added). encompassing: a tie Vuong's
@@ -174,8 +174,8 @@ class DiscoverSettings:
     catch_all_keep: float = 0.1
     cogging_whole_tol: float = 0.1
     signature_min_periods: float = 10.0
-    cogging_min_periods: float = 0.0
-    beside_generic: bool = False
+    cogging_min_periods: float = 10.0
+    beside_generic: bool = True
     ambiguity_alpha: float = 0.05
     encompassing: bool = True
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
