@@ -953,6 +953,40 @@ def test_model_sends_an_effect_set_whose_rows_fell_back_straight_to_the_fallback
     assert effects_on(theta) != effects_on(on)
 
 
+def test_model_serves_a_batch_asked_for_again_from_its_cache_bit_for_bit(monkeypatch):
+    """The same rows on the same settings are simulated once (values identical to a fresh simulation, n_sims counting
+    the simulations run); other settings or other rows are simulated; the cache keeps to its byte budget."""
+    import toggle_id.discovery.model as M
+    from toggle_id.simulate import FAST
+
+    rec = Record.from_sweep("simulation", duration=0.2)
+    theta = extend(ASSIGNED)[0]
+    rec = Record(rec.t, rec.v_in, simulate(theta[None], rec, PRECISE).x_B[0], sweep=rec.sweep, x_B0=rec.x_B0,
+                 name="cache")
+    T = np.repeat(theta[None], 3, axis=0)
+    T[1, ALL_INDEX["K_t"]] *= 1.01
+    T[2, ALL_INDEX["B_m"]] *= 1.02
+    model = M.Model(rec, parallel=False)
+    first = model.residuals(T)
+    again = model.residuals(T)
+    assert (model.n_sims, model.n_cached) == (3, 3)
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(first, rec.x_B[None, :] - simulate(T, rec, PRECISE).x_B)
+    model.residuals(T, FAST)  # other settings: simulated
+    model.residuals(T[:2])  # another batch: simulated
+    assert (model.n_sims, model.n_cached) == (8, 3)
+    np.testing.assert_array_equal(model.residuals(T[:2]), first[:2])
+    assert model.n_cached == 5
+    # a budget of one batch of three rows: the older batches are dropped, the newest kept
+    monkeypatch.setattr(M, "CACHE_BYTES", 3 * rec.n * 8)
+    small = M.Model(rec, parallel=False)
+    small.residuals(T)
+    small.residuals(T[:1])
+    assert small._cache_bytes <= M.CACHE_BYTES and len(small._cache) == 1
+    small.residuals(T)
+    assert (small.n_sims, small.n_cached) == (7, 0)
+
+
 def test_guard_null_refits_the_effect_from_a_better_nominal_optimum_before_dismissing_it(monkeypatch):
     """The guard's re-polish without the effect finds a better nominal optimum that explains the first refit's
     gain; the effect is then refitted once from that optimum (its nominal values, the refit's effect values) and

@@ -3,6 +3,7 @@ analysis coordinates, the range of the free parameters' sensitivities, and bound
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,6 +20,9 @@ from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
 from .noise import NoiseModel
 from .settings import DiscoverSettings
+
+#: Bytes of simulated x_B a :class:`Model` keeps for batches asked for again (:meth:`Model.outputs`).
+CACHE_BYTES = 64 * 2**20
 
 #: White noise: ordinary least squares, and the model of the uncertainty when no other is given.
 WHITE_ASSUMED = NoiseModel(note="white noise assumed")
@@ -44,7 +48,13 @@ class Model:
     whole budget before the fallback starts. Some effects make every simulation of a record stiff (a motor-side
     Coulomb friction chatters at each reversal): once most rows of a batch with a given set of effects on
     fell back, later batches with that set go to the fallback directly (:attr:`stiff`) — the same
-    integrator the rows ended in, at about half the cost."""
+    integrator the rows ended in, at about half the cost.
+
+    A batch asked for again (the same rows on the same integrator settings: mostly scipy evaluating a point it
+    has already evaluated, or a refit starting where a scout ended) is taken from a bounded cache of the latest
+    batches (:data:`CACHE_BYTES`) instead of simulated again: the same numbers bit for bit, since a row's
+    simulation depends on nothing else; :attr:`n_sims` counts the simulations run, :attr:`n_cached` the rows
+    served from the cache."""
 
     def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True,
                  jacobian: tuple[SolverSettings, float] | None = None, jacobian_reuse: int = 0) -> None:
@@ -60,6 +70,9 @@ class Model:
         #: see :func:`fit_free`)
         self.jacobian_reuse = int(jacobian_reuse)
         self.n_sims = 0
+        self.n_cached = 0
+        self._cache: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+        self._cache_bytes = 0
         self.noise = WHITE_ASSUMED
         #: effect sets (:func:`effects_on`) whose simulations go straight to the fallback
         self.stiff: set[bytes] = set()
@@ -100,19 +113,43 @@ class Model:
         order = np.argsort(first)
         plant = thetas[first[order]]
         inverse = np.argsort(order)[inverse.reshape(-1)]
-        self.n_sims += plant.shape[0]
         tier = tier if tier is not None else self.settings
         settings = self._settings_for(plant[0], tier)
-        res = simulate(plant, self.record, settings, parallel=self.parallel and plant.shape[0] > 1)
-        if settings is tier and res.fell_back is not None and 2 * int(res.fell_back.sum()) > len(plant):
+        x_B, status, fell_back = self._simulated(plant, settings)
+        if settings is tier and 2 * int(fell_back.sum()) > len(plant):
             self.stiff.add(effects_on(plant[0]))
-        x = res.x_B[inverse]
+        x = x_B[inverse]
         x += sensor_error(thetas, x)
-        ok = res.status[inverse] == STATUS_OK
+        ok = status[inverse] == STATUS_OK
         x[~ok] = np.nan
         if self.excluded is not None:
             x[np.ix_(ok, self.excluded)] = self.record.x_B[self.excluded]
         return x
+
+    def _simulated(self, plant: np.ndarray, settings: SolverSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x_B, status and the fallback flags of the rows ``plant`` on ``settings``: from the cache when this
+        batch was simulated on these settings lately, else simulated (and kept, the oldest batches dropped
+        beyond :data:`CACHE_BYTES`). The arrays returned are read-only."""
+        key = (settings, plant.shape, plant.tobytes())
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            self.n_cached += plant.shape[0]
+            return hit
+        self.n_sims += plant.shape[0]
+        res = simulate(plant, self.record, settings, parallel=self.parallel and plant.shape[0] > 1)
+        fell_back = res.fell_back if res.fell_back is not None else np.zeros(len(plant), dtype=bool)
+        out = (res.x_B, res.status, fell_back)
+        size = res.x_B.nbytes
+        if size <= CACHE_BYTES:
+            for a in out:
+                a.setflags(write=False)
+            self._cache[key] = out
+            self._cache_bytes += size
+            while self._cache_bytes > CACHE_BYTES:
+                _, old = self._cache.popitem(last=False)
+                self._cache_bytes -= old[0].nbytes
+        return out
 
     def residuals(self, thetas: np.ndarray, tier: SolverSettings | None = None) -> np.ndarray:
         """(P, N) measured − model [m]."""
