@@ -19,7 +19,8 @@ import numpy as np
 from .errors import ConfigError
 from .kernels import kernel_array
 from .kernels import slots as K
-from .kernels.driver import lash_batch_parallel, lash_batch_serial, simulate_batch_parallel, simulate_batch_serial
+from .kernels.driver import (lash_batch_parallel, lash_batch_serial, sensitivities_row, simulate_batch_parallel,
+                             simulate_batch_serial)
 from .kernels.geometry import build_table
 from .params import N_PARAMS
 from .plant import GEOMETRY, Geometry
@@ -284,6 +285,78 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
             fell_back[redo] = True
             run(redo, settings.fallback)
     return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events, fell_back=fell_back)
+
+
+@dataclass
+class SensResult:
+    """One vector's simulation and the derivatives of its x_B w.r.t. the slots asked for: ``x_B``, ``i_q`` (N,),
+    ``dx`` (len(slots), N) in m per unit of each parameter, NaN when ``status`` (the simulation's) is not OK or
+    ``sens_status`` (the replay's) is not; ``n_steps`` the simulation's steps."""
+
+    x_B: np.ndarray
+    i_q: np.ndarray
+    dx: np.ndarray
+    status: int
+    sens_status: int
+    n_steps: int
+
+    @property
+    def ok(self) -> bool:
+        return self.status == STATUS_OK and self.sens_status == STATUS_OK
+
+
+def analytic_slots() -> frozenset[int]:
+    """The slots of the extended vector :func:`simulate_sensitivities` differentiates
+    (:data:`toggle_id.kernels.sens.SENS_SLOTS`)."""
+    from .kernels.sens import SENS_SLOTS
+
+    return SENS_SLOTS
+
+
+def simulate_sensitivities(theta: np.ndarray, record: Record, settings: SolverSettings, slots: Sequence[int], *,
+                           geometry: Geometry = GEOMETRY, threads: int = 2) -> SensResult:
+    """Simulate one extended vector ``theta`` on ``record`` by DOPRI5 (``settings`` must be a DOPRI5 tier without
+    backlash) and differentiate x_B w.r.t. the extended-vector ``slots`` (all in :func:`analytic_slots`) by
+    internal differentiation of its steps (:mod:`toggle_id.kernels.sens`): the exact derivative of the numerical
+    solution, in about the time of a few simulations whatever the number of slots; ``threads`` groups of columns
+    are retraced side by side. x_B and i_q are those :func:`simulate` gives for the same vector and settings, bit
+    for bit. Bad parameter values give a status, never an exception."""
+    if settings.method != "dopri5":
+        raise ConfigError(f"simulate_sensitivities needs a DOPRI5 tier, got {settings.method!r}")
+    slots = np.asarray(slots, dtype=np.int64)
+    unknown = sorted(set(slots.tolist()) - analytic_slots())
+    if unknown:
+        raise ConfigError(f"simulate_sensitivities cannot differentiate the slots {unknown}")
+    th = kernel_array(extend(theta))
+    if th.shape[0] != 1:
+        raise ValueError(f"simulate_sensitivities takes one parameter vector, got {th.shape[0]}")
+    global _SIMULATIONS
+    with _COUNT_LOCK:
+        _SIMULATIONS += 1
+    N = record.n
+    x = np.full(N, np.nan)
+    i = np.full(N, np.nan)
+    dx = np.full((slots.size, N), np.nan)
+    if _invalid_rows(th, geometry)[0]:
+        return SensResult(x, i, dx, STATUS_INVALID, STATUS_INVALID, 0)
+    if th[0, K.B_L] > 0.0:
+        raise ConfigError("simulate_sensitivities: a vector with backlash goes to the two-body integrator, "
+                          "which has no sensitivities")
+    geo = geometry.as_array()
+    q0 = geometry.q_of_xB(record.x_B0)
+    y0 = kernel_array((q0, 0.0, 0.0))
+    tab, head = geometry_table(geometry)
+    sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
+    st, ns, sst = sensitivities_row(th[0], geo, tab, head, kernel_array(record.t), N, kernel_array(record.v_in),
+                                    sweep, record.sweep is not None, float(record.t[0]), y0,
+                                    int(record.x_B0 >= geometry.x_B_L), settings.as_array(), x, i, slots, dx,
+                                    max(1, min(int(threads), slots.size)))
+    if st != STATUS_OK:
+        x[:] = np.nan
+        i[:] = np.nan
+    if st != STATUS_OK or sst != STATUS_OK:
+        dx[:] = np.nan
+    return SensResult(x, i, dx, int(st), int(sst), int(ns))
 
 
 def compile_kernels(kinds: Sequence[str] = ("rigid", "lash"), parallel: bool = True) -> None:

@@ -74,7 +74,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     say = progress or (lambda msg: log.info(msg))
     t_start = time.perf_counter()
     model = Model(record, PRECISE, settings.parallel, jacobian=settings.jacobian,
-                  jacobian_reuse=settings.jacobian_reuse)
+                  jacobian_reuse=settings.jacobian_reuse, derivatives=settings.derivatives)
     judge = Judge(model, settings, validation)
     fixed = dict(fixed or {})
     for k in fixed:

@@ -11,13 +11,14 @@ from typing import Any
 import numpy as np
 
 from .. import params as P
-from ..effects import ALL_INDEX, EFFECTS, TERMS, Effect, sensor_error
+from ..effects import ALL_INDEX, EFFECTS, Effect, sensor_error
 from ..errors import ConfigError, DataError
 from ..identify import stage_bounds
 from ..kernels.slots import GS_LO
 from ..polish import polish
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
+from .derivatives import DERIVATIVES, _coords, _typical, output_derivatives, sensitivities  # noqa: F401
 from .noise import NoiseModel
 from .settings import DiscoverSettings
 
@@ -57,7 +58,8 @@ class Model:
     served from the cache."""
 
     def __init__(self, record: Record, settings: SolverSettings = PRECISE, parallel: bool = True,
-                 jacobian: tuple[SolverSettings, float] | None = None, jacobian_reuse: int = 0) -> None:
+                 jacobian: tuple[SolverSettings, float] | None = None, jacobian_reuse: int = 0,
+                 derivatives: str = "fd") -> None:
         if record.x_B is None:
             raise DataError(f"record {record.name!r} has no measured x_B to fit")
         self.record = record
@@ -69,6 +71,13 @@ class Model:
         #: Broyden updates allowed between two finite-difference Jacobians in a polish's coarse rounds (0: none;
         #: see :func:`fit_free`)
         self.jacobian_reuse = int(jacobian_reuse)
+        if derivatives not in DERIVATIVES:
+            raise ConfigError(f"derivatives must be one of {', '.join(DERIVATIVES)}, got {derivatives!r}")
+        #: how the polishes' Jacobians and the sensitivities are taken: ``fd`` (finite differences) or
+        #: ``analytic`` (forward sensitivities, :mod:`.derivatives`; differences where they do not apply)
+        self.derivatives = derivatives
+        #: simulations with sensitivities run (each also counts once in :attr:`n_sims`)
+        self.n_derivative_runs = 0
         self.n_sims = 0
         self.n_cached = 0
         self._cache: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
@@ -170,53 +179,6 @@ def _sse(r: np.ndarray) -> np.ndarray:
     s = np.einsum("ij,ij->i", r, r)
     s[~np.isfinite(s)] = np.inf
     return s
-
-
-def _typical(names: Sequence[str], theta: np.ndarray) -> np.ndarray:
-    """A typical magnitude per parameter: |value|, or for an effect parameter at 0 its probe size."""
-    out = np.abs(np.array([theta[ALL_INDEX[n]] for n in names], float))
-    probe_size: dict[str, float] = {}
-    for e in TERMS:
-        for pr in e.probe:
-            for k, v in pr.items():
-                off = next(p.off for p in e.params if p.name == k)
-                probe_size[k] = max(probe_size.get(k, 0.0), abs(float(v) - off))
-    for j, n in enumerate(names):
-        floor = probe_size.get(n, 0.0) or 1e-12
-        out[j] = max(out[j], floor)
-    return out
-
-
-def _coords(names: Sequence[str], theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Analysis coordinates of ``names`` at ``theta``: log for positive parameters with lower bound ≥ 0,
-    else u = x / scale. Returns (log_mask, scale)."""
-    lo, _ = stage_bounds(list(names))
-    x = np.array([theta[ALL_INDEX[n]] for n in names], float)
-    mask = (lo >= 0.0) & (x > 0.0)
-    return mask, _typical(names, theta)
-
-
-def sensitivities(model: Model, theta: np.ndarray, names: Sequence[str], rel_step: float = 1e-5) -> np.ndarray:
-    """Central-difference Jacobian (N, p) of the model output w.r.t. the analysis coordinates of ``names``
-    (see :func:`_coords`), one batched simulation. Columns whose simulation failed are zero."""
-    mask, scale = _coords(names, theta)
-    p = len(names)
-    T = np.repeat(theta[None, :], 2 * p, axis=0)
-    steps = np.empty(p)
-    for j, n in enumerate(names):
-        i = ALL_INDEX[n]
-        if mask[j]:
-            T[2 * j, i] = theta[i] * np.exp(rel_step)
-            T[2 * j + 1, i] = theta[i] * np.exp(-rel_step)
-            steps[j] = rel_step
-        else:
-            T[2 * j, i] = theta[i] + rel_step * scale[j]
-            T[2 * j + 1, i] = theta[i] - rel_step * scale[j]
-            steps[j] = rel_step
-    Y = model.outputs(T)
-    J = ((Y[0::2] - Y[1::2]) / (2.0 * steps[:, None])).T
-    J[:, ~np.all(np.isfinite(J), axis=0)] = 0.0
-    return J
 
 
 @dataclass
@@ -398,6 +360,18 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
                 return J
         h = step * np.maximum(np.abs(x), typ)
         h = np.where(x + h > hi, -h, h)
+        if model.derivatives == "analytic":
+            D = output_derivatives(model, thetas_of(x[None, :])[0], idx)
+            if D is not None:  # residual = measured − model, prewhitened: J = −A(q) ∂x/∂θ
+                J = -model.noise.whiten_columns(np.nan_to_num(D))
+                todo = np.flatnonzero(~np.all(np.isfinite(D), axis=0))
+                if todo.size:  # columns the sensitivities do not give: forward differences
+                    r0 = here if here is not None else model.fit_residuals(thetas_of(x[None, :]))[0]
+                    R = model.fit_residuals(thetas_of(x[None, :] + np.diag(h)[todo]))
+                    J[:, todo] = (R - r0).T / h[todo]
+                if reuse and here is not None:
+                    held.update(J=J, x=x.copy(), r=here, age=0)
+                return J
         X = x[None, :] + np.diag(h)
         if tier is model.settings and here is not None:
             r0, Rr = here, model.fit_residuals(thetas_of(X))

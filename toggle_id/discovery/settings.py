@@ -11,6 +11,7 @@ import numpy as np
 from ..effects import EFFECTS_BY_NAME
 from ..errors import ConfigError
 from ..simulate import FD_TIERS, SolverSettings, precise_jacobian
+from .derivatives import DERIVATIVES
 
 
 @dataclass
@@ -42,7 +43,11 @@ class DiscoverSettings:
       Broyden updates (the secant update in coordinates scaled by the parameters' sizes, from the residuals scipy
       evaluated anyway: no simulation), each polish then finished by a round with fresh Jacobians throughout; 0
       (the default) is every Jacobian by finite differences — an experiment towards issue 14, not yet judged
-      on the adversarial set;
+      on the adversarial set; derivatives: ``fd`` (the default: finite differences as above) or ``analytic``
+      (:mod:`.derivatives`: forward sensitivities of the PRECISE steps, one simulation for every column, for the
+      polishes' Jacobians and the sensitivities; differences where they do not apply — backlash, dead time, a
+      stiff effect set) — exact where the differences carry the integrator's noise, so the polishes' paths
+      differ: not the default until the adversarial set is run with it (issue 14);
       jac_rel_step: (log-)step of the sensitivities J; rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
       as absorbed by the free parameters.
     - noise_std: known measurement noise (m), only reported as rms/noise (the discover job: None takes
@@ -156,6 +161,7 @@ class DiscoverSettings:
     grid_points: int = 10
     fd_tier: str = "precise"
     jacobian_reuse: int = 0
+    derivatives: str = "fd"
     fd_rel_step: float = 1e-4
     jac_rel_step: float = 1e-4
     rank_rtol: float = 1e-7
@@ -229,6 +235,9 @@ class DiscoverSettings:
         for name in ("robust_structure", "encompassing", "prediction_error", "beside_generic"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
+        if self.derivatives not in DERIVATIVES:
+            raise ConfigError(f"discover.derivatives must be one of {', '.join(DERIVATIVES)}, "
+                              f"got {self.derivatives!r}")
         if self.fd_tier not in FD_TIERS:
             raise ConfigError(f"discover.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
         if not isinstance(self.noise_max_order, int) or isinstance(self.noise_max_order, bool) or \

@@ -13,7 +13,8 @@ import numpy as np
 
 from .backlash import simulate_lash as _simulate_lash
 from .rigid import _simulate_one
-from .slots import OK
+from .sens import sens_replay
+from .slots import OK, S_MAXSTEPS
 
 
 @nb.njit(cache=True)
@@ -36,7 +37,7 @@ def _rigid_row(thetas, rows, geo, tab, head, t_out, n_out, v, sweep, use_sweep, 
     """Row ``rows[p]`` of ``thetas`` by the rigid integrator, into its row of the outputs."""
     r = rows[p]
     st, ns, tc, qc, wc, ic = _simulate_one(thetas[r], geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start,
-                                           y0, contact0, settings, out_x[r], out_i[r])
+                                           y0, contact0, settings, out_x[r], out_i[r], np.empty((0, 2)))
     _store_row(r, st, ns, tc, qc, wc, ic, t_out, n_out, t_start, out_x[r], out_i[r], status, n_steps, events)
 
 
@@ -85,3 +86,26 @@ def lash_batch_parallel(thetas, rows, geo, tab, head, t_out, n_out, v, sweep, us
     for p in nb.prange(rows.shape[0]):
         _lash_row(thetas, rows, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
                    out_x, out_i, status, n_steps, events, p)
+
+
+@nb.njit(cache=True, parallel=True)
+def sensitivities_row(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
+                      out_x, out_i, cols, out_dx, n_chunks):
+    """One parameter vector by the rigid integrator (DOPRI5 settings) into ``out_x``, ``out_i``, and ∂x_B/∂θ of
+    the slots ``cols`` into ``out_dx`` (len(cols), N) by retracing its steps (:func:`~.sens.sens_replay`), the
+    columns in ``n_chunks`` groups over numba's threads. Returns the simulation's status and step count and the
+    replay's worst status (OK when every group succeeded)."""
+    steplog = np.empty((int(settings[S_MAXSTEPS]) + 1, 2))
+    st, ns, _, _, _, _ = _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0,
+                                       contact0, settings, out_x, out_i, steplog)
+    if st != OK:
+        return st, ns, st
+    P = cols.shape[0]
+    chunk_status = np.zeros(n_chunks, dtype=np.int64)
+    for c in nb.prange(n_chunks):
+        lo = c * P // n_chunks
+        hi = (c + 1) * P // n_chunks
+        if hi > lo:
+            chunk_status[c] = sens_replay(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0,
+                                          contact0, steplog, cols[lo:hi], out_dx[lo:hi])
+    return st, ns, int(chunk_status.max())

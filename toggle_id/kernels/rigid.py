@@ -246,7 +246,7 @@ def _locate(q, q_L, h, g0, g1, r2, r3, r4, r5):
 
 @nb.njit(cache=True)
 def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, settings,
-                  out_x, out_i):
+                  out_x, out_i, steplog):
     """Integrate one parameter vector from ``t_start`` (state y0, contact mode contact0) and write x_B and i_q
     at the samples t_out[k] ≥ t_start for k < n_out. Samples before t_start are left untouched.
 
@@ -256,6 +256,10 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     Returns (status, n_steps, t_contact, q_c, w_c, i_c): the first closing contact after t_start and the
     state there (t_contact = inf if none), from which stage 2 restarts. n_steps counts accepted and rejected
     steps; beyond settings[S_MAXSTEPS] the simulation is a solver failure.
+
+    ``steplog`` (M, 2), when M > 0, receives the accepted steps in order: their size and their mode (contact before
+    the step, plus 2 when the step ends at a contact switch) — what :func:`toggle_id.kernels.sens.sens_replay`
+    retraces to differentiate the solution. M ≥ settings[S_MAXSTEPS] holds them all; an empty one costs nothing.
     """
     rtol = settings[S_RTOL]
     atq, atw, ati = settings[S_ATOL_Q], settings[S_ATOL_W], settings[S_ATOL_I]
@@ -289,6 +293,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     ut, dut = _command(t, pc, v)  # command and its slope at t
     h_acc = 0.0  # last accepted Rodas4 step and its error (predictive step-size control)
     err_acc = 1.0
+    n_acc = 0  # accepted steps (steplog's rows)
     while t < t_end - 1e-13:
         if n_steps >= max_steps:
             return SOLVER_FAILURE, n_steps, t_c, qc, wc, ic
@@ -387,6 +392,10 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                 out_x[k] = _x_near(_dense(s, q, dq, r3q, r4q, r5q), q, c0, s0, geo) + xoff
                 out_i[k] = _dense(s, iq, di, r3i, r4i, r5i)
                 k += 1
+        if n_acc < steplog.shape[0]:
+            steplog[n_acc, 0] = h
+            steplog[n_acc, 1] = contact + (2.0 if crossed else 0.0)
+        n_acc += 1
         t = t_new
         q, w, iq = qn, wn, inn
         ut, dut = un, dun
