@@ -268,8 +268,8 @@ def _xdist_workers(config) -> int:
 
 
 def pytest_configure(config):
-    """Under pytest-xdist, before its workers start: compile the kernels, the rigid and the backlash integrator in two
-    processes side by side (:func:`toggle_id.simulate.compile_kernels`), where each worker would compile both on its
+    """Under pytest-xdist, before its workers start: compile the kernels, the rigid integrator (and its sensitivities)
+    and the backlash integrator in two processes side by side (:func:`toggle_id.simulate.compile_kernels`), where each worker would compile both on its
     first simulation (a cold cache: a fresh clone, or after an edit of ``toggle_id/kernels``); on a warm cache they
     only load them. A kind that fails to compile is left to the tests, which then fail with its error."""
     if getattr(config, "workerinput", None) is not None or _xdist_workers(config) < 2:
@@ -278,8 +278,9 @@ def pytest_configure(config):
 
     env = share_cores({**os.environ, "PYTHONPATH": str(ROOT)})
     procs = [subprocess.Popen([sys.executable, "-c", "import sys; from toggle_id.simulate import compile_kernels; "
-                               "compile_kernels(sys.argv[1:])", kind], cwd=ROOT, env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for kind in ("rigid", "lash")]
+                               "compile_kernels(sys.argv[1:])", *kinds], cwd=ROOT, env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for kinds in (("rigid", "sens"), ("lash",))]
     for proc in procs:
         proc.wait()
 

@@ -360,18 +360,22 @@ def simulate_sensitivities(theta: np.ndarray, record: Record, settings: SolverSe
 
 
 def compile_kernels(kinds: Sequence[str] = ("rigid", "lash"), parallel: bool = True) -> None:
-    """Compile the batched kernels of ``kinds`` — ``"rigid"``, ``"lash"`` (backlash) — serial and, with
-    ``parallel``, threaded, by a 3-sample simulation each; on a warm numba cache this only loads them. For a process
-    that wants the compilation over before its work is timed or shared: the test suite compiles the two kinds in two
-    processes side by side before its workers start, where each worker would otherwise compile both."""
+    """Compile the batched kernels of ``kinds`` — ``"rigid"``, ``"lash"`` (backlash), ``"sens"`` (the rigid
+    integrator's forward sensitivities) — serial and, with ``parallel``, threaded, by a 3-sample simulation each; on
+    a warm numba cache this only loads them. For a process that wants the compilation over before its work is timed
+    or shared: the test suite compiles them in two processes side by side before its workers start, where each
+    worker would otherwise compile them all."""
     from .params import ASSIGNED
 
-    unknown = set(kinds) - {"rigid", "lash"}
+    unknown = set(kinds) - {"rigid", "lash", "sens"}
     if unknown:
-        raise ConfigError(f"compile_kernels: unknown kinds {sorted(unknown)}; known: rigid, lash")
+        raise ConfigError(f"compile_kernels: unknown kinds {sorted(unknown)}; known: rigid, lash, sens")
     record = Record.from_sweep("simulation", 0.01, name="compile")
     for kind in kinds:
         theta = extend(ASSIGNED[None, :])
+        if kind == "sens":
+            simulate_sensitivities(theta[0], record, PRECISE, [K.K_T])
+            continue
         theta[0, K.B_L] = 1e-4 if kind == "lash" else 0.0
         for par in (False, True) if parallel else (False,):
             simulate(theta, record, FAST, n_samples=3, parallel=par)

@@ -36,7 +36,7 @@ def output_derivatives(model, theta: np.ndarray, idx: np.ndarray) -> np.ndarray 
     gs_w = (idx >= K.GS_W0) & (idx < K.GS_W0 + K.N_GS)
     model.n_sims += 1
     model.n_derivative_runs += 1
-    res = simulate_sensitivities(theta, model.record, settings, plant, threads=2 if model.parallel else 1)
+    res = simulate_sensitivities(theta, model.record, settings, plant, threads=1)  # 2: slower (jobs.bench --jacobian)
     if res.status != STATUS_OK or res.sens_status != STATUS_OK:
         return None
     x = res.x_B
