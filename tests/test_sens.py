@@ -4,6 +4,8 @@ reference: central differences of whole simulations at steps large enough to ris
 jump of the sensitivities at the switch is exercised."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -13,7 +15,7 @@ from toggle_id.errors import ConfigError
 from toggle_id.kernels import slots as K
 from toggle_id.params import ASSIGNED
 from toggle_id.record import Record
-from toggle_id.simulate import (FAST, PRECISE, STATUS_INVALID, analytic_slots, extend, simulate,
+from toggle_id.simulate import (PRECISE, PRECISE_STIFF, STATUS_INVALID, analytic_slots, extend, simulate,
                                 simulate_sensitivities)
 
 
@@ -34,23 +36,23 @@ def _effects_on() -> np.ndarray:
     return th
 
 
-def _central(th, rec, slots, rel=3e-3, zero_step=1e-2):
+def _central(th, rec, slots, rel=3e-3, zero_step=1e-2, tier=PRECISE):
     T = np.repeat(th[None], 2 * len(slots), axis=0)
     h = np.array([rel * abs(th[c]) if th[c] != 0 else zero_step for c in slots])
     for j, c in enumerate(slots):
         T[2 * j, c] += h[j]
         T[2 * j + 1, c] -= h[j]
-    R = simulate(T, rec, PRECISE)
+    R = simulate(T, rec, tier)
     return (R.x_B[0::2] - R.x_B[1::2]) / (2 * h[:, None])
 
 
-def _errors(dx, th, rec, slots, steps=(1e-3, 3e-3, 1e-2)):
+def _errors(dx, th, rec, slots, steps=(1e-3, 3e-3, 1e-2), tier=PRECISE):
     """Per column, the relative distance of ``dx`` to the nearest of central differences at three steps: too short
     a step drowns in the adaptive integrator's noise, too long a one in curvature, and which wins differs by
     column."""
     err = np.full(len(slots), np.inf)
     for rel in steps:
-        fd = _central(th, rec, slots, rel=rel, zero_step=10 * rel)
+        fd = _central(th, rec, slots, rel=rel, zero_step=10 * rel, tier=tier)
         err = np.minimum(err, np.linalg.norm(dx - fd, axis=1) / np.linalg.norm(fd, axis=1))
     return err
 
@@ -80,6 +82,28 @@ def test_sensitivities_on_a_sampled_input_with_dead_time_and_a_clipped_drive():
     assert not bad, f"relative errors: {bad}"
 
 
+def test_sensitivities_along_rodas4_steps_match_central_differences(record):
+    """The stiff tier (Rodas4 on the augmented system, its Jacobian's ∂(J·S)/∂y by differences), with the friction
+    and the contact terms that make it stiff."""
+    th = _effects_on()
+    slots = list(range(15)) + [K.TAU_C, K.C_B, K.A_COG, K.F_LOAD, K.K3, K.X_OFF, K.C_KT]
+    res = simulate_sensitivities(th, record, PRECISE_STIFF, slots)
+    assert res.ok and not res.fell_back
+    np.testing.assert_array_equal(res.x_B, simulate(th[None], record, PRECISE_STIFF).x_B[0])
+    err = _errors(res.dx, th, record, slots, tier=PRECISE_STIFF)
+    bad = {ALL_NAMES[c]: f"{e:.2e}" for c, e in zip(slots, err) if not e < 1e-2}
+    assert not bad, f"relative errors: {bad}"
+
+
+def test_a_vector_that_exhausts_dopri5s_budget_is_differentiated_on_the_fallback(record):
+    th = extend(ASSIGNED[None, :])[0]
+    tight = dataclasses.replace(PRECISE, max_steps=100)
+    res = simulate_sensitivities(th, record, tight, [K.K_T, K.MU])
+    assert res.ok and res.fell_back
+    ref = simulate_sensitivities(th, record, PRECISE_STIFF, [K.K_T, K.MU])
+    np.testing.assert_array_equal(res.dx, ref.dx)
+
+
 def test_sensitivity_run_gives_the_simulation_bit_for_bit_and_any_thread_count_the_same(record):
     th = _effects_on()
     slots = sorted(analytic_slots())
@@ -94,8 +118,6 @@ def test_sensitivity_run_gives_the_simulation_bit_for_bit_and_any_thread_count_t
 
 def test_sensitivities_refuse_what_they_cannot_differentiate_and_report_bad_values(record):
     th = extend(ASSIGNED[None, :])[0]
-    with pytest.raises(ConfigError, match="DOPRI5"):
-        simulate_sensitivities(th, record, FAST, [K.K_T])
     with pytest.raises(ConfigError, match=str(K.TAU_D)):
         simulate_sensitivities(th, record, PRECISE, [K.TAU_D])
     lash = th.copy()

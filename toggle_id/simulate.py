@@ -291,7 +291,8 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
 class SensResult:
     """One vector's simulation and the derivatives of its x_B w.r.t. the slots asked for: ``x_B``, ``i_q`` (N,),
     ``dx`` (len(slots), N) in m per unit of each parameter, NaN when ``status`` (the simulation's) is not OK or
-    ``sens_status`` (the replay's) is not; ``n_steps`` the simulation's steps."""
+    ``sens_status`` (the replay's) is not; ``n_steps`` the simulation's steps; ``fell_back``: simulated on the
+    settings' fallback after their step budget ran out."""
 
     x_B: np.ndarray
     i_q: np.ndarray
@@ -299,6 +300,7 @@ class SensResult:
     status: int
     sens_status: int
     n_steps: int
+    fell_back: bool = False
 
     @property
     def ok(self) -> bool:
@@ -315,14 +317,12 @@ def analytic_slots() -> frozenset[int]:
 
 def simulate_sensitivities(theta: np.ndarray, record: Record, settings: SolverSettings, slots: Sequence[int], *,
                            geometry: Geometry = GEOMETRY, threads: int = 2) -> SensResult:
-    """Simulate one extended vector ``theta`` on ``record`` by DOPRI5 (``settings`` must be a DOPRI5 tier without
-    backlash) and differentiate x_B w.r.t. the extended-vector ``slots`` (all in :func:`analytic_slots`) by
-    internal differentiation of its steps (:mod:`toggle_id.kernels.sens`): the exact derivative of the numerical
-    solution, in about the time of a few simulations whatever the number of slots; ``threads`` groups of columns
-    are retraced side by side. x_B and i_q are those :func:`simulate` gives for the same vector and settings, bit
-    for bit. Bad parameter values give a status, never an exception."""
-    if settings.method != "dopri5":
-        raise ConfigError(f"simulate_sensitivities needs a DOPRI5 tier, got {settings.method!r}")
+    """Simulate one extended vector ``theta`` without backlash on ``record`` and differentiate x_B w.r.t. the
+    extended-vector ``slots`` (all in :func:`analytic_slots`) along its steps (:mod:`toggle_id.kernels.sens`), in
+    about the time of a few simulations whatever the number of slots; ``threads`` groups of columns are retraced
+    side by side. A row that exhausts the settings' step budget is done again on their fallback, as
+    :func:`simulate` does (``fell_back``). x_B and i_q are those :func:`simulate` gives for the same vector and
+    settings, bit for bit. Bad parameter values give a status, never an exception."""
     slots = np.asarray(slots, dtype=np.int64)
     unknown = sorted(set(slots.tolist()) - analytic_slots())
     if unknown:
@@ -338,7 +338,7 @@ def simulate_sensitivities(theta: np.ndarray, record: Record, settings: SolverSe
     i = np.full(N, np.nan)
     dx = np.full((slots.size, N), np.nan)
     if _invalid_rows(th, geometry)[0]:
-        return SensResult(x, i, dx, STATUS_INVALID, STATUS_INVALID, 0)
+        return SensResult(x, i, dx, STATUS_INVALID, STATUS_INVALID, 0, False)
     if th[0, K.B_L] > 0.0:
         raise ConfigError("simulate_sensitivities: a vector with backlash goes to the two-body integrator, "
                           "which has no sensitivities")
@@ -347,16 +347,22 @@ def simulate_sensitivities(theta: np.ndarray, record: Record, settings: SolverSe
     y0 = kernel_array((q0, 0.0, 0.0))
     tab, head = geometry_table(geometry)
     sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
-    st, ns, sst = sensitivities_row(th[0], geo, tab, head, kernel_array(record.t), N, kernel_array(record.v_in),
-                                    sweep, record.sweep is not None, float(record.t[0]), y0,
-                                    int(record.x_B0 >= geometry.x_B_L), settings.as_array(), x, i, slots, dx,
-                                    max(1, min(int(threads), slots.size)))
+
+    def run(tier: SolverSettings):
+        return sensitivities_row(th[0], geo, tab, head, kernel_array(record.t), N, kernel_array(record.v_in), sweep,
+                                 record.sweep is not None, float(record.t[0]), y0, int(record.x_B0 >= geometry.x_B_L),
+                                 tier.as_array(), x, i, slots, dx, max(1, min(int(threads), slots.size)))
+
+    st, ns, sst = run(settings)
+    fell_back = st == STATUS_SOLVER_FAILURE and settings.fallback is not None
+    if fell_back:
+        st, ns, sst = run(settings.fallback)
     if st != STATUS_OK:
         x[:] = np.nan
         i[:] = np.nan
     if st != STATUS_OK or sst != STATUS_OK:
         dx[:] = np.nan
-    return SensResult(x, i, dx, int(st), int(sst), int(ns))
+    return SensResult(x, i, dx, int(st), int(sst), int(ns), bool(fell_back))
 
 
 def compile_kernels(kinds: Sequence[str] = ("rigid", "lash"), parallel: bool = True) -> None:

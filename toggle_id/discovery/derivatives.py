@@ -5,8 +5,8 @@ through the generic sensor error's output map (:func:`output_derivatives`), whic
 
 One simulation with its variational equations gives every column at once, where forward differences take one
 simulation per column and central differences two. What the kernel cannot differentiate — the dead time, the
-backlash's two-body integrator, the generic force's knot positions, a row on the stiff fallback (Rodas4) — is
-left to the caller's finite differences: :func:`output_derivatives` returns NaN columns, or None for the whole
+backlash's two-body integrator, the generic force's knot positions — is left to the caller's finite
+differences: :func:`output_derivatives` returns NaN columns, or None for the whole
 vector.
 """
 from __future__ import annotations
@@ -26,10 +26,11 @@ DERIVATIVES = ("fd", "analytic")
 
 def output_derivatives(model, theta: np.ndarray, idx: np.ndarray) -> np.ndarray | None:
     """(N, len(idx)) ∂x/∂θ of ``model.outputs`` at the extended vector ``theta`` for the slots ``idx``; NaN
-    columns for slots it does not differentiate; None when the vector's simulation is not one DOPRI5 run it can
-    retrace (backlash on, an effect set on the stiff fallback, a DOPRI5 run that failed or exhausted its steps)."""
+    columns for slots it does not differentiate; None when it cannot (backlash on, a failed simulation). The
+    integrator is the model's for ``theta`` (the stiff fallback for a stiff effect set); a vector that exhausts
+    DOPRI5's budget goes to the fallback and marks its effect set stiff, as a batch would."""
     settings = model._settings_for(theta)
-    if settings.method != "dopri5" or theta[K.B_L] > 0.0:
+    if theta[K.B_L] > 0.0:
         return None
     idx = np.asarray(idx, dtype=np.int64)
     plant = np.array([s for s in dict.fromkeys(idx.tolist()) if s in analytic_slots()], dtype=np.int64)
@@ -37,6 +38,8 @@ def output_derivatives(model, theta: np.ndarray, idx: np.ndarray) -> np.ndarray 
     model.n_sims += 1
     model.n_derivative_runs += 1
     res = simulate_sensitivities(theta, model.record, settings, plant, threads=1)  # 2: slower (jobs.bench --jacobian)
+    if res.fell_back:  # as a batch whose rows fell back (Model.outputs): this effect set is stiff
+        model.mark_stiff(theta)
     if res.status != STATUS_OK or res.sens_status != STATUS_OK:
         return None
     x = res.x_B

@@ -111,6 +111,10 @@ class Model:
         fb = tier.fallback
         return fb if fb is not None and effects_on(theta) in self.stiff else tier
 
+    def mark_stiff(self, theta: np.ndarray) -> None:
+        """Send later simulations with ``theta``'s effect set straight to the fallback (:attr:`stiff`)."""
+        self.stiff.add(effects_on(theta))
+
     def outputs(self, thetas: np.ndarray, tier: SolverSettings | None = None) -> np.ndarray:
         """(P, N) model x_B [m] of extended vectors ``thetas`` (P, N_THETA), the generic sensor error
         (:func:`toggle_id.effects.sensor_error`) added; NaN rows for failures. ``tier``: the integrator settings
@@ -126,7 +130,7 @@ class Model:
         settings = self._settings_for(plant[0], tier)
         x_B, status, fell_back = self._simulated(plant, settings)
         if settings is tier and 2 * int(fell_back.sum()) > len(plant):
-            self.stiff.add(effects_on(plant[0]))
+            self.mark_stiff(plant[0])
         x = x_B[inverse]
         x += sensor_error(thetas, x)
         ok = status[inverse] == STATUS_OK

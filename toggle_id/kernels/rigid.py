@@ -258,7 +258,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     steps; beyond settings[S_MAXSTEPS] the simulation is a solver failure.
 
     ``steplog`` (M, 2), when M > 0, receives the accepted steps in order: their size and their mode (contact before
-    the step, plus 2 when the step ends at a contact switch) — what :func:`toggle_id.kernels.sens.sens_replay`
+    the step, plus 2 when the step ends at a contact switch, plus 4 for a Rodas4 step) — what :func:`toggle_id.kernels.sens.sens_replay`
     retraces to differentiate the solution. M ≥ settings[S_MAXSTEPS] holds them all; an empty one costs nothing.
     """
     rtol = settings[S_RTOL]
@@ -394,7 +394,7 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
                 k += 1
         if n_acc < steplog.shape[0]:
             steplog[n_acc, 0] = h
-            steplog[n_acc, 1] = contact + (2.0 if crossed else 0.0)
+            steplog[n_acc, 1] = contact + (2.0 if crossed else 0.0) + (4.0 if use_ros else 0.0)
         n_acc += 1
         t = t_new
         q, w, iq = qn, wn, inn
