@@ -45,7 +45,6 @@ from collections.abc import Callable
 import numpy as np
 
 from toggle_id.effects import ALL_INDEX
-from toggle_id.kernels import slots as K
 from toggle_id.params import ASSIGNED, LOWER, UPPER
 from toggle_id.plant import GEOMETRY, rhs
 from toggle_id.record import Record
@@ -214,62 +213,6 @@ def polish_rows(repeat: int, max_nfev: int = 30) -> list[dict]:
     return rows
 
 
-def jacobian_rows(repeat: int) -> list[dict]:
-    """One Jacobian of x_B on the 5-s record near the assigned values, w.r.t. the 15 parameters and w.r.t. those and
-    10 effect parameters (5 of them on), on the PRECISE tier (DOPRI5) and on its stiff fallback (Rodas4): forward
-    differences (one batched simulation of p + 1 rows, numba threads) against forward sensitivities
-    (:func:`toggle_id.simulate.simulate_sensitivities`, one thread and two), interleaved; medians, and each one's
-    worst column error against central differences at a 1e-3 step (the plant is nearly linear over it; the step
-    rises above the integrator's noise)."""
-    from toggle_id.simulate import PRECISE_STIFF, simulate_sensitivities
-
-    rec = Record.from_sweep("simulation")
-    theta = extend(near_assigned(1, rel=0.05, seed=9))[0]
-    for slot, value in ((K.TAU_C, 0.05), (K.C_B, 20.0), (K.F_LOAD, 3.0), (K.A_COG, 0.02), (K.K3, 1e12)):
-        theta[slot] = value
-    sets = {"15 parameters": list(range(15)),
-            "25 (15 + 10 of effects)": list(range(15)) + [K.TAU_C, K.F_S, K.V_S, K.C_B, K.A_COG, K.N_COG, K.PHI_COG,
-                                                          K.F_LOAD, K.K3, K.X_OFF]}
-    rows = []
-    for tier_name, tier in (("DOPRI5", PRECISE), ("Rodas4", PRECISE_STIFF)):
-        for label, slots in sets.items():
-            h_ref = np.array([1e-3 * abs(theta[c]) if theta[c] != 0 else 1e-4 for c in slots])
-            T = np.repeat(theta[None], 2 * len(slots), axis=0)
-            T[0::2, slots] += np.diag(h_ref)
-            T[1::2, slots] -= np.diag(h_ref)
-            R = simulate(T, rec, tier, parallel=True).x_B
-            ref = (R[0::2] - R[1::2]) / (2 * h_ref[:, None])
-            h = 1e-4 * np.maximum(np.abs(theta[slots]), 1e-3)
-
-            def forward(tier=tier, slots=slots, h=h):
-                X = np.repeat(theta[None], len(slots) + 1, axis=0)
-                X[1:, slots] += np.diag(h)
-                Y = simulate(X, rec, tier, parallel=True).x_B
-                return (Y[1:] - Y[0]) / h[:, None]
-
-            ways = {"forward differences, parallel": forward,
-                    "sensitivities, 1 thread":
-                        lambda tier=tier, slots=slots: simulate_sensitivities(theta, rec, tier, slots, threads=1).dx,
-                    "sensitivities, 2 threads":
-                        lambda tier=tier, slots=slots: simulate_sensitivities(theta, rec, tier, slots, threads=2).dx}
-            times: dict[str, list[float]] = {k: [] for k in ways}
-            err: dict[str, float] = {}
-            for fn in ways.values():  # warm-up: compilation or cache load
-                fn()
-            for _ in range(repeat):
-                for k, fn in ways.items():
-                    t0 = time.perf_counter()
-                    D = fn()
-                    times[k].append(time.perf_counter() - t0)
-                    scale = np.linalg.norm(ref, axis=1)
-                    on = scale > 0  # a column the record does not see (v_s with F_s at 0) has no relative error
-                    err[k] = float(np.max(np.linalg.norm(D - ref, axis=1)[on] / scale[on]))
-            for k in ways:
-                rows.append({"case": f"{tier_name}, {label}: {k}", "n": repeat, "median_s": float(np.median(times[k])),
-                             "times_s": times[k], "max_rel_error": err[k]})
-    return rows
-
-
 #: One cold start, run in a fresh interpreter: argv[1] "1"/"0" (setup_here), argv[2] workers; prints JSON.
 _COLD = r"""
 import json, sys, time
@@ -381,8 +324,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--quick", action="store_true", help="only the FAST near-assigned cases")
     ap.add_argument("--polish", action="store_true", help="time one least-squares polish with and without one "
                                                           "BLAS thread instead")
-    ap.add_argument("--jacobian", action="store_true", help="time one PRECISE Jacobian by forward differences "
-                    "and by forward sensitivities, and their errors")
     ap.add_argument("--cold", action="store_true", help="time a local Ray evaluator's start on a cold numba "
                                                         "cache instead, on a record read as from a file")
     ap.add_argument("--workers", type=int, default=2, help="Ray workers of --cold")
@@ -405,13 +346,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
             print(f"{r['case']:44s} {r['n']:4d} {r['median_s']:8.1f} {r['first_evaluation_s']:10.1f} "
                   f"{r['ready_plus_first_s']:8.1f}")
         print(f"{args.workers} workers; medians; a fresh NUMBA_CACHE_DIR per run; other jobs on the machine count")
-        _write_json(args.json, rows)
-        return rows
-    if args.jacobian:
-        rows = jacobian_rows(args.repeat)
-        print(f"{'case':66s} {'runs':>4s} {'median s':>9s}  worst column's error vs central differences")
-        for r in rows:
-            print(f"{r['case']:66s} {r['n']:4d} {r['median_s']:9.4f}  {r['max_rel_error']:.2e}")
         _write_json(args.json, rows)
         return rows
     if args.polish:

@@ -6,7 +6,9 @@ too) over the toggle plant (:mod:`.toggle_plant`); it works on one record and th
 term and an :class:`~toggle_id.effects.Effect` entry.
 
 1. *Baseline* (:mod:`.model`): the nominal fit is polished on the whole record (PRECISE tier, log space, one
-   parameter held per exact symmetry of x_B, :mod:`.gauge`), from every start; the best is the baseline.
+   parameter held per exact symmetry of x_B, :mod:`.gauge`), from every start; the best is the baseline. The
+   polishes' Jacobians and the sensitivities come from :mod:`.derivatives` (finite differences, or forward
+   sensitivities with ``discover.derivatives=analytic``).
 2. *Noise model* (:mod:`.noise`): an AR(p) model of the residual. Every statistic is computed on prewhitened
    residuals and sensitivities, so coloured noise (a closed loop, an encoder) does not pass for an effect; the
    loop's fits minimise the residual prewhitened by the AR model of the current residual less what the states

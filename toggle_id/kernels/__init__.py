@@ -13,6 +13,7 @@ Modules, each importing only those above it (no cycle; ``tests/test_architecture
 - :mod:`.stepping`: what both integrators share (dense output, step-size control, event bracketing);
 - :mod:`.rigid`: Rodas4 and DOPRI5 steps and the rigid plant's integrator :func:`~.rigid._simulate_one`;
 - :mod:`.backlash`: the two-body integrator of the backlash effect, :func:`~.backlash.simulate_lash`;
+- :mod:`.sens`: forward sensitivities of the rigid integrator's solution, by retracing its logged steps;
 - :mod:`.driver`: the batched loops over rows that :mod:`toggle_id.simulate` calls.
 
 Names with a leading underscore are compiled helpers for the other kernels (and the tests); the Python side uses

@@ -3,7 +3,7 @@
 Ṡ = J(y) S + ∂f/∂θ, the step sizes held fixed. A DOPRI5 step integrates them by its own stages (internal
 differentiation: the exact derivative of the numerical solution on those steps — no differencing error, no
 step-size jitter); a Rodas4 step (the stiff tier) is Rodas4 on the augmented system (y, S), whose Jacobian needs
-∂(J·S)/∂y, taken by central differences of the analytic Jacobian (three state directions, whatever the number of
+∂(J·S)/∂y, taken by forward differences of the analytic Jacobian (three state directions, whatever the number of
 columns). Where the contact switch (q crossing q_L) ends a step the sensitivities jump by (f⁻ − f⁺)·∂τ/∂θ with
 ∂τ/∂θ = −S_q/q̇ (the switch time moves with θ).
 
@@ -218,7 +218,7 @@ def _ros_sens_step(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, 
                    dw, di, ra, rc, rd, rt, rh):
     """One Rodas4 step of the state and its sensitivities together: Rodas4 on the augmented system
     (y, S)' = (f, J·S + ∂f/∂θ), whose Jacobian [[J, 0], [M, J]] is block triangular — M = ∂(J·S + ∂f/∂θ)/∂y by
-    central differences of the analytic terms — so each stage solves the plant's 3×3 system once for y and once
+    forward differences of the analytic terms — so each stage solves the plant's 3×3 system once for y and once
     per column. Writes S(t+h) into Snew and the dense-output coefficients of S_q into R3, R4; returns ok, y(t+h)
     and those of q."""
     P = cols.shape[0]
