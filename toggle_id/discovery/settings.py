@@ -45,9 +45,9 @@ class DiscoverSettings:
       (the default) is every Jacobian by finite differences — an experiment towards issue 14, not yet judged
       on the adversarial set; derivatives: ``fd`` (the default: finite differences as above) or ``analytic``
       (:mod:`.derivatives`: forward sensitivities of the PRECISE steps, one simulation for every column, for the
-      polishes' Jacobians and the sensitivities; differences where they do not apply — backlash, dead time, a
-      stiff effect set) — exact where the differences carry the integrator's noise, so the polishes' paths
-      differ: not the default until the adversarial set is run with it (issue 14);
+      polishes' Jacobians and the sensitivities; differences where they do not apply — backlash, dead time):
+      two to four orders more accurate than the differences, but measured no faster on two cores (the retrace's
+      fixed cost; docs/performance.md) and the polishes' paths differ, so not the default;
       jac_rel_step: (log-)step of the sensitivities J; rank_rtol: relative singular-value cut-off of J; absorbed_ratio: ‖s⊥‖/‖s‖ below which an effect counts
       as absorbed by the free parameters.
     - noise_std: known measurement noise (m), only reported as rms/noise (the discover job: None takes
