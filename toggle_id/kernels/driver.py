@@ -1,8 +1,9 @@
 """Batched simulation over the rows of a parameter array: rows without backlash go to the rigid integrator
 (:func:`toggle_id.kernels.rigid._simulate_one`), rows with backlash b_l > 0 to the two-body one
 (:func:`toggle_id.kernels.backlash.simulate_lash`). What :mod:`toggle_id.simulate` calls: :func:`simulate_batch_serial`
-(one Ray actor = one core) and :func:`simulate_batch_parallel` (numba threads), and for rows with backlash
-:func:`lash_batch_serial` and :func:`lash_batch_parallel`. Each is compiled on its first use only: a process that never
+(one Ray actor = one core) and :func:`simulate_batch_parallel` (numba threads), for rows with backlash
+:func:`lash_batch_serial` and :func:`lash_batch_parallel`, and for one vector with its forward sensitivities
+:func:`sensitivities_row`. Each is compiled on its first use only: a process that never
 simulates backlash (most jobs) compiles the rigid integrator alone, about half of a cold start (measured: 18-21 s
 against 42-46 s for both).
 """
