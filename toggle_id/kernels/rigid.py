@@ -164,6 +164,18 @@ def _dopri_step(h, t, q, w, iq, k1q, k1w, k1i, contact, pc, geo, tab, head, v):
 
 
 @nb.njit(cache=True, inline="always")
+def _wmatrix(h, ja, jb, jc, jd, je, jg):
+    """hγ and the reduced 2×2 block of I/(hγ) − J with its inverse determinant, for :func:`_wsolve`."""
+    hg = h * _RG
+    s = 1.0 / hg
+    m11 = s - jb - ja * hg
+    m12 = -jc
+    m21 = -je - jd * hg
+    m22 = s - jg
+    return hg, m11, m12, m21, m22, 1.0 / (m11 * m22 - m12 * m21)
+
+
+@nb.njit(cache=True, inline="always")
 def _wsolve(r0, r1, r2, hg, a, d, m11, m12, m21, m22, idet):
     """Solve (I/(hγ) − J) x = r for the plant's Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] (the reduced 2×2
     block m, its inverse determinant idet and hγ prepared by the caller)."""
@@ -183,13 +195,7 @@ def _ros_step(h, t, q, w, iq, f0w, f0i, ja, jb, jc, jd, je, jg, fti, contact, pc
     u3 = _command(t + _RCC3 * h, pc, v)[0]
     u4 = _command(t + _RCC4 * h, pc, v)[0]
     uh, duh = _command(t + h, pc, v)
-    hg = h * _RG
-    s = 1.0 / hg
-    m11 = s - jb - ja * hg
-    m12 = -jc
-    m21 = -je - jd * hg
-    m22 = s - jg
-    idet = 1.0 / (m11 * m22 - m12 * m21)
+    hg, m11, m12, m21, m22, idet = _wmatrix(h, ja, jb, jc, jd, je, jg)
     ih = 1.0 / h
     k1q, k1w, k1i = _wsolve(w, f0w, f0i + _RD1 * h * fti, hg, ja, jd, m11, m12, m21, m22, idet)
     ok2, f2q, f2w, f2i, _ = _rhs_u(q + _RA21 * k1q, w + _RA21 * k1w, iq + _RA21 * k1i, u2, contact, pc, geo, tab, head)

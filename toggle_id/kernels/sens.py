@@ -28,11 +28,11 @@ from .slots import (
     PHI_COG, R_S, S_SAT,
     SOLVER_FAILURE, TAU_C, V_S, X_OFF, G_P,
 )
-from .rigid import _wsolve
+from .rigid import _wmatrix, _wsolve
 from .tableaus import (
     _RA21, _RA31, _RA32, _RA41, _RA42, _RA43, _RA51, _RA52, _RA53, _RA54, _RC21, _RC31, _RC32, _RC41, _RC42,
     _RC43, _RC51, _RC52, _RC53, _RC54, _RC61, _RC62, _RC63, _RC64, _RC65, _RCC2, _RCC3, _RCC4, _RD1, _RD2, _RD3,
-    _RD4, _RG, _RH21, _RH22, _RH23, _RH24, _RH25, _RH31, _RH32, _RH33, _RH34, _RH35,
+    _RD4, _RH21, _RH22, _RH23, _RH24, _RH25, _RH31, _RH32, _RH33, _RH34, _RH35,
     _A21, _A31, _A32, _A41, _A42, _A43, _A51, _A52, _A53, _A54, _A61, _A62, _A63, _A64, _A65, _A71, _A73, _A74,
     _A75, _A76, _C2, _C3, _C4, _C5, _D1, _D3, _D4, _D5, _D6, _D7,
 )
@@ -236,13 +236,7 @@ def _ros_sens_step(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, 
             for j in range(P):
                 M[r, b, j] = (Kt[1, r, j + 1] - Kt[0, r, j + 1]) / e
     _dfdp_dt(t, pc, th, cols, v, fts)
-    hg = h * _RG
-    sg = 1.0 / hg
-    m11 = sg - jb - ja * hg
-    m12 = -jc
-    m21 = -je - jd * hg
-    m22 = sg - jg
-    idet = 1.0 / (m11 * m22 - m12 * m21)
+    hg, m11, m12, m21, m22, idet = _wmatrix(h, ja, jb, jc, jd, je, jg)
     ih = 1.0 / h
     for i in range(6):
         # the stage's state and sensitivities: Z = (y, S) + Σ a_il U_l
