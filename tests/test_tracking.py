@@ -313,18 +313,3 @@ def test_disabled_tracker_is_a_no_op():
             tr.log_metric_history("h", [1.0])
             tr.log_figure(object(), "f.png")
     assert run.run_id is None and not tr.ok and tr.dropped == [] and tr.dropped_summary() == ""
-
-
-def test_the_jobs_tracker_opens_beside_its_ray_session_and_its_errors_stop_the_job(tmp_path):
-    """app.common.tracker_and_ray: the store opened in a thread while Ray starts; what it yields is the tracker
-    make_tracker gives, and a bad tracking node is still the job's one-line error."""
-    from toggle_id.app.common import tracker_and_ray
-
-    cfg = {"tracking": {"uri": f"sqlite:///{tmp_path / 'store.db'}", "experiment": "beside"}}
-    with tracker_and_ray(cfg, tmp_path, {"kind": "serial"}) as tr, tr.run("r") as run:
-        tr.log_params({"a": 1})
-    assert tr.ok and run.run_id and tr.experiment_name == "beside"
-    with pytest.raises(ConfigError, match="experiment_name"):
-        with tracker_and_ray({"tracking": {"uri": cfg["tracking"]["uri"], "experiment": " "}}, tmp_path,
-                             {"kind": "serial"}):
-            pass

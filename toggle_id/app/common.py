@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping
@@ -238,20 +237,6 @@ def make_tracker(cfg: Mapping, project_root: str | Path) -> Tracker:
                        system_metrics=bool(sm.get("enabled", False)),
                        system_metrics_interval_s=float(sm.get("sampling_interval_s", 10.0)),
                        system_metrics_samples=int(sm.get("samples_before_logging", 1)))
-
-
-@contextmanager
-def tracker_and_ray(cfg: Mapping, project_root: str | Path, ev: Mapping) -> Iterator[Tracker]:
-    """The job's tracker (:func:`make_tracker`) inside its Ray session (:func:`ray_session`), the tracking store
-    opened in a thread while Ray starts in this one: a new local store's tables take 1–2 s and a local Ray's start
-    about 5 s, so the job waits for the longer alone. An error of either stops the job as before (Ray shut down)."""
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="toggle-id-tracker") as pool:
-        opened = pool.submit(make_tracker, cfg, project_root)
-        try:
-            with ray_session(ev):
-                yield opened.result()
-        finally:
-            opened.cancel()
 
 
 def publish_report(tracker: Tracker, run_dir: Path, text: str, report: dict, json_name: str = "result.json",

@@ -23,8 +23,8 @@ from ..effects import ALL_INDEX, ALL_NAMES
 from ..errors import ConfigError, DataError
 from ..identify import IdentificationResult, identify
 from ..simulate import extend
-from .common import (evaluator_factory, fast_settings, flat_config, ga_config, jsonable_config, polish_settings,
-                     publish_report, solver_tier, tracker_and_ray, validate_config)
+from .common import (evaluator_factory, fast_settings, flat_config, ga_config, jsonable_config, make_tracker,
+                     polish_settings, publish_report, ray_session, solver_tier, validate_config)
 from .job_report import stage_child_run
 from .records import build_record
 
@@ -85,11 +85,11 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     if settings.noise_std is None and truth is not None:
         noise = float((cfg.get("data") or {}).get("noise_m", 0.0) or 0.0)
         settings.noise_std = noise if noise > 0 else None
+    tracker = make_tracker(cfg, project_root)
     show = bool(cfg.get("progress", True))
     t0 = time.perf_counter()
     log_datasets = (cfg.get("tracking") or {}).get("log_datasets", True)
-    with (tracker_and_ray(cfg, project_root, ev) as tracker,
-          tracker.run("discover", tags={"job": "discover", "method": method}) as run):
+    with ray_session(ev), tracker.run("discover", tags={"job": "discover", "method": method}) as run:
         tracker.log_params(flat_config(cfg))
         datasets = mlflow_run.log_records(tracker, [record], run_dir, enabled=log_datasets)
         if validation is not None:

@@ -23,8 +23,8 @@ from ..errors import ConfigError
 from ..identify import identify
 from ..simulate import PRECISE, extend, simulate
 from ..stages import joint_plan
-from .common import (evaluator_factory, flat_config, get, identify_kwargs, jsonable_config, publish_report,
-                     tracker_and_ray, validate_config)
+from .common import (evaluator_factory, flat_config, get, identify_kwargs, jsonable_config, make_tracker,
+                     publish_report, ray_session, validate_config)
 from .job_report import console_report, model_response, stage_child_run, write_figures
 from .records import build_records
 
@@ -41,12 +41,12 @@ def run_identify(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
     kw = identify_kwargs(cfg, run_dir, resume)
     kw["checkpoint_meta"] = {jobdir.META_KEY: identity}
     joint_plan(records, method, extend(P.ASSIGNED)[0], fixed=tuple(kw["fixed"]))  # records fit the method?
+    tracker = make_tracker(cfg, project_root)
     ev = cfg.get("evaluator") or {}
     show = bool(cfg.get("progress", True))
     t0 = time.perf_counter()
-    with (tracker_and_ray(cfg, project_root, ev) as tracker,
-          tracker.run(method, tags={"method": method, "job": "identify"},
-                      run_id=_mlflow_run_id(run_dir) if resume else None) as run):
+    with ray_session(ev), tracker.run(method, tags={"method": method, "job": "identify"},
+                                     run_id=_mlflow_run_id(run_dir) if resume else None) as run:
         _remember_mlflow_run(run_dir, run.run_id)
         tracker.log_params(flat_config(cfg))
         datasets = mlflow_run.log_records(tracker, records, run_dir, enabled=get(cfg, "tracking.log_datasets", True))

@@ -18,7 +18,7 @@ from ..identify import identify
 from ..mlflow_run import curve_logger
 from ..provenance import code_version
 from ..stages import METHODS
-from .common import (evaluator_factory, flat_config, identify_kwargs, jsonable_config, tracker_and_ray,
+from .common import (evaluator_factory, flat_config, identify_kwargs, jsonable_config, make_tracker, ray_session,
                      validate_config)
 from .job_report import stage_child_run
 from .records import build_record
@@ -39,11 +39,12 @@ def run_table1(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "."
     record, truth = build_record(cfg.get("data") or {})
     if truth is None:
         raise ConfigError("table1 needs a simulated record with known parameters (data=simulated)")
+    tracker = make_tracker(cfg, project_root)
     ev = cfg.get("evaluator") or {}
     show = bool(cfg.get("progress", True))
     runs = []
     t0 = time.perf_counter()
-    with tracker_and_ray(cfg, project_root, ev) as tracker, tracker.run("table1", tags={"job": "table1"}):
+    with ray_session(ev), tracker.run("table1", tags={"job": "table1"}):
         tracker.log_params(flat_config(cfg))
         for method in methods:
             for seed in seeds:
