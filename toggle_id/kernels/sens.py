@@ -314,8 +314,8 @@ def _dopri_sens_stages(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols,
 def sens_replay(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, y0, contact0, steplog, cols,
                 out_dx):
     """∂x_B/∂θ_c at the samples t_out[k] ≥ t_start, k < n_out, into out_dx[j, k] for the slots ``cols`` (all in
-    :data:`SENS_SLOTS`), by retracing the DOPRI5 and Rodas4 steps ``steplog`` that :func:`~.rigid._simulate_one` took for
-    the same arguments (starting state independent of θ). Returns a status: OK, MODEL_FAILURE (a stage left the
+    :data:`SENS_SLOTS`), by retracing the DOPRI5 and Rodas4 steps ``steplog`` that :func:`~.rigid._simulate_one`
+    took for the same arguments (starting state independent of θ). Returns a status: OK, MODEL_FAILURE (a stage left the
     assembly range) or SOLVER_FAILURE (the log ends before the record)."""
     P = cols.shape[0]
     pc = _derived(th, geo, sweep, use_sweep, t_out[0], t_out[1] - t_out[0])
