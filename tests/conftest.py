@@ -269,8 +269,8 @@ def _xdist_workers(config) -> int:
 
 def pytest_configure(config):
     """Under pytest-xdist, before its workers start: compile the kernels, the rigid integrator (and its sensitivities)
-    and the backlash integrator in two processes side by side (:func:`toggle_id.simulate.compile_kernels`), where each worker would compile both on its
-    first simulation (a cold cache: a fresh clone, or after an edit of ``toggle_id/kernels``); on a warm cache they
+    and the backlash integrator in two processes side by side (:func:`toggle_id.simulate.compile_kernels`), where
+    each worker would compile them all on its first simulation (a cold cache: a fresh clone, or after an edit of ``toggle_id/kernels``); on a warm cache they
     only load them. A kind that fails to compile is left to the tests, which then fail with its error."""
     if getattr(config, "workerinput", None) is not None or _xdist_workers(config) < 2:
         return

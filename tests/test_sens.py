@@ -9,13 +9,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from toggle_id.discovery.model import Model, fit_free, sensitivities
+from toggle_id.discovery.derivatives import sensitivities
+from toggle_id.discovery.model import Model, fit_free
 from toggle_id.effects import ALL_INDEX, ALL_NAMES
 from toggle_id.errors import ConfigError
 from toggle_id.kernels import slots as K
 from toggle_id.params import ASSIGNED
 from toggle_id.record import Record
-from toggle_id.simulate import (PRECISE, PRECISE_STIFF, STATUS_INVALID, analytic_slots, extend, simulate,
+from toggle_id.simulate import (ANALYTIC_SLOTS, PRECISE, PRECISE_STIFF, STATUS_INVALID, extend, simulate,
                                 simulate_sensitivities)
 
 
@@ -106,7 +107,7 @@ def test_a_vector_that_exhausts_dopri5s_budget_is_differentiated_on_the_fallback
 
 def test_sensitivity_run_gives_the_simulation_bit_for_bit_and_any_thread_count_the_same(record):
     th = _effects_on()
-    slots = sorted(analytic_slots())
+    slots = sorted(ANALYTIC_SLOTS)
     one = simulate_sensitivities(th, record, PRECISE, slots, threads=1)
     two = simulate_sensitivities(th, record, PRECISE, slots, threads=2)
     sim = simulate(th[None], record, PRECISE)

@@ -22,6 +22,7 @@ from .kernels import slots as K
 from .kernels.driver import (lash_batch_parallel, lash_batch_serial, sensitivities_row, simulate_batch_parallel,
                              simulate_batch_serial)
 from .kernels.geometry import build_table
+from .kernels.sens import SENS_SLOTS as ANALYTIC_SLOTS  # the slots simulate_sensitivities differentiates
 from .params import N_PARAMS
 from .plant import GEOMETRY, Geometry
 from .record import Record
@@ -232,6 +233,17 @@ def _invalid_rows(thetas: np.ndarray, geo: Geometry) -> np.ndarray:
     return bad
 
 
+def _kernel_record(record: Record, geometry: Geometry, start: tuple[float, Sequence[float], int] | None = None):
+    """The kernels' view of a record and its start: geometry array, t, v_in, the sweep's description (zeros for a
+    sampled input) and (t0, y0, contact0) — by default at rest at the record's x_B0."""
+    if start is None:
+        start = (float(record.t[0]), (geometry.q_of_xB(record.x_B0), 0.0, 0.0), int(record.x_B0 >= geometry.x_B_L))
+    t0, y0, contact0 = start
+    sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
+    return (geometry.as_array(), kernel_array(record.t), kernel_array(record.v_in), sweep,
+            (float(t0), kernel_array(y0), int(contact0)))
+
+
 def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST, *, n_samples: int | None = None,
              start: tuple[float, Sequence[float], int] | None = None, parallel: bool = False,
              geometry: Geometry = GEOMETRY) -> SimResult:
@@ -250,13 +262,7 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     N = record.n if n_samples is None else int(n_samples)
     if not 1 <= N <= record.n:
         raise ValueError(f"n_samples must be in [1, {record.n}], got {n_samples}")
-    geo = geometry.as_array()
-    if start is None:
-        q0 = geometry.q_of_xB(record.x_B0)
-        start = (float(record.t[0]), (q0, 0.0, 0.0), int(record.x_B0 >= geometry.x_B_L))
-    t0, y0, contact0 = start
-    y0 = kernel_array(y0)
-    t, v_in = kernel_array(record.t), kernel_array(record.v_in)
+    geo, t, v_in, sweep, (t0, y0, contact0) = _kernel_record(record, geometry, start)
     x = np.empty((P, record.n))
     i = np.empty((P, record.n))
     status = np.zeros(P, dtype=np.int8)
@@ -269,7 +275,6 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     i[bad] = np.nan
     good = np.flatnonzero(~bad)
     if good.size:
-        sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
         tab, head = geometry_table(geometry)
 
         def run(rows: np.ndarray, tier: SolverSettings) -> None:
@@ -307,24 +312,16 @@ class SensResult:
         return self.status == STATUS_OK and self.sens_status == STATUS_OK
 
 
-def analytic_slots() -> frozenset[int]:
-    """The slots of the extended vector :func:`simulate_sensitivities` differentiates
-    (:data:`toggle_id.kernels.sens.SENS_SLOTS`)."""
-    from .kernels.sens import SENS_SLOTS
-
-    return SENS_SLOTS
-
-
 def simulate_sensitivities(theta: np.ndarray, record: Record, settings: SolverSettings, slots: Sequence[int], *,
                            geometry: Geometry = GEOMETRY, threads: int = 2) -> SensResult:
     """Simulate one extended vector ``theta`` without backlash on ``record`` and differentiate x_B w.r.t. the
-    extended-vector ``slots`` (all in :func:`analytic_slots`) along its steps (:mod:`toggle_id.kernels.sens`), in
+    extended-vector ``slots`` (all in :data:`ANALYTIC_SLOTS`) along its steps (:mod:`toggle_id.kernels.sens`), in
     about the time of a few simulations whatever the number of slots; ``threads`` groups of columns are retraced
     side by side. A row that exhausts the settings' step budget is done again on their fallback, as
     :func:`simulate` does (``fell_back``). x_B and i_q are those :func:`simulate` gives for the same vector and
     settings, bit for bit. Bad parameter values give a status, never an exception."""
     slots = np.asarray(slots, dtype=np.int64)
-    unknown = sorted(set(slots.tolist()) - analytic_slots())
+    unknown = sorted(set(slots.tolist()) - ANALYTIC_SLOTS)
     if unknown:
         raise ConfigError(f"simulate_sensitivities cannot differentiate the slots {unknown}")
     th = kernel_array(extend(theta))
@@ -342,15 +339,11 @@ def simulate_sensitivities(theta: np.ndarray, record: Record, settings: SolverSe
     if th[0, K.B_L] > 0.0:
         raise ConfigError("simulate_sensitivities: a vector with backlash goes to the two-body integrator, "
                           "which has no sensitivities")
-    geo = geometry.as_array()
-    q0 = geometry.q_of_xB(record.x_B0)
-    y0 = kernel_array((q0, 0.0, 0.0))
+    geo, t, v_in, sweep, (t0, y0, contact0) = _kernel_record(record, geometry)
     tab, head = geometry_table(geometry)
-    sweep = record.sweep.as_array() if record.sweep is not None else np.zeros(5)
 
     def run(tier: SolverSettings):
-        return sensitivities_row(th[0], geo, tab, head, kernel_array(record.t), N, kernel_array(record.v_in), sweep,
-                                 record.sweep is not None, float(record.t[0]), y0, int(record.x_B0 >= geometry.x_B_L),
+        return sensitivities_row(th[0], geo, tab, head, t, N, v_in, sweep, record.sweep is not None, t0, y0, contact0,
                                  tier.as_array(), x, i, slots, dx, max(1, min(int(threads), slots.size)))
 
     st, ns, sst = run(settings)

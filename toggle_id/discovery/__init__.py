@@ -46,7 +46,8 @@ term and an :class:`~toggle_id.effects.Effect` entry.
 from __future__ import annotations
 
 from .loop import discover
-from .model import Fit, Model, Projector, fit_free, sensitivities
+from .derivatives import sensitivities
+from .model import Fit, Model, Projector, fit_free
 from .report import DiscoveryResult
 from .scoring import _magnitude_grid, score_candidates
 from .settings import DiscoverSettings

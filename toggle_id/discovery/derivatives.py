@@ -12,19 +12,23 @@ vector.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..effects import ALL_INDEX, TERMS, sensor_error
 from ..identify import stage_bounds
 from ..kernels import slots as K
-from ..simulate import STATUS_OK, analytic_slots, simulate_sensitivities
+from ..simulate import ANALYTIC_SLOTS, STATUS_OK, simulate_sensitivities
+
+if TYPE_CHECKING:  # annotations only: model imports this module
+    from .model import Model
 
 #: values of ``discover.derivatives``
 DERIVATIVES = ("fd", "analytic")
 
 
-def output_derivatives(model, theta: np.ndarray, idx: np.ndarray) -> np.ndarray | None:
+def output_derivatives(model: Model, theta: np.ndarray, idx: np.ndarray) -> np.ndarray | None:
     """(N, len(idx)) ∂x/∂θ of ``model.outputs`` at the extended vector ``theta`` for the slots ``idx``; NaN
     columns for slots it does not differentiate; None when it cannot (backlash on, a failed simulation). The
     integrator is the model's for ``theta`` (the stiff fallback for a stiff effect set); a vector that exhausts
@@ -33,7 +37,7 @@ def output_derivatives(model, theta: np.ndarray, idx: np.ndarray) -> np.ndarray 
     if theta[K.B_L] > 0.0:
         return None
     idx = np.asarray(idx, dtype=np.int64)
-    plant = np.array([s for s in dict.fromkeys(idx.tolist()) if s in analytic_slots()], dtype=np.int64)
+    plant = np.array([s for s in dict.fromkeys(idx.tolist()) if s in ANALYTIC_SLOTS], dtype=np.int64)
     gs_w = (idx >= K.GS_W0) & (idx < K.GS_W0 + K.N_GS)
     model.n_sims += 1
     model.n_derivative_runs += 1

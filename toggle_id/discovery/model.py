@@ -18,7 +18,7 @@ from ..kernels.slots import GS_LO
 from ..polish import polish
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
-from .derivatives import DERIVATIVES, _coords, _typical, output_derivatives, sensitivities  # noqa: F401
+from .derivatives import DERIVATIVES, _coords, _typical, output_derivatives, sensitivities
 from .noise import NoiseModel
 from .settings import DiscoverSettings
 

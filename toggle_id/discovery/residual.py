@@ -12,7 +12,8 @@ from ..effects import ALL_INDEX
 from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
 from .localise import locate, noise_level, signals_of, structure_energy, structure_removed
-from .model import Model, inside_bounds, sensitivities
+from .derivatives import sensitivities
+from .model import Model, inside_bounds
 from .noise import WHITE, NoiseModel, fit_noise
 from .periodic import periodic
 from .settings import DiscoverSettings

@@ -19,7 +19,8 @@ from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..identify import stage_bounds
-from .model import Model, Projector, _coords, _off_values, _sse, _with, sensitivities
+from .derivatives import _coords, sensitivities
+from .model import Model, Projector, _off_values, _sse, _with
 from .noise import WHITE, NoiseModel
 from .settings import DiscoverSettings
 from .stats import f_test

@@ -31,7 +31,8 @@ import numpy as np
 
 from ..record import Record
 from ..effects import ALL_INDEX
-from .model import Fit, Model, _with, fit_free, sensitivities
+from .derivatives import sensitivities
+from .model import Fit, Model, _with, fit_free
 from .noise import NoiseModel, fit_noise
 from .residual import leave_out_glitches
 from .settings import DiscoverSettings

@@ -22,7 +22,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .. import params as P
-from ..discovery.model import Model, _coords, fit_free, sensitivities
+from ..discovery.derivatives import _coords, sensitivities
+from ..discovery.model import Model, fit_free
 from ..effects import ALL_INDEX
 from ..identifiability import analyze
 from ..problem import FitProblem

@@ -264,8 +264,8 @@ def _simulate_one(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start
     steps; beyond settings[S_MAXSTEPS] the simulation is a solver failure.
 
     ``steplog`` (M, 2), when M > 0, receives the accepted steps in order: their size and their mode (contact before
-    the step, plus 2 when the step ends at a contact switch, plus 4 for a Rodas4 step) — what :func:`toggle_id.kernels.sens.sens_replay`
-    retraces to differentiate the solution. M ≥ settings[S_MAXSTEPS] holds them all; an empty one costs nothing.
+    the step, plus 2 when the step ends at a contact switch, plus 4 for a Rodas4 step) — what
+    :func:`toggle_id.kernels.sens.sens_replay` retraces to differentiate the solution. M ≥ settings[S_MAXSTEPS] holds them all; an empty one costs nothing.
     """
     rtol = settings[S_RTOL]
     atq, atw, ati = settings[S_ATOL_Q], settings[S_ATOL_W], settings[S_ATOL_I]

@@ -20,7 +20,7 @@ import numba as nb
 import numpy as np
 
 from .geometry import _geometry, _lookup
-from .rhs import _command, _derived, _input, _rhs_jac_u, _torque_current
+from .rhs import _command, _derived, _input, _rhs, _rhs_jac_u, _torque_current
 from .slots import (
     A_COG, B_M, C_B, C_KT, D_, F_LOAD, F_S, G_G, G_R1, G_R2, G_R3, G_XBL, G_Z, GV_W0, GX_W0, J_M, K3, K_I, K_L,
     K_T, L_Q, LAMBDA_D, M2, M3, M5, MB, MC, MODEL_FAILURE, MU, N_COG, N_GEN, OK, PC_GVIH, PC_GVLO, PC_GXIH,
@@ -156,13 +156,15 @@ def _dfdp(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, wdot, idot, dw,
 
 
 @nb.njit(cache=True)
-def _stage(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, K, s, dw, di):
+def _stage(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, K, s, dw, di, jac):
     """Stage ``s`` of a step: f at (t, y) into K[s, 0:3, 0] … as (q̇, ẇ, i̇), and the sensitivities' derivatives
-    J·S + ∂f/∂θ of the stage's S (3, P) into K[s, :, 1:]. False outside the assembly range."""
+    J·S + ∂f/∂θ of the stage's S (3, P) into K[s, :, 1:]; the Jacobian J = [[0, 1, 0], [a, b, c], [d, e, g]] and
+    ∂i̇/∂t into ``jac`` (a, b, c, d, e, g, ∂i̇/∂t). False outside the assembly range."""
     u, du = _command(t, pc, v)
-    ok, fq, fw, fi, ja, jb, jc, jd, je, jg, _ = _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head)
+    ok, fq, fw, fi, ja, jb, jc, jd, je, jg, ft = _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head)
     if not ok or not _dfdp(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, fw, fi, dw, di):
         return False
+    jac[0], jac[1], jac[2], jac[3], jac[4], jac[5], jac[6] = ja, jb, jc, jd, je, jg, ft
     K[s, 0, 0], K[s, 1, 0], K[s, 2, 0] = fq, fw, fi
     for j in range(cols.shape[0]):
         sq, sw, si = S[0, j], S[1, j], S[2, j]
@@ -215,22 +217,21 @@ def _ros_tables():
 
 @nb.njit(cache=True)
 def _ros_sens_step(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, Snew, R3, R4, U, Z, Kt, M, fts,
-                   dw, di, ra, rc, rd, rt, rh):
+                   dw, di, jac, ra, rc, rd, rt, rh):
     """One Rodas4 step of the state and its sensitivities together: Rodas4 on the augmented system
     (y, S)' = (f, J·S + ∂f/∂θ), whose Jacobian [[J, 0], [M, J]] is block triangular — M = ∂(J·S + ∂f/∂θ)/∂y by
     forward differences of the analytic terms — so each stage solves the plant's 3×3 system once for y and once
     per column. Writes S(t+h) into Snew and the dense-output coefficients of S_q into R3, R4; returns ok, y(t+h)
     and those of q."""
     P = cols.shape[0]
-    u0, du0 = _command(t, pc, v)
-    ok, _, f0w, f0i, ja, jb, jc, jd, je, jg, fti = _rhs_jac_u(q, w, iq, u0, du0, contact, pc, geo, tab, head)
-    if not ok or not _stage(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, Kt, 0, dw, di):
+    if not _stage(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, Kt, 0, dw, di, jac):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    ja, jb, jc, jd, je, jg, fti = jac[0], jac[1], jac[2], jac[3], jac[4], jac[5], jac[6]
     y = (q, w, iq)
     for b in range(3):  # M by forward differences: it only corrects the stages by O(h)
         e = 1e-7 * max(abs(y[b]), 1.0)
         if not _stage(t, q + (e if b == 0 else 0.0), w + (e if b == 1 else 0.0), iq + (e if b == 2 else 0.0),
-                      contact, pc, th, geo, tab, head, v, cols, S, Kt, 1, dw, di):
+                      contact, pc, th, geo, tab, head, v, cols, S, Kt, 1, dw, di, jac):
             return False, 0.0, 0.0, 0.0, 0.0, 0.0
         for r in range(1, 3):  # the q-row, S_w, does not depend on y
             for j in range(P):
@@ -247,7 +248,7 @@ def _ros_sens_step(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, 
                     if ra[i, l] != 0.0:
                         Z[r, c] += ra[i, l] * U[l, r, c]
         if i > 0 and not _stage(t + rt[i] * h, Z[0, 0], Z[1, 0], Z[2, 0], contact, pc, th, geo, tab, head, v,
-                                cols, Z[:, 1:], Kt, 3, dw, di):
+                                cols, Z[:, 1:], Kt, 3, dw, di, jac):
             return False, 0.0, 0.0, 0.0, 0.0, 0.0
         src = 0 if i == 0 else 3
         # right-hand sides: F(Z) + (1/h) Σ c_il U_l + d_i h F_t
@@ -289,7 +290,7 @@ def _ros_sens_step(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, 
 
 
 @nb.njit(cache=True)
-def _dopri_sens_stages(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, Y, K, A, C, ys, dw, di):
+def _dopri_sens_stages(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, Y, K, A, C, ys, dw, di, jac):
     """DOPRI5's stages 2–7 of the state and the sensitivities together from stage 1 in K[0]: y + h Σ a K and
     S + h Σ a KS; the new point into ``ys`` and ``Y``, its derivatives into K[6]. False outside the assembly
     range."""
@@ -305,7 +306,8 @@ def _dopri_sens_stages(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols,
                     ys[r] += a * K[l, r, 0]
                     for j in range(P):
                         Y[r, j] += a * K[l, r, j + 1]
-        if not _stage(t + C[s] * h, ys[0], ys[1], ys[2], contact, pc, th, geo, tab, head, v, cols, Y, K, s, dw, di):
+        if not _stage(t + C[s] * h, ys[0], ys[1], ys[2], contact, pc, th, geo, tab, head, v, cols, Y, K, s, dw, di,
+                      jac):
             return False
     return True
 
@@ -329,6 +331,7 @@ def sens_replay(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, 
     K = np.full((7, 3, P + 1), np.nan)  # the stages' (f, J·S + ∂f/∂θ)
     dw = np.full(P, np.nan)
     di = np.full(P, np.nan)
+    jac = np.empty(7)  # a stage's Jacobian entries and ∂i̇/∂t
     t = t_start
     q, w, iq = y0[0], y0[1], y0[2]
     contact = contact0
@@ -374,17 +377,18 @@ def sens_replay(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, 
         contact = int(mode) % 2
         if ros:
             ok, qn, wn, inn, r3q, r4q = _ros_sens_step(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S,
-                                                       Y, R3, R4, U, Z, Kt, M, fts, dw, di, ra, rc, rd, rt, rh)
+                                                       Y, R3, R4, U, Z, Kt, M, fts, dw, di, jac, ra, rc, rd, rt, rh)
             if not ok:
                 return MODEL_FAILURE
             r5q = 0.0
             R5[:] = 0.0
             have_f = False
         else:
-            if not have_f and not _stage(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, K, 0, dw, di):
+            if not have_f and not _stage(t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, K, 0, dw, di,
+                                         jac):
                 return MODEL_FAILURE
             if not _dopri_sens_stages(h, t, q, w, iq, contact, pc, th, geo, tab, head, v, cols, S, Y, K, A, C, ys,
-                                      dw, di):
+                                      dw, di, jac):
                 return MODEL_FAILURE
             qn, wn, inn = ys[0], ys[1], ys[2]
             dq = qn - q
@@ -419,9 +423,9 @@ def sens_replay(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, 
             for j in range(P):
                 S[r, j] = Y[r, j]
         if crossed:  # the switch time τ moves with θ: S⁺ = S⁻ + (f⁻ − f⁺)·∂τ/∂θ, ∂τ/∂θ = −S_q/q̇ (only ẇ jumps)
-            ok_o, _, fw_old, _, _ = _rhs_u_at(t, q, w, iq, old_mode, pc, geo, tab, head, v)
+            ok_o, _, fw_old, _, _ = _rhs(t, q, w, iq, old_mode, pc, geo, tab, head, v)
             contact = 1 - contact
-            ok, _, fw_new, _, _ = _rhs_u_at(t, q, w, iq, contact, pc, geo, tab, head, v)
+            ok, _, fw_new, _, _ = _rhs(t, q, w, iq, contact, pc, geo, tab, head, v)
             if not (ok and ok_o) or w == 0.0:
                 return MODEL_FAILURE
             for j in range(P):
@@ -434,10 +438,3 @@ def sens_replay(th, geo, tab, head, t_out, n_out, v, sweep, use_sweep, t_start, 
             have_f = True
     return OK
 
-
-@nb.njit(cache=True)
-def _rhs_u_at(t, q, w, iq, contact, pc, geo, tab, head, v):
-    """ok, q̇, ẇ, i̇ and ∂ẇ/∂i_q at time t (the command there)."""
-    u, du = _command(t, pc, v)
-    ok, fq, fw, fi, _, _, jc, _, _, _, _ = _rhs_jac_u(q, w, iq, u, du, contact, pc, geo, tab, head)
-    return ok, fq, fw, fi, jc
