@@ -49,7 +49,14 @@ The set (:data:`SPECS`):
   standard deviation 10 µm (Tukey's contaminated normal: an encoder that glitches and comes back; the simulation
   sweep) — heavy tails that a Gaussian noise model does not have must not look like an effect either — and a
   screw backlash under those gross errors (cycling), ≈ 2σ of that noise (σ_eff = √(σ² + f·s²) ≈ 1.41 µm): a
-  threshold effect, whose sharp turns a glitch detector must not take for glitches.
+  threshold effect, whose sharp turns a glitch detector must not take for glitches;
+* records as a user's data would bring them (added 2026-12-03, first made as probes outside the set): sensor
+  disturbances beyond the measurement model (:data:`DISTURBANCES`, no effect) — a 50-Hz tone of 1 µm beside the
+  white noise (mains pickup), resonant AR(2) noise (20 Hz, pole radius 0.97) and a random walk of the reading
+  beside the white noise; the drive's voltage saturation and a screw backlash on the paper's simulation sweep (the
+  threshold effects' records above run the cycling command); a Stribeck friction with a dead time on that sweep;
+  and a torque constant that falls by 0.6 % over the record (a motor warming up; outside the library, whose
+  parameters are constant in time), ≈ 3σ on the cycling command.
 
 Records keep their names when the set grows: the first 20 are a fixed shuffle, later ones follow in order.
 The verdicts: *exact* (on a mixed record: the library effects named and the rest called unexplained; *+outside-missed*
@@ -92,8 +99,9 @@ HELD = ("K_l", "K_i", "m_C")
 class Spec:
     """One record of the set. ``key`` is for the manifest only; ``fixed`` holds effect parameters that only shape
     an effect (not calibrated); ``calibrate`` names the magnitudes calibrated (one per effect); ``outside`` is
-    ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction``, ``scale_factor`` or ``deadband``
-    (tests/outside_plant.py); ``targets`` overrides ``target`` for single magnitudes (a mixed record's outside
+    ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction``, ``scale_factor``, ``deadband`` or
+    ``kt_drift`` (tests/outside_plant.py); ``disturbance`` one of :data:`DISTURBANCES`, added to the reading after
+    the measurement model (which is then usually off, ``noise_m=0``); ``targets`` overrides ``target`` for single magnitudes (a mixed record's outside
     effect at 3σ beside a library effect at 2σ)."""
 
     key: str
@@ -109,6 +117,7 @@ class Spec:
     quantum_m: float = 0.0
     outlier_fraction: float = 0.0
     outlier_m: float = 0.0
+    disturbance: str | None = None
     target: float = 2.0
     targets: dict = field(default_factory=dict)
 
@@ -189,6 +198,16 @@ SPECS: tuple[Spec, ...] = (
     Spec("noise_outliers", "noise", "simulation", 305, outlier_fraction=0.01, outlier_m=10e-6),
     Spec("outliers_backlash_cycling", "library", "cycling", 118, ("backlash",), calibrate=("b_l",),
          outlier_fraction=0.01, outlier_m=10e-6),
+    Spec("voltage_saturation_simulation", "library", "simulation", 911, ("voltage_saturation",),
+         calibrate=("s_sat",)),
+    Spec("noise_tone_simulation", "noise", "simulation", 912, noise_m=0.0, disturbance="tone"),
+    Spec("noise_ar2_experiment", "noise", "experiment", 913, noise_m=0.0, disturbance="ar2"),
+    Spec("pair_stribeck_dead_time", "pair", "simulation", 914, ("stribeck_friction", "dead_time"), {"v_s": 0.03},
+         ("F_s", "tau_d")),
+    Spec("outside_kt_drift_cycling", "outside", "cycling", 915, calibrate=("d_kt",), outside="kt_drift",
+         target=3.0),
+    Spec("backlash_simulation", "library", "simulation", 916, ("backlash",), calibrate=("b_l",)),
+    Spec("noise_walk_cycling", "noise", "cycling", 917, noise_m=0.0, disturbance="walk"),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -243,10 +262,16 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "mixed_cogging_drag_cycling": {"a_cog": (0.00519574, 2.002), "c_q": (1494.36, 3.014)},  # each alone: refit RMS
     # 1.73, 2.84 um (at rest between the strokes the cogging holds the rotor: a small ripple moves x_B a lot)
     "outliers_backlash_cycling": {"b_l": (7.26307e-06, 1.999)},  # refit RMS 2.45 um (σ_eff 1.41 um: gross errors)
+    "voltage_saturation_simulation": {"s_sat": (0.19814825933131608, 1.999)},  # refit RMS 1.73 um
+    "pair_stribeck_dead_time": {"F_s": (176.87664402437522, 1.994), "tau_d": (0.0014910138653793717, 1.980)},
+    # each alone: refit RMS 1.73, 1.71 um (v_s 0.03 m/s)
+    "outside_kt_drift_cycling": {"d_kt": (0.006, 3.020)},  # refit RMS 2.85 um; set by hand (5 %: 23.8 um; about linear in d)
+    "backlash_simulation": {"b_l": (2.0955998409136644e-05, 1.962)},  # refit RMS 1.69 um
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.
 COMBINED_RATIO = {"pair_dead_time_coulomb": 3.237, "pair_viscous_offset": 2.179, "pair_saturation_cogging": 2.592,
+                  "pair_stribeck_dead_time": 2.539,
                   "pair_ar09_load_cogging": 2.650, "mixed_cogging_bump_simulation": 3.441,
                   "mixed_cogging_drag_cycling": 3.213}
 
@@ -310,7 +335,8 @@ _OUTSIDE_TERMS = {"bump": ("F_b", lambda m: {"bump": (m, BUMP_AT, BUMP_WIDTH)}),
                   "scale": ("a_s", lambda m: {"scale": (m, SCALE_PITCH, SCALE_PHASE)}),
                   "pin_friction": ("pin_mu", lambda m: {"pin_mu": m}),
                   "scale_factor": ("e_s", lambda m: {"scale_factor": m}),
-                  "deadband": ("v_db", lambda m: {"deadband": m})}
+                  "deadband": ("v_db", lambda m: {"deadband": m}),
+                  "kt_drift": ("d_kt", lambda m: {"kt_drift": (m, DURATION)})}
 
 
 def outside_of(spec: Spec, magnitudes: dict[str, float]):
@@ -354,6 +380,45 @@ def clean_response(spec: Spec, theta: np.ndarray, effects: dict, magnitudes: dic
 
 def noise_seed(spec: Spec) -> int:
     return 7000 + spec.seed
+
+
+def disturbance_seed(spec: Spec, seed: int) -> int:
+    """The seed of a record's disturbance (:func:`disturbance`) for its noise seed ``seed``: the record's own, its
+    validation record's and its replicates' differ as their noise seeds do."""
+    return spec.seed + 777 + (seed - noise_seed(spec))
+
+
+#: Disturbances of the reading beyond the measurement model of :func:`toggle_id.record.measure` (``Spec.disturbance``).
+DISTURBANCES = ("tone", "ar2", "walk")
+
+
+def disturbance(kind: str, t: np.ndarray, seed: int) -> np.ndarray:
+    """The disturbance ``kind`` of the reading at the sample times ``t`` (m), from ``default_rng(seed)``:
+
+    * ``tone``: white noise of 1 µm and a 50-Hz tone of 1 µm amplitude at a random phase (mains pickup);
+    * ``ar2``: resonant AR(2) noise, poles at radius 0.97 and 20 Hz (at 1 kHz sampling; a mounting's resonance
+      excited by vibration), 2000 samples of burn-in, scaled to a standard deviation of 1 µm;
+    * ``walk``: white noise of 1 µm and a random walk of the reading, its steps scaled so that its standard
+      deviation at the record's end is 3 µm (a reference that wanders)."""
+    rng = np.random.default_rng(seed)
+    n = np.size(t)
+    if kind == "tone":
+        return 1e-6 * rng.standard_normal(n) + 1e-6 * np.sin(2 * np.pi * 50.0 * np.asarray(t, float)
+                                                              + rng.uniform(0, 2 * np.pi))
+    if kind == "ar2":
+        r, th = 0.97, 2 * np.pi * 20.0 / 1000.0
+        a1, a2 = 2 * r * math.cos(th), -r * r
+        w = rng.standard_normal(n + 2000)
+        e = np.zeros(n + 2000)
+        for k in range(2, n + 2000):
+            e[k] = a1 * e[k - 1] + a2 * e[k - 2] + w[k]
+        e = e[2000:]
+        return e * (1e-6 / e.std())
+    if kind == "walk":
+        walk = np.cumsum(rng.standard_normal(n))
+        walk *= 3e-6 / np.sqrt(n)
+        return 1e-6 * rng.standard_normal(n) + walk
+    raise ValueError(f"unknown disturbance {kind!r}: one of {', '.join(DISTURBANCES)}")
 
 
 #: The validation record's command for a record's command: the other kind of motion (a swept machine is also run
@@ -411,6 +476,12 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
                 "noise_seed": seed}
         rec, _ = build_record(data)
         simulator = "toggle_id.simulate (PRECISE)"
+    error_rms = None
+    d_seed = disturbance_seed(spec, seed)
+    if spec.disturbance:  # beyond the measurement model, drawn apart from it
+        e = disturbance(spec.disturbance, rec.t, d_seed)
+        rec.x_B = rec.x_B + e
+        error_rms = float(np.sqrt(np.mean(e ** 2)))
     rec.name = name
     from toggle_id.record import CYCLING, SWEEPS
 
@@ -428,7 +499,8 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
                   "sigma_m": spec.noise_m, "ar": spec.noise_ar, "quantum_m": spec.quantum_m,
                   **({"outlier_fraction": spec.outlier_fraction, "outlier_m": spec.outlier_m}
                      if spec.outlier_fraction else {}),
-                  "seed": seed, "effective_sigma_m": spec.sigma_eff},
+                  **({"disturbance": spec.disturbance, "disturbance_seed": d_seed} if spec.disturbance else {}),
+                  "seed": seed, "effective_sigma_m": error_rms if spec.disturbance else spec.sigma_eff},
         "command": command, "duration_s": duration, "samples": rec.n, "simulator": simulator,
         "calibration": ({"target_ratio": ({k: spec.target_of(k) for k in spec.calibrate} if spec.targets
                                           else spec.target), "magnitudes": magnitudes,

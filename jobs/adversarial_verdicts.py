@@ -70,6 +70,11 @@ def _validation(report: dict, key: str, scale: float | None = None):
     return pred[key] * scale if scale is not None and pred[key] is not None else pred[key]
 
 
+#: The noise column of a record whose reading carries a disturbance (:data:`jobs.adversarial_set.DISTURBANCES`).
+DISTURBANCE_LABELS = {"tone": "σ 1 µm white + a 50-Hz tone of 1 µm", "ar2": "σ 1 µm AR(2), resonant at 20 Hz",
+                      "walk": "σ 1 µm white + a random walk (3 µm at the end)"}
+
+
 def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict:
     sig = entry["noise"].get("effective_sigma_m") or SIGMA
     before, after = report.get("rmse_before_m"), report.get("rmse_after_m")
@@ -80,6 +85,8 @@ def result_row(entry: dict, report: dict, wall: float, report_path: str) -> dict
         noise += f", {n['quantum_m'] * 1e6:g}-µm quantum"
     if n.get("outlier_fraction"):
         noise += f", gross errors {n['outlier_m'] * 1e6:g} µm on {n['outlier_fraction']:.0%}"
+    if n.get("disturbance"):
+        noise = DISTURBANCE_LABELS.get(n["disturbance"], n["disturbance"])
     return {
         "record": entry["name"], "category": entry["category"], "command": entry["command"].get("sweep")
         or entry["command"]["kind"], "truth": list(entry["effects"]) + [k for k in entry["outside"]

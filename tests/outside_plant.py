@@ -26,7 +26,10 @@ with physics outside the discovery library (``toggle_id/effects.py``):
   hysteresis loop (the library's contact terms are a spring and a damper);
 * **drive dead band** (``deadband = v_db``, V): the drive ignores commands smaller than v_db and passes the rest
   shifted towards zero, sign(v_in)·max(|v_in| − v_db, 0) — a threshold effect of the power stage or of an analogue
-  input's offset compensation (the library's drive effects are a delay and a saturation at large commands).
+  input's offset compensation (the library's drive effects are a delay and a saturation at large commands);
+* **drifting torque constant** (``kt_drift = (d, T)``: dimensionless, s): K_t(t) = K_t·(1 − d·t/T), the torque
+  constant falling by the fraction d over T seconds — a motor warming up during the record (its magnets lose
+  about 0.1 % of their flux per kelvin); every parameter of the library is constant in time.
 
 Two terms of the library are here too, written from docs/model.md §7, so that a record can hold a library
 effect and one outside the library at once (the adversarial set's *mixed* records) and as independent references of
@@ -109,8 +112,8 @@ def x_B_of_q(q):
 @dataclass(frozen=True)
 class Outside:
     """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
-    A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless), ``deadband`` V; and the
-    library's ``cogging = (a_cog N·m, n_cog 1/rev, φ_cog rad)`` and ``tau_c`` N·m."""
+    A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless), ``deadband`` V,
+    ``kt_drift = (d, T s)``; and the library's ``cogging = (a_cog N·m, n_cog 1/rev, φ_cog rad)`` and ``tau_c`` N·m."""
 
     bump: tuple[float, float, float] | None = None
     i_sat: float | None = None
@@ -121,6 +124,7 @@ class Outside:
     deadband: float | None = None
     cogging: tuple[float, float, float] | None = None
     tau_c: float | None = None
+    kt_drift: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
         out: dict = {}
@@ -142,6 +146,8 @@ class Outside:
             out["cogging_torque"] = dict(zip(("a_cog", "n_cog", "phi_cog"), map(float, self.cogging)))
         if self.tau_c is not None:
             out["coulomb_friction_motor"] = {"tau_c": float(self.tau_c)}
+        if self.kt_drift is not None:
+            out["drifting_torque_constant"] = dict(zip(("d", "T"), map(float, self.kt_drift)))
         return out
 
     def drive(self, v: float) -> float:
@@ -163,10 +169,14 @@ class Plant:
         self.v_in = v_in
         self.out = outside
 
-    def torque_constant(self, i_q: float) -> float:
+    def torque_constant(self, i_q: float, t: float = 0.0) -> float:
+        k_t = self.p["K_t"]
+        if self.out.kt_drift is not None:
+            d, period = self.out.kt_drift
+            k_t = k_t * (1.0 - d * t / period)
         if self.out.i_sat is None:
-            return self.p["K_t"]
-        return self.p["K_t"] / math.sqrt(1.0 + (i_q / self.out.i_sat) ** 2)
+            return k_t
+        return k_t / math.sqrt(1.0 + (i_q / self.out.i_sat) ** 2)
 
     def rhs(self, t: float, y, contact: int):
         p = self.p
@@ -178,7 +188,7 @@ class Plant:
         if x_B <= 0.0:
             raise OutOfRange(f"x_B = {x_B:.6g} m at t = {t:.6g} s")
         vB, vC = dx_B * w, dx_C * w
-        F_C = Z * self.torque_constant(i_q) * i_q - Z * Z * p["B_m"] * vC
+        F_C = Z * self.torque_constant(i_q, t) * i_q - Z * Z * p["B_m"] * vC
         if self.out.cogging is not None:
             a_cog, n_cog, phi_cog = self.out.cogging
             F_C += Z * a_cog * math.sin(n_cog * Z * x_C + phi_cog)

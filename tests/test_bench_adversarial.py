@@ -2,6 +2,7 @@
 calibration table covers it, and how the discover runs are judged and resumed."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 from pathlib import Path
@@ -21,7 +22,7 @@ from toggle_id.simulate import PRECISE, extend, simulate
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
     cats = [s.category for s in S.SPECS]
     assert len(S.SPECS) >= 18
-    assert cats.count("library") == 19 and cats.count("pair") == 4 and cats.count("outside") == 10
+    assert cats.count("library") == 21 and cats.count("pair") == 5 and cats.count("outside") == 11
     # a library effect and one outside it at once, on a sweep and on the cycling command
     mixed = [s for s in S.SPECS if s.category == "mixed"]
     assert {(s.command, s.outside) for s in mixed} == {("simulation", "bump"), ("cycling", "drag")}
@@ -42,12 +43,20 @@ def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects(
     # a threshold effect among two at once (the drive's voltage saturation beside a cogging torque)
     assert any("voltage_saturation" in s.effects for s in S.SPECS if s.category == "pair")
     assert {s.effects[0] for s in S.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
-    noise = {(s.noise_m, s.noise_ar, s.quantum_m, s.outlier_fraction) for s in S.SPECS if s.category == "noise"}
+    noise = {(s.noise_m, s.noise_ar, s.quantum_m, s.outlier_fraction) for s in S.SPECS
+             if s.category == "noise" and not s.disturbance}
     assert noise == {(1e-6, 0.0, 0.0, 0.0), (1e-6, 0.5, 0.0, 0.0), (1e-6, 0.9, 0.0, 0.0), (0.0, 0.0, 1e-6, 0.0),
                      (1e-6, 0.0, 0.0, 0.01)}  # the last: gross errors (an encoder that glitches) on 1 % of samples
+    # and disturbances of the reading beyond that model, alone (the model itself off)
+    assert sorted(s.disturbance for s in S.SPECS if s.disturbance) == sorted(S.DISTURBANCES)
+    assert all(s.category == "noise" and s.noise_m == 0 for s in S.SPECS if s.disturbance)
     assert S.effective_sigma(1e-6, 0.0, 0.01, 10e-6) == pytest.approx(np.sqrt(2) * 1e-6)
     assert {s.outside for s in S.SPECS if s.category == "outside"} == {"bump", "drag", "scale", "pin_friction",
-                                                                        "scale_factor", "deadband"}
+                                                                        "scale_factor", "deadband", "kt_drift"}
+    # threshold effects on the paper's sweep too, not only on the cycling command
+    assert {s.command for s in S.SPECS if s.category == "library" and s.effects[0] in ("voltage_saturation",
+                                                                                          "backlash")} >= {
+        "simulation", "cycling"}
     # the paper's sweep (0.04-0.06 V) never enters the dead band: there it is an offset of the command; the cycling
     # command crosses zero, where the band is a threshold
     assert {s.command for s in S.SPECS if s.outside == "deadband"} == {"simulation", "cycling"}
@@ -131,6 +140,29 @@ def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp
     assert dt["jobs_simulate"].startswith("python -m jobs.simulate") and "effects.tau_d=" in dt["jobs_simulate"]
     for r in man.values():
         assert read_csv(tmp_path / r["file"]).n == 501
+
+
+def test_a_disturbed_reading_is_the_measured_one_plus_its_disturbance_of_the_stated_size(tmp_path):
+    t = np.arange(5001) * 1e-3
+    tone, ar2, walk = (S.disturbance(k, t, 5) for k in ("tone", "ar2", "walk"))
+    # the tone: 1 µm of white noise and a 50-Hz line of 1 µm amplitude (power 0.5 µm²)
+    line = np.abs(np.fft.rfft(tone))[250] * 2 / t.size
+    assert line == pytest.approx(1e-6, rel=0.05) and np.std(tone) == pytest.approx(np.sqrt(1.5) * 1e-6, rel=0.05)
+    # resonant AR(2) noise of 1 µm, correlated over many samples; a walk that wanders 3 µm by the end
+    assert np.std(ar2) == pytest.approx(1e-6, rel=1e-12) and np.corrcoef(ar2[:-1], ar2[1:])[0, 1] > 0.9
+    assert 0.2e-6 < abs(np.mean(walk[-500:])) + np.std(walk) < 20e-6
+    np.testing.assert_array_equal(S.disturbance("ar2", t, 5), ar2)  # seeded
+    with pytest.raises(ValueError, match="unknown disturbance"):
+        S.disturbance("hum", t, 5)
+    B.main(["--out", str(tmp_path), "--only", "noise_tone_simulation", "--duration", "0.5", "--validation"])
+    man = json.loads((tmp_path / "manifest.json").read_text())["records"][0]
+    rec = read_csv(tmp_path / man["file"])
+    spec = S.SPECS_BY_KEY["noise_tone_simulation"]
+    clean, _ = S.make_record(dataclasses.replace(spec, disturbance=None), {}, duration=0.5)
+    e = S.disturbance("tone", rec.t, man["noise"]["disturbance_seed"])
+    np.testing.assert_allclose(rec.x_B, clean.x_B + e, rtol=0, atol=1e-18)
+    assert man["noise"]["effective_sigma_m"] == pytest.approx(np.sqrt(np.mean(e ** 2)), rel=1e-12)
+    assert S.disturbance_seed(spec, man["validation"]["noise_seed"]) != man["noise"]["disturbance_seed"]  # its own
 
 
 def test_a_mixed_record_holds_a_library_effect_and_one_outside_the_library(tmp_path):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from outside_plant import Outside, _dmass, _mass, simulate_outside
+from outside_plant import Outside, Plant, _dmass, _mass, simulate_outside
 
 from toggle_id.params import ASSIGNED, INDEX
 from toggle_id.plant import mass_matrix, mass_matrix_derivative
@@ -108,6 +108,22 @@ def test_the_drive_dead_band_ignores_small_commands_and_shifts_the_rest_towards_
     x0, _, _ = simulate_outside(ASSIGNED, rec)
     x, _, info = simulate_outside(ASSIGNED, rec, band)
     assert info["status"] == 0 and np.max(np.abs(x - x0)) > 2e-6  # on the paper's sweep, clearly
+
+
+def test_a_drifting_torque_constant_falls_linearly_in_time_and_its_effect_grows_along_the_record():
+    kt = ASSIGNED[INDEX["K_t"]]
+    plant = Plant(ASSIGNED, lambda t: 0.0, Outside(kt_drift=(0.1, 5.0)))
+    assert [plant.torque_constant(50.0, t) for t in (0.0, 2.5, 5.0)] == pytest.approx([kt, 0.95 * kt, 0.9 * kt],
+                                                                                      rel=1e-15)
+    both = Plant(ASSIGNED, lambda t: 0.0, Outside(kt_drift=(0.1, 5.0), i_sat=100.0))
+    assert both.torque_constant(100.0, 2.5) == pytest.approx(0.95 * kt / np.sqrt(2.0), rel=1e-15)
+    rec = Record.from_sweep("simulation", 2.0)
+    x0, _, _ = simulate_outside(ASSIGNED, rec)
+    x, _, info = simulate_outside(ASSIGNED, rec, Outside(kt_drift=(0.01, 5.0)))
+    off, _, _ = simulate_outside(ASSIGNED, rec, Outside(kt_drift=(0.0, 5.0)))
+    assert info["status"] == 0 and np.max(np.abs(off - x0)) < 1e-12
+    dev = np.abs(x - x0)
+    assert np.max(dev[rec.t < 0.2]) < 0.05 * np.max(dev) and np.max(dev) > 1e-6
 
 
 def test_leaving_the_assembly_range_is_a_failed_simulation():
