@@ -432,8 +432,9 @@ REPLICATE_SEED_STEP = 100_000
 
 def replicate_count(spec: Spec, replicates: int) -> int:
     """How many records ``spec`` gives with ``replicates`` asked for: itself and the replicates, or itself alone when
-    it has no random noise (a quantised reading only: a replicate would be the same record)."""
-    return replicates + 1 if spec.noise_m > 0 else 1
+    it has no random noise (a quantised reading only: a replicate would be the same record; a disturbance of the
+    reading is random, its replicates drawn as their noise)."""
+    return replicates + 1 if spec.noise_m > 0 or spec.disturbance else 1
 
 
 def replicate_name(name: str, replicate: int) -> str:

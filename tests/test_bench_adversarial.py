@@ -163,6 +163,10 @@ def test_a_disturbed_reading_is_the_measured_one_plus_its_disturbance_of_the_sta
     np.testing.assert_allclose(rec.x_B, clean.x_B + e, rtol=0, atol=1e-18)
     assert man["noise"]["effective_sigma_m"] == pytest.approx(np.sqrt(np.mean(e ** 2)), rel=1e-12)
     assert S.disturbance_seed(spec, man["validation"]["noise_seed"]) != man["noise"]["disturbance_seed"]  # its own
+    # a disturbed reading is random though its measurement model is off: its replicates are drawn again
+    assert S.replicate_count(spec, 2) == 3 and S.replicate_count(S.SPECS_BY_KEY["noise_quantised"], 2) == 1
+    _, rep = S.make_record(spec, {}, duration=0.5, replicate=1)
+    assert rep["noise"]["disturbance_seed"] != man["noise"]["disturbance_seed"]
 
 
 def test_a_mixed_record_holds_a_library_effect_and_one_outside_the_library(tmp_path):
