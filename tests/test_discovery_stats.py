@@ -89,6 +89,44 @@ def test_autocovariance_matches_the_direct_sum():
     assert np.allclose(c, [d[: d.size - k] @ d[k:] / d.size for k in range(6)])
 
 
+def test_burg_recovers_a_sharp_spectral_peak_that_yule_walker_flattens():
+    """Resonant AR(2) noise (poles at radius 0.97, 20 Hz at 1 kHz): Burg's lattice finds its two coefficients and
+    whitens it; Yule–Walker's biased autocovariance gives a third lag and a residual still coloured (the default is
+    unchanged). On AR(1) noise the two agree."""
+    r2, th = 0.97, 2 * np.pi * 0.02
+    truth = np.array([2 * r2 * np.cos(th), -r2 * r2])
+    rng = np.random.default_rng(8)
+    e = signal.lfilter([1.0], [1.0, -truth[0], -truth[1]], rng.standard_normal(N + 2000))[2000:]
+    nb, ny = fit_noise(e, method="burg"), fit_noise(e)
+    assert nb.order == 2 and np.allclose(nb.a, truth, atol=0.01) and nb.method == "burg"
+    assert np.all(np.abs(np.roots(nb.filter)) < 1.0)  # stable
+    assert ny.method == "yule_walker" and np.max(np.abs(np.r_[ny.a, 0.0][:2] - truth)) > 0.1
+    c = autocovariance(e, ny.order)
+    assert np.allclose(ny.a, np.linalg.solve(
+        [[c[abs(i - j)] for j in range(ny.order)] for i in range(ny.order)], c[1:ny.order + 1]))
+
+    def lag_corr(nm):
+        w = nm.whiten(e)[nm.order:]
+        return max(abs(np.corrcoef(w[:-k], w[k:])[0, 1]) for k in range(1, 6))
+    assert lag_corr(nb) < 3 / np.sqrt(N) < lag_corr(ny)
+    assert "Burg" in nb.to_dict()["method"] and "Yule-Walker" in ny.to_dict()["method"]
+    a1 = signal.lfilter([1.0], [1.0, -0.9], rng.standard_normal(N))
+    assert fit_noise(a1, method="burg").a == pytest.approx(fit_noise(a1).a, abs=2e-3)
+    with pytest.raises(ValueError, match="one of yule_walker, burg"):
+        fit_noise(e, method="levinson")
+
+
+def test_the_noise_benchmark_prints_each_estimators_whitening_and_false_alarms(capsys, tmp_path):
+    from jobs import bench_noise
+
+    assert bench_noise.main(["--draws", "2", "--json", str(tmp_path / "n.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| resonant AR(2), 20 Hz | burg |" in out and "| white | yule_walker |" in out
+    rows = __import__("json").loads((tmp_path / "n.json").read_text())
+    assert len(rows) == 10 and all(0.0 <= r["ljung_box_rejects"] <= 1.0 for r in rows)
+    assert bench_noise.main(["--draws", "0"]) == 2
+
+
 def test_a_nonfinite_residual_gives_white_with_a_note():
     nm = fit_noise(np.r_[np.ones(50), np.nan])
     assert nm.white and "white" in nm.note
