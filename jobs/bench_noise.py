@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from jobs.adversarial_set import disturbance
 from toggle_id.discovery.noise import METHODS, fit_noise
+from toggle_id.record import ar1_noise
 
 N, SIGMA, LAGS, ALPHA = 5001, 1e-6, 20, 0.01
 T = np.arange(N) * 1e-3
@@ -31,9 +33,6 @@ TRUTH = {"AR(1) ρ 0.5": (0.5,), "AR(1) ρ 0.9": (0.9,), "resonant AR(2), 20 Hz"
 
 def draw(kind: str, seed: int) -> np.ndarray:
     """One record's noise (m)."""
-    from jobs.adversarial_set import disturbance
-    from toggle_id.record import ar1_noise
-
     rng = np.random.default_rng(seed)
     if kind == "white":
         return SIGMA * rng.standard_normal(N)
