@@ -54,11 +54,20 @@ class NoiseModel:
         return np.r_[1.0, -np.asarray(self.a, float)]
 
     def whiten(self, x: np.ndarray) -> np.ndarray:
-        """A(q) applied along the last axis (zero initial conditions: the first p samples are a transient)."""
+        """A(q) applied along the last axis, the first p samples set to 0 (the conditional likelihood).
+
+        Their whitened values would need the p samples before the record; with zero initial conditions they are
+        r(0), r(1) − a₁r(0), … — barely filtered, so under noise with a strong low-frequency gain one of them
+        outweighs hundreds of innovations, and a regressor that is large there (a constant: a sensor offset) fits
+        it. Measured before they were left out (2026-12-03): the prewhitened F-test of a constant on resonant
+        AR(2) noise (pole radius 0.97, 5001 samples) fired on 92 % of the draws at the 1 % level, 2–4 % without
+        them; on AR(1) ρ = 0.9 noise 2 % against 1 %. Statistics keep counting N samples (p ≤ 8 of thousands)."""
         x = np.asarray(x, float)
         if self.white:
             return x
-        return signal.lfilter(self.filter, [1.0], x, axis=-1)
+        y = signal.lfilter(self.filter, [1.0], x, axis=-1)
+        y[..., :self.order] = 0.0
+        return y
 
     def whiten_columns(self, J: np.ndarray) -> np.ndarray:
         """A(q) applied to every column of an (N, p) matrix."""
