@@ -105,9 +105,9 @@ class NoiseModel:
                 "residual_std_m": float(np.sqrt(self.sigma2)) if self.sigma2 >= 0 else None,
                 "effective_sample_fraction": self.effective_fraction,
                 "effective_samples": int(round(self.effective_fraction * self.n)), "n": self.n,
-                "method": METHOD_NAMES[self.method] + " AR(p), order by " + ("a heteroscedasticity-robust BIC (HC0 Wald of the lags)"
-                                                            if self.robust_order else "BIC") +
-                          "; statistics on prewhitened residuals and sensitivities",
+                "method": METHOD_NAMES[self.method] + " AR(p), order by "
+                          + ("a heteroscedasticity-robust BIC (HC0 Wald of the lags)" if self.robust_order else "BIC")
+                          + "; statistics on prewhitened residuals and sensitivities",
                 "note": self.note}
 
     def describe(self) -> str:
