@@ -391,6 +391,8 @@ def disturbance_seed(spec: Spec, seed: int) -> int:
 
 #: Disturbances of the reading beyond the measurement model of :func:`toggle_id.record.measure` (``Spec.disturbance``).
 DISTURBANCES = ("tone", "ar2", "walk")
+#: The resonant AR(2) disturbance's pole radius and frequency (Hz, at 1 kHz sampling).
+AR2_RADIUS, AR2_HZ = 0.97, 20.0
 
 
 def disturbance(kind: str, t: np.ndarray, seed: int) -> np.ndarray:
@@ -407,7 +409,7 @@ def disturbance(kind: str, t: np.ndarray, seed: int) -> np.ndarray:
         return 1e-6 * rng.standard_normal(n) + 1e-6 * np.sin(2 * np.pi * 50.0 * np.asarray(t, float)
                                                               + rng.uniform(0, 2 * np.pi))
     if kind == "ar2":
-        r, th = 0.97, 2 * np.pi * 20.0 / 1000.0
+        r, th = AR2_RADIUS, 2 * np.pi * AR2_HZ / 1000.0
         a1, a2 = 2 * r * math.cos(th), -r * r
         w = rng.standard_normal(n + 2000)
         e = np.zeros(n + 2000)
@@ -478,12 +480,13 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
                 "noise_seed": seed}
         rec, _ = build_record(data)
         simulator = "toggle_id.simulate (PRECISE)"
-    error_rms = None
-    d_seed = disturbance_seed(spec, seed)
+    disturbed = {}
     if spec.disturbance:  # beyond the measurement model, drawn apart from it
+        d_seed = disturbance_seed(spec, seed)
         e = disturbance(spec.disturbance, rec.t, d_seed)
         rec.x_B = rec.x_B + e
-        error_rms = float(np.sqrt(np.mean(e ** 2)))
+        disturbed = {"disturbance": spec.disturbance, "disturbance_seed": d_seed,
+                     "effective_sigma_m": float(np.sqrt(np.mean(e ** 2)))}
     rec.name = name
     from toggle_id.record import CYCLING, SWEEPS
 
@@ -501,8 +504,7 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
                   "sigma_m": spec.noise_m, "ar": spec.noise_ar, "quantum_m": spec.quantum_m,
                   **({"outlier_fraction": spec.outlier_fraction, "outlier_m": spec.outlier_m}
                      if spec.outlier_fraction else {}),
-                  **({"disturbance": spec.disturbance, "disturbance_seed": d_seed} if spec.disturbance else {}),
-                  "seed": seed, "effective_sigma_m": error_rms if spec.disturbance else spec.sigma_eff},
+                  "seed": seed, "effective_sigma_m": spec.sigma_eff, **disturbed},
         "command": command, "duration_s": duration, "samples": rec.n, "simulator": simulator,
         "calibration": ({"target_ratio": ({k: spec.target_of(k) for k in spec.calibrate} if spec.targets
                                           else spec.target), "magnitudes": magnitudes,

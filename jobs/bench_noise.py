@@ -18,17 +18,19 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
-from jobs.adversarial_set import disturbance
-from toggle_id.discovery.noise import METHODS, fit_noise
+from jobs.adversarial_set import AR2_HZ, AR2_RADIUS, disturbance
+from toggle_id.discovery.noise import METHODS, fit_noise, whitened_sse
+from toggle_id.discovery.stats import f_test
 from toggle_id.record import ar1_noise
+from toggle_id.residuals import ljung_box
 
 N, SIGMA, LAGS, ALPHA = 5001, 1e-6, 20, 0.01
 T = np.arange(N) * 1e-3
 #: AR coefficients of the noises that have them (the truth the estimates are measured against)
-R2, TH2 = 0.97, 2 * np.pi * 20.0 / 1000.0
-TRUTH = {"AR(1) ρ 0.5": (0.5,), "AR(1) ρ 0.9": (0.9,), "resonant AR(2), 20 Hz": (2 * R2 * math.cos(TH2), -R2 * R2)}
+TH2 = 2 * np.pi * AR2_HZ / 1000.0
+TRUTH = {"AR(1) ρ 0.5": (0.5,), "AR(1) ρ 0.9": (0.9,),
+         "resonant AR(2), 20 Hz": (2 * AR2_RADIUS * math.cos(TH2), -AR2_RADIUS ** 2)}
 
 
 def draw(kind: str, seed: int) -> np.ndarray:
@@ -48,22 +50,13 @@ def draw(kind: str, seed: int) -> np.ndarray:
 KINDS = ("white", "AR(1) ρ 0.5", "AR(1) ρ 0.9", "resonant AR(2), 20 Hz", "50-Hz tone + white")
 
 
-def ljung_box_p(e: np.ndarray, fitted: int) -> float:
-    e = e - e.mean()
-    c0 = float(e @ e)
-    ac = np.array([float(e[:-k] @ e[k:]) / c0 for k in range(1, LAGS + 1)])
-    q = e.size * (e.size + 2) * float(np.sum(ac ** 2 / (e.size - np.arange(1, LAGS + 1))))
-    return float(stats.chi2.sf(q, max(LAGS - fitted, 1)))
-
-
 def f_test_p(nm, r: np.ndarray, x: np.ndarray) -> float:
-    """p-value of the prewhitened F-test of the regressor ``x`` on the noise ``r`` (the first p samples, the
-    filter's transient, left out)."""
-    e, xw = nm.whiten(r)[nm.order:], nm.whiten(x)[nm.order:]
-    beta = float(xw @ e) / float(xw @ xw)
-    res = e - beta * xw
-    f = (float(e @ e) - float(res @ res)) / (float(res @ res) / (e.size - 1))
-    return float(stats.f.sf(f, 1, e.size - 1))
+    """p-value of the prewhitened F-test of the regressor ``x`` on the noise ``r``, as the loop compares nested
+    models (:func:`toggle_id.discovery.stats.f_test` on whitened SSEs)."""
+    xw, rw = nm.whiten(x), nm.whiten(r)
+    beta = float(xw @ rw) / float(xw @ xw)
+    sse0, sse1 = whitened_sse(nm, np.vstack([r, r - beta * x]))
+    return f_test(float(sse0), float(sse1), 1, N, 1 + nm.order)[1]
 
 
 def run(draws: int) -> list[dict]:
@@ -82,7 +75,7 @@ def run(draws: int) -> list[dict]:
                     t = np.zeros_like(a)
                     t[:len(TRUTH[kind])] = TRUTH[kind]
                     errs.append(float(np.max(np.abs(a - t))))
-                lb.append(ljung_box_p(nm.whiten(r)[nm.order:], nm.order) < ALPHA)
+                lb.append(not ljung_box(nm.whiten(r)[nm.order:], LAGS, ALPHA, nm.order)["white"])
                 off.append(f_test_p(nm, r, np.ones(N)) < ALPHA)
                 dr.append(f_test_p(nm, r, ramp) < ALPHA)
             rows.append({"noise": kind, "method": method, "draws": draws, "median_order": float(np.median(orders)),
