@@ -92,7 +92,8 @@ def _more(first_um: float, alternatives: list, restarts: list) -> list[Route]:
     plant = _Plant(first_um)
     plant.baseline()
     routes = [Route("two_stage", plant, _stub_loop(plant))]
-    more_routes(routes, alternatives, restarts, _Plant, _stub_loop, N, 1e-3, lambda msg: None)
+    more_routes(routes, alternatives, restarts, lambda rms_um, kind: _Plant(rms_um), _stub_loop, N, 1e-3,
+                lambda msg: None)
     return routes
 
 
