@@ -117,3 +117,15 @@ def test_restarts_run_only_from_a_lower_baseline_and_only_while_the_record_is_un
     made.clear()
     routes = _more(1.0, [fit("fast", 9.1)], [fit("seed1", 0.5)])
     assert made == ["fast"] and [r.label for r in routes] == ["two_stage", "fast"]
+
+
+def test_a_skipped_route_says_when_another_start_than_its_own_fit_won():
+    from toggle_id.discovery.routes import _from_other_start
+
+    fit = Fit(np.zeros(3), ("p",), 1e-12 * N)
+    fit.info.update(starts=[{"start": 0, "rmse_m": 2.141e-5}, {"start": 1, "rmse_m": 1e-6}], start=1)
+    assert _from_other_start(fit) == ", from another start; its own fit polished to 21.41 µm"
+    fit.info["starts"][0] = {"start": 0, "error": "cannot be simulated on this record"}
+    assert _from_other_start(fit).endswith("its own fit polished to nothing: it cannot be simulated")
+    fit.info["start"] = 0
+    assert _from_other_start(fit) == "" and _from_other_start(Fit(np.zeros(3), ("p",), 1.0)) == ""
