@@ -451,7 +451,8 @@ def test_an_alternative_route_is_polished_from_the_first_routes_further_starts_t
     own = D.discover(rec, nominal=far2, starts=[truth], settings=dataclasses.replace(settings, route_starts="own"),
                      label="far2", alternatives=[("far", far)]).to_dict()["routes"]
     assert own[1]["skipped"] is None and own[1]["baseline_rmse_m"] > 5 * NOISE and own[0]["chosen"]
-    assert own[0] == shared[0]
+    assert own[0] == shared[0] and own[0]["baseline_from"].startswith("from another start; its own fit polished to")
+    assert own[1]["baseline_from"] is None  # its own fit's polish, the only start it had
 
 
 #: Each case costs 20-45 s of simulations. By default: dead time, where a candidate the scouts rank above it is

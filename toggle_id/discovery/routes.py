@@ -62,6 +62,7 @@ class Route:
         base = getattr(self.plant, "baseline_fit", None)
         if base is not None:
             out["baseline_rmse_m"] = base.rmse(n)
+            out["baseline_from"] = _from_other_start(base)[2:] or None  # None: from the route's own fit
         if self.outcome is not None:
             out.update({"rmse_after_m": self.outcome.final.rmse(n), "rmse_reached_m": self.reached.rmse(n),
                         "added": [a["name"] for a in self.outcome.added],
@@ -74,7 +75,8 @@ def route_line(d: dict) -> str:
     """One line of text for a route's report entry (:meth:`Route.to_dict`)."""
     return f"route {d['label']}{' (reported)' if d['chosen'] else ''}: " + (
         f"skipped, {d['skipped']}" if d.get("skipped") else
-        f"{d['baseline_rmse_m'] * 1e6:.4g} → {d['rmse_reached_m'] * 1e6:.4g} µm with "
+        f"{d['baseline_rmse_m'] * 1e6:.4g}{' (' + d['baseline_from'] + ')' if d.get('baseline_from') else ''} → "
+        f"{d['rmse_reached_m'] * 1e6:.4g} µm with "
         f"{', '.join(d['added'] + d['compensating']) or 'no effect'}{'; structure left' if d['structure_left'] else ''}")
 
 
