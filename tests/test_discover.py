@@ -66,7 +66,7 @@ def test_settings_validate_and_reject_bad_values():
                         ({"jacobian_reuse": -1}, "jacobian_reuse"), ({"jacobian_reuse": True}, "jacobian_reuse"),
                         ({"stronger_starts": [0.5]}, "stronger_starts"), ({"stronger_starts": 3}, "stronger_starts"),
                         ({"routes": "sometimes"}, "routes"), ({"route_rtol": 1.0}, "route_rtol"),
-                        ({"route_starts": "both"}, "route_starts"),
+                        ({"route_max_ratio": 1.0}, "route_max_ratio"), ({"route_max_ratio": "x"}, "route_max_ratio"),
                         ({"glitch_k": -1.0}, "glitch_k"), ({"glitch_k": True}, "glitch_k"),
                         ({"unconverged_share": 1.0}, "unconverged_share"),
                         ({"unconverged_share": "x"}, "unconverged_share")]:
@@ -434,25 +434,24 @@ def test_a_second_route_runs_only_when_structure_is_left_and_the_better_route_is
     assert made == [] and len(quiet.to_dict()["routes"]) == 1 and not quiet.unexplained
 
 
-def test_an_alternative_route_is_polished_from_the_first_routes_further_starts_too():
+def test_an_alternative_route_far_above_the_first_is_skipped_before_its_loop():
     # the first route's baseline comes from its further start (the truth here, as a job's reference values);
-    # an alternative far off polishes to the same basin from that start and is skipped, saying so; polished from
-    # its own fit alone (route_starts=own) it stays far and its loop runs, to no avail
+    # an alternative far off polishes alone to many times that error and is skipped before its loop, saying so;
+    # with the limit off (route_max_ratio=0) its loop runs, to no avail
     rec, truth, start = make_record({})
     rng = np.random.default_rng(3)
     far, far2 = (start * np.exp(0.4 * rng.standard_normal(len(start))) for _ in range(2))
     settings = D.DiscoverSettings(candidates=(), routes="always", **{**FAST, "baseline_nfev": 4, "rounds": 1})
-    shared = D.discover(rec, nominal=far2, starts=[truth], settings=settings, label="far2",
-                        alternatives=[("far", far)]).to_dict()["routes"]
-    assert [r["label"] for r in shared] == ["far2", "far"] and shared[0]["chosen"]
-    assert shared[0]["baseline_rmse_m"] < 1.1 * NOISE
-    assert "basin of route far2" in shared[1]["skipped"] and "from another start; its own fit polished to" in \
-        shared[1]["skipped"]
-    own = D.discover(rec, nominal=far2, starts=[truth], settings=dataclasses.replace(settings, route_starts="own"),
+    limited = D.discover(rec, nominal=far2, starts=[truth], settings=settings, label="far2",
+                         alternatives=[("far", far)]).to_dict()["routes"]
+    assert [r["label"] for r in limited] == ["far2", "far"] and limited[0]["chosen"]
+    assert limited[0]["baseline_rmse_m"] < 1.1 * NOISE
+    assert limited[0]["baseline_from"].startswith("from another start; its own fit polished to")
+    assert "times route far2's" in limited[1]["skipped"] and "rmse_after_m" not in limited[1]
+    off = D.discover(rec, nominal=far2, starts=[truth], settings=dataclasses.replace(settings, route_max_ratio=0.0),
                      label="far2", alternatives=[("far", far)]).to_dict()["routes"]
-    assert own[1]["skipped"] is None and own[1]["baseline_rmse_m"] > 5 * NOISE and own[0]["chosen"]
-    assert own[0] == shared[0] and own[0]["baseline_from"].startswith("from another start; its own fit polished to")
-    assert own[1]["baseline_from"] is None  # its own fit's polish, the only start it had
+    assert off[1]["skipped"] is None and off[1]["baseline_rmse_m"] > 5 * NOISE and off[0]["chosen"]
+    assert off[1]["baseline_from"] is None and off[0] == limited[0]
 
 
 #: Each case costs 20-45 s of simulations. By default: dead time, where a candidate the scouts rank above it is

@@ -88,12 +88,11 @@ def _stub_loop(plant: _Plant) -> Outcome:
     return Outcome(plant.baseline_fit, [], [], [], (diag, None, None))
 
 
-def _more(first_um: float, alternatives: list, restarts: list) -> list[Route]:
+def _more(first_um: float, alternatives: list, restarts: list, max_ratio: float = 0.0) -> list[Route]:
     plant = _Plant(first_um)
     plant.baseline()
     routes = [Route("two_stage", plant, _stub_loop(plant))]
-    more_routes(routes, alternatives, restarts, lambda rms_um, kind: _Plant(rms_um), _stub_loop, N, 1e-3,
-                lambda msg: None)
+    more_routes(routes, alternatives, restarts, _Plant, _stub_loop, N, 1e-3, lambda msg: None, max_ratio=max_ratio)
     return routes
 
 
@@ -129,3 +128,15 @@ def test_a_skipped_route_says_when_another_start_than_its_own_fit_won():
     assert _from_other_start(fit).endswith("its own fit polished to nothing: it cannot be simulated")
     fit.info["start"] = 0
     assert _from_other_start(fit) == "" and _from_other_start(Fit(np.zeros(3), ("p",), 1.0)) == ""
+
+
+def test_an_alternative_far_above_the_lowest_baseline_is_skipped_and_a_near_equal_one_runs():
+    def fit(label: str, rms_um: float):
+        return label, rms_um
+
+    # rec45's fast fit (29.0 against 3.045 µm) and rec22's (3.077 against 3.073 µm), at the default 1.5
+    routes = _more(3.045, [fit("fast", 28.97), fit("near", 3.077)], [], max_ratio=1.5)
+    assert "more than 1.5 times route two_stage's (3.045 µm): a worse optimum" in routes[1].skipped
+    assert routes[1].outcome is None and routes[2].skipped is None and routes[2].outcome is not None
+    # off (0): every alternative runs, as before the limit
+    assert all(r.outcome is not None for r in _more(3.045, [fit("fast", 28.97)], [], max_ratio=0.0))

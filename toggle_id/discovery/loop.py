@@ -103,16 +103,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                         ambiguity_alpha=settings.ambiguity_alpha, explain_fraction=settings.explain_fraction,
                         noise_max_order=settings.noise_max_order, encompassing=settings.encompassing)
 
-    others = [_with(_nominal_theta(st), fixed) for st in starts]
-    first = plant_from(theta, others)
+    first = plant_from(theta, [_with(_nominal_theta(st), fixed) for st in starts])
     routes = [Route(label, first, loop(first), nominal)]
     if settings.routes == "always" or (settings.routes == "unexplained" and routes[0].structure_left):
-        shared = others if settings.route_starts == "shared" else []  # an alternative's further starts
-
-        def route_plant(fit, kind: str) -> TogglePlant:
-            return plant_from(_with(_nominal_theta(fit), fixed), shared if kind == "alternative" else [])
-
-        more_routes(routes, alternatives, restarts, route_plant, loop, n, settings.route_rtol, say)
+        more_routes(routes, alternatives, restarts, lambda th: plant_from(_with(_nominal_theta(th), fixed), []),
+                    loop, n, settings.route_rtol, say, max_ratio=settings.route_max_ratio)
     pick, compared = choose(routes, judge.residual, n, settings.noise_max_order, settings.ambiguity_alpha)
     route_report = [r.to_dict(n, i == pick) for i, r in enumerate(routes)]
     if len(routes) > 1:

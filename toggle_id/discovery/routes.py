@@ -7,11 +7,10 @@ of them may explain the record; from another it stops in a valley where the nomi
 absorbed part of it, and the loop then either adds a second, compensating effect or says "unexplained". Before
 the loop says that structure is left, it therefore runs again from the other nominal fits it was given
 (``alternatives``: e.g. the fast multistart fit beside the GA's), each a *route*; a route whose baseline lands in
-a basin already tried is skipped. An alternative's baseline is polished from its own fit and from the first
-route's further starts (the job's reference values; ``discover.route_starts``), the lower winning: no route
-starts from a baseline worse than one the first route already weighed (on outside records with the cycling
-command the fast fit polishes alone to 7–14× the reference values' error, and its loop there ran 19–33 min to
-end where it began). Where they differ, the routes' best models are compared with Vuong's test
+a basin already tried is skipped, and so is one whose baseline is more than ``max_ratio`` times the lowest
+route's (``discover.route_max_ratio``): a worse optimum, not a near-equal one (on the outside records the fast fit
+polished to 2–44× the first route's error, which the reference values had rescued, and its loop there ran 19–41
+min to end where it began). Where they differ, the routes' best models are compared with Vuong's test
 (:func:`.stats.vuong`: non-nested fits of the same record, whitened by the best one's noise
 model, Schwarz-corrected for their numbers of parameters): a route another beats significantly is out; of the
 rest — fits the record cannot tell apart — the one that explains the record (no structure left) wins, then the
@@ -105,17 +104,16 @@ def _from_other_start(base: Fit) -> str:
 
 
 def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], restarts: Sequence[tuple[str, Any]],
-                make_plant: Callable[[Any, str], Any], loop: Callable[[Any], Outcome], n: int, rtol: float,
-                say: Callable[[str], None]) -> None:
+                make_plant: Callable[[Any], Any], loop: Callable[[Any], Outcome], n: int, rtol: float,
+                say: Callable[[str], None], max_ratio: float = 0.0) -> None:
     """Append to ``routes`` (the first one run) the routes of the other nominal fits.
 
     ``alternatives`` (other methods' fits): a route each, unless its baseline lies in the basin of one already
-    run. ``restarts`` (the first route's method from other seeds: multistart of the nominal fit): a route only
+    run or exceeds ``max_ratio`` (> 1; 0: no limit) times the lowest route's. ``restarts`` (the first route's method from other seeds: multistart of the nominal fit): a route only
     from a baseline lower than every route's so far, and only while every route has left structure — a search
     for a better nominal optimum, which is worth a loop only where the record is not explained yet. Each entry is
     a (label, fit) pair, the fit a nominal fit or a callable that makes it (made only when needed);
-    ``make_plant(fit, kind)`` (``kind``: "alternative" or "restart") gives the plant whose ``baseline()`` polishes
-    it, ``loop(plant)`` runs the loop."""
+    ``make_plant(fit)`` gives the plant whose ``baseline()`` polishes it, ``loop(plant)`` runs the loop."""
     for kind, entries in (("alternative", alternatives), ("restart", restarts)):
         for label, fit in entries:
             ran = [r for r in routes if r.outcome is not None]
@@ -124,13 +122,17 @@ def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], re
             say(f"route {label}: the loop again from the {label} nominal fit"
                 + (" (structure is left after the first route)" if routes[0].structure_left else ""))
             nominal = fit() if callable(fit) else fit
-            route = Route(label, make_plant(nominal, kind), nominal=nominal)
+            route = Route(label, make_plant(nominal), nominal=nominal)
             base = route.plant.baseline()
             seen = next((r for r in ran if same_basin(base, r.plant.baseline_fit, n, rtol)), None)
             lowest = min(ran, key=lambda r: r.plant.baseline_fit.rmse(n))  # raw: routes may whiten differently
             if seen is not None:
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm{_from_other_start(base)}) lies in the "
                                  f"basin of route {seen.label} ({seen.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
+            elif kind == "alternative" and max_ratio > 0 and base.rmse(n) > max_ratio * lowest.plant.baseline_fit.rmse(n):
+                route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) is more than {max_ratio:g} times route "
+                                 f"{lowest.label}'s ({lowest.plant.baseline_fit.rmse(n) * 1e6:.4g} µm): a worse "
+                                 f"optimum of the nominal model, not a near-equal one")
             elif kind == "restart" and base.rmse(n) >= lowest.plant.baseline_fit.rmse(n):
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) is no lower than route "
                                  f"{lowest.label}'s ({lowest.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
