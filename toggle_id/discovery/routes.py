@@ -109,9 +109,10 @@ def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], re
     """Append to ``routes`` (the first one run) the routes of the other nominal fits.
 
     ``alternatives`` (other methods' fits): a route each, unless its baseline lies in the basin of one already
-    run or exceeds ``max_ratio`` (> 1; 0: no limit) times the lowest route's. ``restarts`` (the first route's method from other seeds: multistart of the nominal fit): a route only
-    from a baseline lower than every route's so far, and only while every route has left structure — a search
-    for a better nominal optimum, which is worth a loop only where the record is not explained yet. Each entry is
+    run or exceeds ``max_ratio`` (> 1; 0: no limit) times the lowest route's. ``restarts`` (the first route's
+    method from other seeds: multistart of the nominal fit): a route only from a baseline lower than every route's
+    so far, and only while every route has left structure — a search for a better nominal optimum, which is worth
+    a loop only where the record is not explained yet. Each entry is
     a (label, fit) pair, the fit a nominal fit or a callable that makes it (made only when needed);
     ``make_plant(fit)`` gives the plant whose ``baseline()`` polishes it, ``loop(plant)`` runs the loop."""
     for kind, entries in (("alternative", alternatives), ("restart", restarts)):
@@ -129,7 +130,8 @@ def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], re
             if seen is not None:
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm{_from_other_start(base)}) lies in the "
                                  f"basin of route {seen.label} ({seen.plant.baseline_fit.rmse(n) * 1e6:.4g} µm)")
-            elif kind == "alternative" and max_ratio > 0 and base.rmse(n) > max_ratio * lowest.plant.baseline_fit.rmse(n):
+            elif (kind == "alternative" and max_ratio > 0
+                  and base.rmse(n) > max_ratio * lowest.plant.baseline_fit.rmse(n)):
                 route.skipped = (f"its baseline ({base.rmse(n) * 1e6:.4g} µm) is more than {max_ratio:g} times route "
                                  f"{lowest.label}'s ({lowest.plant.baseline_fit.rmse(n) * 1e6:.4g} µm): a worse "
                                  f"optimum of the nominal model, not a near-equal one")

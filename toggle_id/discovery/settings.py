@@ -298,7 +298,8 @@ class DiscoverSettings:
             raise ConfigError(f"discover.routes must be 'unexplained', 'always' or 'never', got {self.routes!r}")
         if not (isinstance(self.route_max_ratio, (int, float)) and not isinstance(self.route_max_ratio, bool)
                 and (self.route_max_ratio == 0 or self.route_max_ratio > 1)):
-            raise ConfigError(f"discover.route_max_ratio must be a number above 1 (0: off), got {self.route_max_ratio!r}")
+            raise ConfigError(f"discover.route_max_ratio must be a number above 1 (0: off), got "
+                              f"{self.route_max_ratio!r}")
         if not (isinstance(self.route_rtol, (int, float)) and not isinstance(self.route_rtol, bool)
                 and 0.0 <= float(self.route_rtol) < 1.0):
             raise ConfigError(f"discover.route_rtol must lie in [0, 1), got {self.route_rtol!r}")
