@@ -122,11 +122,11 @@ def test_a_skipped_route_says_when_another_start_than_its_own_fit_won():
     from toggle_id.discovery.routes import _from_other_start
 
     fit = Fit(np.zeros(3), ("p",), 1e-12 * N)
-    fit.info.update(starts=[{"start": 0, "rmse_m": 2.141e-5}, {"start": 1, "rmse_m": 1e-6}], start=1)
+    fit.info["starts"] = [{"start": 0, "rmse_m": 2.141e-5}, {"start": 1, "rmse_m": 1e-6}]
     assert _from_other_start(fit) == ", from another start; its own fit polished to 21.41 µm"
     fit.info["starts"][0] = {"start": 0, "error": "cannot be simulated on this record"}
     assert _from_other_start(fit).endswith("its own fit polished to nothing: it cannot be simulated")
-    fit.info["start"] = 0
+    fit.info["starts"] = [{"start": 0, "rmse_m": 1e-6}, {"start": 1, "rmse_m": 2e-6}]  # its own fit won
     assert _from_other_start(fit) == "" and _from_other_start(Fit(np.zeros(3), ("p",), 1.0)) == ""
 
 

@@ -93,11 +93,11 @@ def same_basin(a: Fit, b: Fit, n: int, rtol: float) -> bool:
 
 def _from_other_start(base: Fit) -> str:
     """", from another start; its own fit polished to … µm" where another start than the route's own fit won
-    (:func:`.toggle_plant._baseline`'s report in ``base.info``)."""
+    (read from :func:`.toggle_plant._baseline`'s report of every start's polish in ``base.info``)."""
     starts = base.info.get("starts") or []
-    won = base.info.get("start", 0)
+    polished = [s for s in starts if "rmse_m" in s]
     own = next((s for s in starts if s.get("start") == 0), None)
-    if not won or own is None:
+    if not polished or own is None or min(polished, key=lambda s: s["rmse_m"]) is own:
         return ""
     return (", from another start; its own fit polished to "
             + (f"{own['rmse_m'] * 1e6:.4g} µm" if "rmse_m" in own else "nothing: it cannot be simulated"))

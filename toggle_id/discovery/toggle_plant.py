@@ -24,9 +24,6 @@ from .scoring import CandidateScore
 from .settings import DiscoverSettings
 from .validation import Evidence, Judge
 
-#: Keys of a baseline fit's ``info`` that say where it came from (:func:`_baseline`): every start's polish, the winner.
-_START_KEYS = ("starts", "start")
-
 
 class TogglePlant:
     """The toggle mechanism as a plant of the discovery engine (:class:`.engine.Plant`): its baseline polish, its
@@ -80,10 +77,10 @@ class TogglePlant:
                     self.say(f"glitches of the measurement in {g['record']} (each alone, up to "
                              f"{max(abs(v) for v in g['residual_m']) * 1e6:.3g} µm off its neighbours' path), left "
                              f"out of every fit and test: {glitch_text(g)}")
-            starts = {k: self.baseline_fit.info.get(k) for k in _START_KEYS}
+            starts = self.baseline_fit.info.get("starts")
             self.baseline_fit = fit_free(self.model, self.baseline_fit.theta, self.baseline_fit.free,
                                          self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
-            self.baseline_fit.info.update(starts)
+            self.baseline_fit.info["starts"] = starts
             self.say(f"  baseline without them: rms {self.baseline_fit.rmse(self.model.n) * 1e6:.4g} µm")
         self.noise0 = fit_noise(self.model.residuals(self.baseline_fit.theta[None, :])[0], self.s.noise_max_order)
         self.say(f"noise model of the nominal residual: {self.noise0.describe()}")
@@ -104,7 +101,7 @@ class TogglePlant:
         if noise.a == (fit.noise.a if fit.noise is not None else ()):
             return fit
         out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
-        out.info.update({k: fit.info.get(k) for k in _START_KEYS})
+        out.info["starts"] = fit.info.get("starts")
         self.say(f"  prediction-error fit under the noise model of its residual less what the states express, "
                  f"{noise.describe()}: rms {out.rmse(self.model.n) * 1e6:.4g} µm (before "
                  f"{fit.rmse(self.model.n) * 1e6:.4g} µm)")
@@ -394,10 +391,10 @@ def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], fre
         report.append({"start": k, "rmse_m": fit.rmse(n), "nfev": fit.info["nfev"]})
         say(f"  rms {fit.rmse(n) * 1e6:.4g} µm ({fit.info['nfev']} evaluations, {fit.info['seconds']:.1f} s)")
         if current is None or fit.sse < current.sse:
-            current, anchor, won = fit, th0, k
+            current, anchor = fit, th0
     if current is None:
         raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
-    current.info["starts"], current.info["start"] = report, won
+    current.info["starts"] = report
     return current, anchor
 
 
