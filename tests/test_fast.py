@@ -26,7 +26,7 @@ def record():
     return _record()
 
 
-SMALL = FastSettings(starts=4, starts_stage2=2, first_nfev=3, finalists=1, final_nfev=20)
+SMALL = FastSettings(starts=4, starts_stage2=2, first_nfev=3, finalists=1, final_nfev=20, searches=1)
 
 
 def test_fast_halves_its_starts_and_never_loses_the_best(record):
@@ -48,7 +48,8 @@ def test_fast_halves_its_starts_and_never_loses_the_best(record):
 
 
 def test_fast_is_deterministic(record):
-    kw = dict(seed=5, fast=FastSettings(starts=3, starts_stage2=2, first_nfev=2, finalists=1, final_nfev=5),
+    kw = dict(seed=5, fast=FastSettings(starts=3, starts_stage2=2, first_nfev=2, finalists=1, final_nfev=5,
+                                         searches=2, floor_ratio=1.0),
               identifiability=False)
     a = identify_fast([record], extend(P.ASSIGNED)[0], **kw)
     b = identify_fast([record], extend(P.ASSIGNED)[0], **kw)
@@ -67,7 +68,7 @@ def test_fast_job_end_to_end(tmp_path, job_env):
     from conftest import run_job
 
     proc = run_job("jobs.run", "+experiment=fast", f"hydra.run.dir={tmp_path / 'run'}", "data.duration=1.0",
-                   "fast.starts=4", "fast.starts_stage2=2", "fast.final_nfev=20", "progress=false",
+                   "fast.starts=4", "fast.starts_stage2=2", "fast.final_nfev=20", "fast.searches=1", "progress=false",
                    cwd=tmp_path, env=job_env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = Path([ln for ln in proc.stdout.splitlines() if ln.strip()][-1].removeprefix("report: "))
@@ -94,6 +95,7 @@ def test_bench_methods_prints_its_table(tmp_path, job_env):
     out = tmp_path / "methods.md"
     proc = run_job("jobs.bench_methods", "--fast", "1", "--two-stage", "0", "--one-stage", "0", "--out", str(out),
                    "data.duration=1.0", "fast.starts=3", "fast.starts_stage2=2", "fast.final_nfev=10",
+                   "fast.searches=1",
                    cwd=tmp_path, env=job_env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = [ln for ln in out.read_text().splitlines() if ln.startswith("| fast |")]
@@ -104,7 +106,8 @@ def test_bench_methods_prints_its_table(tmp_path, job_env):
 
 def test_fast_one_stage_route_fits_everything_at_once(record):
     res = identify_fast([record], extend(P.ASSIGNED)[0], seed=1, identifiability=False,
-                        fast=FastSettings(route="one_stage", starts=3, first_nfev=2, finalists=1, final_nfev=5))
+                        fast=FastSettings(route="one_stage", starts=3, first_nfev=2, finalists=1, final_nfev=5,
+                                          searches=1))
     assert [s.name for s in res.stages] == ["one_stage"]
     assert len(res.stages[0].free) == 15 and res.stages[0].window == (0, record.n)
     assert res.rmse_m == pytest.approx(res.stages[0].rmse_m, rel=1e-9)

@@ -19,7 +19,7 @@ def record():
 
 
 SMALL = dict(starts=4, starts_stage2=2, first_nfev=3, finalists=2, final_nfev=10, joint_final_nfev=5,
-             short_samples_per_param=0.0)  # no automatic paths: the tests set them
+             short_samples_per_param=0.0, searches=1)  # no automatic paths: the tests set them
 
 
 def test_the_chosen_path_has_the_lowest_whole_record_error_and_one_path_is_the_default_method(record):

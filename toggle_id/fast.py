@@ -11,7 +11,18 @@ tier. Starts that stall above the others are abandoned early, which is where the
 starts of the free-motion problem end in a local minimum (see the README's method table).
 
 ``route: one_stage`` runs the same search on all parameters and the whole record at once (no stages, no joint
-polish).
+polish). ``route: auto`` (the default) takes the paper's two stages when every record clamps once (the paper's
+sweeps: the clamp is reached and held) and one stage when a record clamps more than once or never: on the
+cycling command stage 1 sees only the samples before the first clamp (146–191 of 5001), whose best fit lies far
+in the directions those samples leave open, and no whole-record polish gets back from there (docs/performance.md,
+*The fast method on the cycling command*).
+
+The starts of the one-stage route are drawn log-uniformly (``draw: log``) with the electrical time constant
+L_q/R_s stratified over ``tau_e_s``: the model has two regimes that mimic each other on a record — a slow current
+(τ_e ≈ 0.15 s at the assigned values: the current integrates the voltage) and a fast one (the current follows
+K_i·v_in/R_s) — and the domain's uniform law (R_s uniform in 0–1 Ω, L_q in 0–0.01 H) almost never draws the slow
+one, where the cycling records' optima lie. The two-stage route keeps the GA's law (uniform in the domain),
+under which it reaches the floor on the paper's sweeps.
 
 Deterministic: the starts come from the seed; the polishes are sequential and exact.
 """
@@ -29,6 +40,7 @@ import numpy as np
 from .curve import RmseCurve
 from .effects import ALL_INDEX
 from .errors import ConfigError
+from .plant import GEOMETRY
 from .polish import polish
 from .problem import FitProblem, joint
 from .record import Record
@@ -49,7 +61,14 @@ class FastSettings:
     when stage 1 has fewer than ``short_samples_per_param`` samples per free parameter, ``paths_short`` paths
     are taken instead (and at least as many finalists)."""
 
-    route: str = "two_stage"      # two_stage (the paper's stages, then a joint polish) | one_stage (all, whole record)
+    route: str = "auto"           # two_stage (the paper's stages, then a joint polish) | one_stage (all, whole record)
+    #                               | auto: two_stage when every record clamps once, else one_stage
+    draw: str = "auto"            # law of the random starts: uniform (in the domain, as the GA's first population)
+    #                               | log (log-uniform over the top `draw_decades` of each domain, the electrical
+    #                               time constant L_q/R_s stratified over `tau_e_s`) | auto: log on the one-stage
+    #                               route, uniform on the two-stage route
+    draw_decades: float = 3.0     # log draws: each positive parameter in [upper / 10**draw_decades, upper]
+    tau_e_s: tuple[float, float] = (1e-3, 1.0)  # log draws: the range of L_q/R_s (s), one start per stratum of its log
     starts: int = 24              # random starts of stage 1 (or the one stage), uniform in the domain, seeded by `seed`
     starts_stage2: int = 4        # starts of stage 2 (D, K_l); the first at the centre of the domain
     first_nfev: int = 4           # residual evaluations of each start's first polish; doubled every round
@@ -61,6 +80,9 @@ class FastSettings:
     fd_rel_step: float = 1e-6     # relative step of the forward-difference Jacobians
     fd_tier: str = "jacobian"     # the finalists' PRECISE polishes' Jacobians: jacobian (simulate.JACOBIAN, 1e-3 step)
     #                               or precise (PRECISE at fd_rel_step); the joint polish always PRECISE
+    searches: int = 6             # whole searches of the route, each from new draws, while the best whole-record
+    floor_ratio: float = 1.1      # RMS error is above floor_ratio times the record's noise (from its differences,
+    #                               difference_noise); the lowest error wins. 1: one search
     paths: int = 1                # stage 1's finalists carried through stage 2 and the joint polish ...
     paths_short: int = 4          # ... or this many (and as many finalists) when stage 1 has fewer than
     short_samples_per_param: float = 10.0  # this many samples per free parameter (an early clamp)
@@ -71,12 +93,25 @@ class FastSettings:
         return precise_jacobian(self.fd_tier, self.fd_rel_step)
 
     def validate(self) -> FastSettings:
-        if self.route not in ("two_stage", "one_stage"):
-            raise ConfigError(f"fast.route must be 'two_stage' or 'one_stage', got {self.route!r}")
+        if self.route not in ("auto", "two_stage", "one_stage"):
+            raise ConfigError(f"fast.route must be 'auto', 'two_stage' or 'one_stage', got {self.route!r}")
+        if (isinstance(self.floor_ratio, bool) or not isinstance(self.floor_ratio, (int, float))
+                or not self.floor_ratio >= 1.0):
+            raise ConfigError(f"fast.floor_ratio must be a number >= 1, got {self.floor_ratio!r}")
+        if self.draw not in DRAWS:
+            raise ConfigError(f"fast.draw must be one of {', '.join(DRAWS)}, got {self.draw!r}")
+        if (isinstance(self.draw_decades, bool) or not isinstance(self.draw_decades, (int, float))
+                or not 0 < self.draw_decades <= 12):
+            raise ConfigError(f"fast.draw_decades must be a number in (0, 12], got {self.draw_decades!r}")
+        tau = tuple(self.tau_e_s) if isinstance(self.tau_e_s, (list, tuple)) else ()
+        if (len(tau) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in tau)
+                or not 0 < tau[0] < tau[1] < math.inf):
+            raise ConfigError(f"fast.tau_e_s must be two times in seconds, 0 < low < high, got {self.tau_e_s!r}")
+        self.tau_e_s = (float(tau[0]), float(tau[1]))
         if not isinstance(self.joint_prepolish, bool):
             raise ConfigError(f"fast.joint_prepolish must be true or false, got {self.joint_prepolish!r}")
         for name in ("starts", "starts_stage2", "first_nfev", "finalists", "final_nfev", "joint_final_nfev", "paths",
-                     "paths_short"):
+                     "paths_short", "searches"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"fast.{name} must be a whole number >= 1, got {v!r}")
@@ -86,7 +121,7 @@ class FastSettings:
             raise ConfigError(f"fast.fd_rel_step must lie in (0, 0.1), got {self.fd_rel_step!r}")
         if self.fd_tier not in FD_TIERS:
             raise ConfigError(f"fast.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
-        if self.paths > 1 and self.route != "two_stage":
+        if self.paths > 1 and self.route == "one_stage":
             raise ConfigError(f"fast.paths > 1 needs route two_stage (the paths are stage 1's finalists), got "
                               f"route {self.route!r}")
         if not (isinstance(self.short_samples_per_param, (int, float)) and self.short_samples_per_param >= 0):
@@ -129,13 +164,56 @@ def successive_halving(problem: FitProblem, starts: np.ndarray, lower: np.ndarra
                                    "nfev_final": int(finals[0].nfev), "message": str(finals[0].message)}
 
 
-def _draw(rng: np.random.Generator, k: int, lower: np.ndarray, upper: np.ndarray, centre: np.ndarray | None = None
-          ) -> np.ndarray:
-    """``k`` points uniform in the box (the GA's initial population law); the first is ``centre`` if given."""
-    X = lower + (upper - lower) * rng.random((k, lower.size))
+#: Laws of the fast method's random starts (:attr:`FastSettings.draw`).
+DRAWS = ("auto", "uniform", "log")
+
+
+def _draw(rng: np.random.Generator, k: int, lower: np.ndarray, upper: np.ndarray, centre: np.ndarray | None = None,
+          *, law: str = "uniform", names: Sequence[str] = (), decades: float = 3.0,
+          tau_e_s: tuple[float, float] = (1e-3, 1.0)) -> np.ndarray:
+    """``k`` starts in the box; the first is ``centre`` if given. ``law``: ``uniform`` (the GA's initial population
+    law) or ``log``: every parameter whose domain is positive log-uniform in [max(lower, upper / 10**decades),
+    upper] (the others uniform), and when ``names`` has both L_q and R_s, R_s = L_q / τ_e with log τ_e stratified
+    over ``tau_e_s`` (one start in each of k equal strata, in random order; clipped to R_s's domain)."""
+    if law == "uniform":
+        X = lower + (upper - lower) * rng.random((k, lower.size))
+    else:
+        u = rng.random((k, lower.size))
+        pos = (lower >= 0) & (upper > 0)
+        lo = np.where(pos, np.maximum(lower, upper * 10.0 ** -decades), lower)
+        X = lower + (upper - lower) * u
+        X[:, pos] = np.exp(np.log(lo[pos]) + (np.log(upper[pos]) - np.log(lo[pos])) * u[:, pos])
+        names = list(names)
+        if "L_q" in names and "R_s" in names:
+            iL, iR = names.index("L_q"), names.index("R_s")
+            a, b = np.log(tau_e_s[0]), np.log(tau_e_s[1])
+            tau = np.exp(a + (b - a) * (rng.permutation(k) + rng.random(k)) / k)
+            X[:, iR] = np.clip(X[:, iL] / tau, lower[iR], upper[iR])
     if centre is not None:
         X[0] = np.clip(centre, lower, upper)
     return X
+
+
+def difference_noise(records: Sequence[Record]) -> float:
+    """The measurement noise's standard deviation (m) read off the records themselves, pooled over them: for white
+    noise on a motion that is smooth at the sampling rate, the third differences of x_B are the noise's, of
+    variance 20 σ²; the median absolute deviation ignores the few samples where the motion itself turns sharply
+    (the clamp). Correlated noise reads lower (AR(1) ρ = 0.9: about a quarter), which only makes
+    :attr:`FastSettings.searches` search more."""
+    num = 0.0
+    for r in records:
+        d = np.diff(r.x_B, 3)
+        s = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(20.0)
+        num += r.n * s * s
+    return math.sqrt(num / sum(r.n for r in records))
+
+
+def fast_route(records: Sequence[Record], route: str) -> str:
+    """The route ``auto`` takes on ``records``: the paper's two stages when every record clamps exactly once
+    (:meth:`Record.clamp_count`), else one stage on the whole record(s). Any other route as given."""
+    if route != "auto":
+        return route
+    return "two_stage" if all(r.clamp_count(GEOMETRY.x_B_L) == 1 for r in records) else "one_stage"
 
 
 def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0,
@@ -150,6 +228,13 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     fast = (fast or FastSettings()).validate()
     polish_settings = polish_settings or PolishSettings()
     say = progress or (lambda msg: None)
+    route = fast_route(records, fast.route)
+    law = fast.draw if fast.draw != "auto" else ("log" if route == "one_stage" else "uniform")
+    if fast.route == "auto":
+        clamps = ", ".join(str(r.clamp_count(GEOMETRY.x_B_L)) for r in records)
+        say(f"route {route}: the record{'s' if len(records) > 1 else ''} clamp{'' if len(records) > 1 else 's'} "
+            f"{clamps} time(s); starts drawn {law}")
+    fast = dataclasses.replace(fast, route=route, draw=law)
     k_cs, plan = joint_plan(records, fast.route, theta, fixed=tuple(fixed or {}), extra_free=extra_free)
     theta = theta.copy()
     for nm in ("D", "K_l"):
@@ -172,7 +257,9 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         k = fast.starts_stage2 if name == "stage2" else fast.starts
         say(f"{name}: {k} starts, {len(free)} parameters")
         t0, n0 = time.perf_counter(), simulations_run()
-        starts = _draw(rng, k, lo, hi, centre=problem.x0() if name == "stage2" else None)
+        starts = _draw(rng, k, lo, hi, centre=problem.x0() if name == "stage2" else None,
+                       law="uniform" if name == "stage2" else fast.draw, names=free, decades=fast.draw_decades,
+                       tau_e_s=fast.tau_e_s)
         halving = fast if name != plan[0][0] else dataclasses.replace(fast, finalists=max(fast.finalists, n_paths))
         finals, info = successive_halving(problem, starts, lo, hi, halving, settings, fast.jacobian)
         x = finals[0]
@@ -221,6 +308,41 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
                 emit(st)
         return stages
 
+    def search(rng: np.random.Generator, live: bool) -> list[StageResult]:
+        """One whole search of the route from draws of ``rng``: its stages; ``live``: emit each as it ends."""
+        nonlocal t_report
+        first, finals, problem1 = fit_stage(name, free, windows, theta, rng)
+        if n_paths == 1:
+            if live:
+                emit(first)
+            stages = [first, *finish(finals[0], rng, now=live)]
+        else:  # every path draws stage 2's starts from the same stream; the lowest whole-record error wins
+            paths = []
+            for j in range(min(n_paths, len(finals))):
+                say(f"path {j + 1}: from stage 1's finalist {j + 1}")
+                paths.append(finish(finals[j], copy.deepcopy(rng), now=False))
+            whole = [p[-1].sse for p in paths]
+            chosen = int(np.argmin(np.where(np.isfinite(whole), whole, np.inf)))  # a failed path (NaN) never wins
+            say(f"path {chosen + 1} chosen: its error on the whole record is the lowest")
+            if chosen > 0:  # stage 1's point is that finalist's
+                sse = first.polish["multistart"]["final_sse_m2"][chosen]
+                first.theta, first.x = finals[chosen].copy(), finals[chosen][[ALL_INDEX[n] for n in first.free]].copy()
+                first.sse, first.fitness = sse, 1.0 / sse if sse > 0 else float("inf")
+                if identifiability:
+                    t_id = time.perf_counter()
+                    first.identifiability = identifiability_report(problem1, first.x, noise_var)
+                    t_report += time.perf_counter() - t_id
+            # the paths not chosen were simulated too: the last stage (where the choice is made) counts them
+            others = sum(st.n_simulations for j, p in enumerate(paths) if j != chosen for st in p)
+            paths[chosen][-1].n_simulations += others
+            paths[chosen][-1].polish["paths"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1,
+                                                 "n_simulations_other_paths": int(others)}
+            stages = [first, *paths[chosen]]
+            if live:
+                for st in stages:
+                    emit(st)
+        return stages
+
     name, free, windows = plan[0]
     n_paths = fast.paths
     if fast.route == "two_stage":  # an early clamp: stage 1 has few samples per parameter to choose its start on
@@ -228,35 +350,33 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
         if n_stage1 < fast.short_samples_per_param * len(free):
             n_paths = max(n_paths, fast.paths_short)
             say(f"stage 1 has {n_stage1} samples for {len(free)} parameters: {n_paths} paths")
-    first, finals, problem1 = fit_stage(name, free, windows, theta, rng)
-    if n_paths == 1:
-        emit(first)
-        stages = [first, *finish(finals[0], rng, now=True)]
-    else:  # every path draws stage 2's starts from the same stream; the lowest whole-record error wins
-        paths = []
-        for j in range(min(n_paths, len(finals))):
-            say(f"path {j + 1}: from stage 1's finalist {j + 1}")
-            paths.append(finish(finals[j], copy.deepcopy(rng), now=False))
-        whole = [p[-1].sse for p in paths]
-        chosen = int(np.argmin(np.where(np.isfinite(whole), whole, np.inf)))  # a failed path (NaN) never wins
-        say(f"path {chosen + 1} chosen: its error on the whole record is the lowest")
-        if chosen > 0:  # stage 1's point is that finalist's
-            sse = first.polish["multistart"]["final_sse_m2"][chosen]
-            first.theta, first.x = finals[chosen].copy(), finals[chosen][[ALL_INDEX[n] for n in first.free]].copy()
-            first.sse, first.fitness = sse, 1.0 / sse if sse > 0 else float("inf")
-            if identifiability:
-                t_id = time.perf_counter()
-                first.identifiability = identifiability_report(problem1, first.x, noise_var)
-                t_report += time.perf_counter() - t_id
-        emit(first)
-        # the paths not chosen were simulated too: the last stage (where the choice is made) counts them
-        others = sum(st.n_simulations for j, p in enumerate(paths) if j != chosen for st in p)
-        paths[chosen][-1].n_simulations += others
-        paths[chosen][-1].polish["paths"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1,
-                                             "n_simulations_other_paths": int(others)}
-        for st in paths[chosen]:
-            emit(st)
-        stages = [first, *paths[chosen]]
+    n_all = sum(r.n for r in records)
+    sigma = difference_noise(records)
+    tried = [search(rng, live=True)]
+
+    def best_rmse() -> float:
+        return math.sqrt(min(t[-1].sse for t in tried) / n_all)
+
+    while len(tried) < fast.searches and best_rmse() > fast.floor_ratio * sigma:
+        say(f"search {len(tried) + 1}: the best so far, {best_rmse() * 1e6:.4g} µm, is above "
+            f"{fast.floor_ratio:g} times the record's noise ({sigma * 1e6:.3g} µm, from its differences)")
+        tried.append(search(rng, live=False))
+    whole = [t[-1].sse for t in tried]
+    chosen = int(np.argmin(np.where(np.isfinite(whole), whole, np.inf)))
+    stages = tried[chosen]
+    if len(tried) > 1:
+        say(f"search {chosen + 1} of {len(tried)} chosen: its error on the whole record is the lowest")
+        first_sims = sum(st.n_simulations for st in tried[0])  # on the curve already
+        others = sum(st.n_simulations for j, t in enumerate(tried) if j not in (0, chosen) for st in t)
+        if chosen > 0:
+            stages[-1].n_simulations += others
+            for st in stages:
+                emit(st)
+            stages[-1].n_simulations += first_sims
+        else:
+            stages[-1].n_simulations += others
+        stages[-1].polish["searches"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1,
+                                         "noise_m": float(sigma), "floor_ratio": float(fast.floor_ratio)}
     theta = stages[-1].theta.copy()
     extra = {"seconds_fit": time.perf_counter() - t_start - t_report, "seconds_reports": t_report,
              "fast_settings": vars(fast)}

@@ -212,6 +212,20 @@ class Record:
         hit = np.flatnonzero(self.x_B >= x_B_L)
         return int(hit[0]) if hit.size else self.n
 
+    def clamp_count(self, x_B_L: float, release: float = 1e-3) -> int:
+        """How many times the measured x_B closes on the clamp: reaches x_B_L from below x_B_L − ``release`` (m; a
+        reading that only jitters about x_B_L while clamped does not reopen it). 1 for the paper's sweeps, which
+        clamp and hold; one per closing cycle on the cycling command."""
+        if self.x_B is None:
+            raise ValueError("record has no measured x_B")
+        count, open_ = 0, True
+        for x in self.x_B:
+            if open_ and x >= x_B_L:
+                count, open_ = count + 1, False
+            elif not open_ and x < x_B_L - release:
+                open_ = True
+        return count
+
 
 # ------------------------------------------------------------------------------------------ measurement model
 def ar1_noise(n: int, sigma: float, rho: float, rng: np.random.Generator) -> np.ndarray:
