@@ -69,7 +69,7 @@ class FastSettings:
     #                               route, uniform on the two-stage route
     draw_decades: float = 3.0     # log draws: each positive parameter in [upper / 10**draw_decades, upper]
     tau_e_s: tuple[float, float] = (1e-3, 1.0)  # log draws: the range of L_q/R_s (s), one start per stratum of its log
-    starts: int = 24              # random starts of stage 1 (or the one stage), uniform in the domain, seeded by `seed`
+    starts: int = 24              # random starts of stage 1 (or the one stage), drawn by `draw`, seeded by `seed`
     starts_stage2: int = 4        # starts of stage 2 (D, K_l); the first at the centre of the domain
     first_nfev: int = 4           # residual evaluations of each start's first polish; doubled every round
     keep: float = 0.5             # share of the starts continued after each round (successive halving)
