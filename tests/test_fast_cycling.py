@@ -46,12 +46,12 @@ def test_clamp_count_counts_closings_not_the_jitter_of_a_held_clamp(cycling, swe
 
 
 def test_the_automatic_route_follows_the_clamps(cycling, sweep):
-    assert fast_route([sweep], "auto") == "two_stage"
-    assert fast_route([cycling], "auto") == "one_stage"
-    assert fast_route([sweep, cycling], "auto") == "one_stage"  # one stage for all when any record clamps again
+    assert fast_route([sweep], "auto") == ("two_stage", [1])
+    assert fast_route([cycling], "auto") == ("one_stage", [3])
+    assert fast_route([sweep, cycling], "auto")[0] == "one_stage"  # one stage for all when any record clamps again
     never = Record(t=sweep.t[:50], v_in=sweep.v_in[:50], x_B=sweep.x_B[:50])  # 50 ms: no clamp yet
-    assert fast_route([never], "auto") == "one_stage"
-    assert fast_route([cycling], "two_stage") == "two_stage" and fast_route([sweep], "one_stage") == "one_stage"
+    assert fast_route([never], "auto")[0] == "one_stage"
+    assert fast_route([cycling], "two_stage")[0] == "two_stage" and fast_route([sweep], "one_stage")[0] == "one_stage"
 
 
 def test_uniform_draws_are_the_gas_law_bit_for_bit():

@@ -36,6 +36,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 
 from .curve import RmseCurve
 from .effects import ALL_INDEX
@@ -202,18 +203,19 @@ def difference_noise(records: Sequence[Record]) -> float:
     :attr:`FastSettings.searches` search more."""
     num = 0.0
     for r in records:
-        d = np.diff(r.x_B, 3)
-        s = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(20.0)
+        s = float(stats.median_abs_deviation(np.diff(r.x_B, 3), scale="normal")) / math.sqrt(20.0)
         num += r.n * s * s
     return math.sqrt(num / sum(r.n for r in records))
 
 
-def fast_route(records: Sequence[Record], route: str) -> str:
-    """The route ``auto`` takes on ``records``: the paper's two stages when every record clamps exactly once
-    (:meth:`Record.clamp_count`), else one stage on the whole record(s). Any other route as given."""
+def fast_route(records: Sequence[Record], route: str) -> tuple[str, list[int]]:
+    """The route ``auto`` takes on ``records`` and how many times each clamps (:meth:`Record.clamp_count`): the
+    paper's two stages when every record clamps exactly once, else one stage on the whole record(s). Any other
+    route as given."""
+    clamps = [r.clamp_count(GEOMETRY.x_B_L) for r in records]
     if route != "auto":
-        return route
-    return "two_stage" if all(r.clamp_count(GEOMETRY.x_B_L) == 1 for r in records) else "one_stage"
+        return route, clamps
+    return ("two_stage" if all(c == 1 for c in clamps) else "one_stage"), clamps
 
 
 def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0,
@@ -228,12 +230,11 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     fast = (fast or FastSettings()).validate()
     polish_settings = polish_settings or PolishSettings()
     say = progress or (lambda msg: None)
-    route = fast_route(records, fast.route)
+    route, clamps = fast_route(records, fast.route)
     law = fast.draw if fast.draw != "auto" else ("log" if route == "one_stage" else "uniform")
     if fast.route == "auto":
-        clamps = ", ".join(str(r.clamp_count(GEOMETRY.x_B_L)) for r in records)
         say(f"route {route}: the record{'s' if len(records) > 1 else ''} clamp{'' if len(records) > 1 else 's'} "
-            f"{clamps} time(s); starts drawn {law}")
+            f"{', '.join(map(str, clamps))} time(s); starts drawn {law}")
     fast = dataclasses.replace(fast, route=route, draw=law)
     k_cs, plan = joint_plan(records, fast.route, theta, fixed=tuple(fixed or {}), extra_free=extra_free)
     theta = theta.copy()
@@ -366,15 +367,15 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
     stages = tried[chosen]
     if len(tried) > 1:
         say(f"search {chosen + 1} of {len(tried)} chosen: its error on the whole record is the lowest")
-        first_sims = sum(st.n_simulations for st in tried[0])  # on the curve already
-        others = sum(st.n_simulations for j, t in enumerate(tried) if j not in (0, chosen) for st in t)
+        # the searches not chosen were simulated too: the last stage counts them (the first is on the curve already,
+        # so a later winner's points come after every search)
+        first_sims = sum(st.n_simulations for st in tried[0]) if chosen > 0 else 0
+        stages[-1].n_simulations += sum(st.n_simulations for j, t in enumerate(tried) if j != chosen for st in t)
         if chosen > 0:
-            stages[-1].n_simulations += others
+            stages[-1].n_simulations -= first_sims
             for st in stages:
                 emit(st)
             stages[-1].n_simulations += first_sims
-        else:
-            stages[-1].n_simulations += others
         stages[-1].polish["searches"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1,
                                          "noise_m": float(sigma), "floor_ratio": float(fast.floor_ratio)}
     theta = stages[-1].theta.copy()
