@@ -1299,3 +1299,36 @@ def test_the_fitting_noise_model_leaves_out_what_the_states_express():
     assert fit_noise(r, 8).effective_fraction < 0.2
     left = structure_removed(r, signals, bins=12, lags=50, lag_step=5)
     assert fit_noise(left, 8).white and np.std(left) == pytest.approx(1.0, rel=0.1)
+
+
+def test_the_judge_wants_a_significant_out_of_sample_gain():
+    """``discover.cv_alpha``: the cross-validation check of the judge is the test of the held-out error's
+    drop against the noise's spread of it (:func:`toggle_id.discovery.stats.out_of_sample`) at that level; at 0.5 it is the old sign rule. Residuals
+    and sensitivities are given to the judge's cache, so nothing is simulated."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.noise import NoiseModel
+    from toggle_id.discovery.validation import Judge
+
+    n = 5001
+    e = np.random.default_rng(3).standard_normal(n) * 1e-6
+    small = Fit(np.zeros(3), ("J_m",), 0.0)
+    large = Fit(np.ones(3), ("J_m", "tau_c"), 0.0)
+    J0, J1 = np.zeros((n, 1)), np.zeros((n, 2))  # no parameter moves: the held-out errors are the residuals
+    wave = np.sin(np.linspace(0, 40, n))
+    wave -= (wave @ e) / (e @ e) * e  # orthogonal to the noise: the gain is exactly |a·wave|²
+    for amp, strict, sign in ((3e-8, False, True), (3e-7, True, True)):  # 0.05 % and 4.5 % of the error
+        r0 = e + amp * wave
+        verdicts = []
+        for level in (0.05, 0.5):
+            judge = Judge(SimpleNamespace(noise=NoiseModel(), n=n), D.DiscoverSettings(cv_alpha=level).validate())
+            judge._cache[judge._key(small)] = (r0, J0)
+            judge._cache[judge._key(large)] = (e, J1)
+            ev = judge.evidence(small, large, NoiseModel())
+            assert ev.cv1 < ev.cv0 and ev.to_dict()["cv_p_value"] == ev.cv_p
+            verdicts.append(ev.checks["cross_validation"])
+        assert verdicts == [strict, sign]
+    for bad in (0.0, 0.6, True, "x"):
+        with pytest.raises(ConfigError, match="discover.cv_alpha"):
+            D.DiscoverSettings(cv_alpha=bad).validate()

@@ -16,6 +16,7 @@ from toggle_id.discovery.stats import (
     f_test,
     fold_of,
     lagged_basis,
+    out_of_sample,
     piecewise_basis,
     robust_f,
     separation,
@@ -242,6 +243,64 @@ def test_block_cv_equals_exact_cross_validation_for_a_linear_model():
         exact += float(np.sum((y[fold == k] - X[fold == k] @ b) ** 2))
     assert out["cv_sse_w"] == pytest.approx(exact, rel=1e-9)
     assert out["cv_sse_w"] > out["in_sse_w"]
+
+
+def _nested_fits(y: np.ndarray, X0: np.ndarray, x_new: np.ndarray):
+    """Least-squares residuals and design matrices of a model and of the model with one more column."""
+    X1 = np.column_stack([X0, x_new])
+    r0 = y - X0 @ np.linalg.lstsq(X0, y, rcond=None)[0]
+    r1 = y - X1 @ np.linalg.lstsq(X1, y, rcond=None)[0]
+    return r0, X0, r1, X1
+
+
+def test_out_of_sample_p_below_one_half_is_exactly_the_sign_rule():
+    rng = np.random.default_rng(11)
+    X0 = np.column_stack([np.ones(N), np.linspace(-1, 1, N)])
+    for seed in range(40):
+        g = np.random.default_rng(seed)
+        y = X0 @ np.array([0.3, 1.0]) + g.standard_normal(N)
+        r0, J0, r1, J1 = _nested_fits(y, X0, rng.standard_normal(N))
+        oos = out_of_sample(NoiseModel(), r0, J0, r1, J1, block=10, folds=5)
+        assert oos["cv0"] == block_cv(NoiseModel(), r0, J0, 10, 5)["cv_sse_w"]
+        assert (oos["p_value"] < 0.5) == (oos["cv1"] < oos["cv0"])
+
+
+def test_out_of_sample_test_holds_its_level_where_the_sign_rule_does_not():
+    """A column of pure noise added to a linear model: its cross-validated SSE drops by chance on about a fifth
+    of the records (the sign rule; 22 % of 600 measured), the paired test passes it at most at its level (0 of
+    600 at 5 %: conservative for nested models); a column in the data at 1.3 σ of the record's RMS passes it
+    every time."""
+    X0 = np.column_stack([np.ones(N), np.sin(np.linspace(0, 9, N))])
+    drops = passes = found = 0
+    for seed in range(200):
+        g = np.random.default_rng(1000 + seed)
+        y = X0 @ np.array([0.2, 1.0]) + g.standard_normal(N)
+        oos = out_of_sample(NoiseModel(), *_nested_fits(y, X0, g.standard_normal(N)), block=10, folds=5)
+        drops += oos["cv1"] < oos["cv0"]
+        passes += oos["p_value"] < 0.05
+        if seed < 20:
+            effect = np.cos(np.linspace(0, 23, N))
+            y_eff = y + 1.17 * effect  # RMS of the model without it: sqrt(1 + 1.17² / 2) ≈ 1.3
+            real = out_of_sample(NoiseModel(), *_nested_fits(y_eff, X0, effect), block=10, folds=5)
+            found += real["p_value"] < 1e-6
+    assert 25 <= drops <= 65, drops
+    assert passes <= 10, passes  # 5 % of 200 is 10; the test is conservative for nested models
+    assert found == 20
+
+
+def test_out_of_sample_test_refuses_a_gain_of_a_tenth_of_a_percent():
+    """rec12 (backlash, cycling) with the fast nominal fit: a Coulomb friction on top lowered the
+    cross-validated error by 0.07 %; a drop that small is one the noise makes."""
+    g = np.random.default_rng(5)
+    e = g.standard_normal(N)
+    tiny = 0.03 * np.sin(np.linspace(0, 40, N))  # |tiny|² / |e|² ≈ 0.05 %
+    r0 = e + tiny
+    J = np.zeros((N, 0))
+    oos = out_of_sample(NoiseModel(), r0, J, e, J)
+    assert oos["cv1"] < oos["cv0"] and oos["cv0"] / oos["cv1"] - 1 < 2e-3
+    assert oos["p_value"] > 0.05
+    same = out_of_sample(NoiseModel(), e, J, e, J)
+    assert (same["z"], same["p_value"]) == (0.0, 1.0)
 
 
 def test_every_fold_spans_the_record():

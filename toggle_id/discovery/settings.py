@@ -55,7 +55,9 @@ class DiscoverSettings:
     - noise_max_order: largest order of the AR noise model, its order chosen by BIC; every test is prewhitened
       by it (0: white noise assumed); cv_folds, cv_block: folds and block length (samples) of the time-block
       cross-validation an effect must lower the out-of-sample error of (short blocks: the whitened errors are
-      nearly independent, and long blocks would take a whole transient out); structure_bins: bins per signal of
+      nearly independent, and long blocks would take a whole transient out); cv_alpha: level of the one-sided
+      test the drop must pass against the noise's spread of it (:func:`.stats.out_of_sample`; 0.5: any drop, the
+      rule before 2026-12-03); structure_bins: bins per signal of
       the structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
       its score (global screening; false: only those whose score passes ``screen_alpha``); backward: drop,
       at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
@@ -177,6 +179,7 @@ class DiscoverSettings:
     noise_max_order: int = 8
     cv_folds: int = 5
     cv_block: int = 10
+    cv_alpha: float = 0.05
     structure_bins: int = 12
     scout_all: bool = True
     backward: bool = True
@@ -252,6 +255,9 @@ class DiscoverSettings:
             raise ConfigError(f"discover.noise_max_order must be a non-negative integer, got {self.noise_max_order!r}")
         if not isinstance(self.cv_folds, int) or isinstance(self.cv_folds, bool) or self.cv_folds < 2:
             raise ConfigError(f"discover.cv_folds must be an integer ≥ 2, got {self.cv_folds!r}")
+        if isinstance(self.cv_alpha, bool) or not isinstance(self.cv_alpha, (int, float)) \
+                or not 0.0 < float(self.cv_alpha) <= 0.5:
+            raise ConfigError(f"discover.cv_alpha must lie in (0, 0.5], got {self.cv_alpha!r}")
         if isinstance(self.unconverged_share, bool) or not isinstance(self.unconverged_share, (int, float)) \
                 or not 0.0 <= self.unconverged_share < 1.0:
             raise ConfigError(f"discover.unconverged_share must lie in [0, 1), got {self.unconverged_share!r}")

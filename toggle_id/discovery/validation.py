@@ -1,6 +1,6 @@
 """Whether a refitted effect is supported: in sample (prewhitened F-test, its heteroscedasticity-robust twin and
-BIC), out of sample (time-block cross-validation, and a second record when the user gives one), and after the others
-(backward elimination).
+BIC), out of sample (time-block cross-validation, lower by more than the noise would make it, and a second
+record when the user gives one), and after the others (backward elimination).
 
 The loop fits by ordinary least squares, or the prediction-error way under the AR model of its current residual
 (``discover.prediction_error``). A comparison (:meth:`Judge.judge_pair`) takes its noise model from
@@ -36,7 +36,7 @@ from .model import Fit, Model, _with, fit_free
 from .noise import NoiseModel, fit_noise
 from .residual import leave_out_glitches
 from .settings import DiscoverSettings
-from .stats import block_cv, compare, f_test, robust_f
+from .stats import compare, f_test, out_of_sample, robust_f
 
 
 @dataclass
@@ -58,6 +58,9 @@ class Evidence:
     F_robust: float = float("nan")
     p_robust: float = float("nan")
     hc_ratio: float = 1.0
+    #: the out-of-sample gain against the noise's spread of it and its one-sided p-value (:func:`.stats.out_of_sample`)
+    cv_z: float = float("nan")
+    cv_p: float = float("nan")
     checks: dict = field(default_factory=dict)
 
     @property
@@ -73,7 +76,8 @@ class Evidence:
                  "robust_f_test": "not significant once the noise's level is let vary along the record "
                                   "(heteroscedasticity-robust F-test)",
                  "bic": "BIC does not improve",
-                 "cross_validation": "no better out of sample (time-block cross-validation)",
+                 "cross_validation": "no better out of sample than the noise makes a fit "
+                                     "(time-block cross-validation)",
                  "validation_record": "does not predict the validation record better",
                  "identifiable": "a new parameter is not identifiable (|correlation| > max_corr)",
                  "reported_fits": "the loop's own fit, whose parameters are reported, does not lower its error "
@@ -86,7 +90,7 @@ class Evidence:
         return {"noise_model": self.noise.to_dict(), "F": self.F, "p_value": self.p_value,
                 "delta_bic": self.delta_bic, "F_robust": self.F_robust, "p_value_robust": self.p_robust,
                 "hc_ratio": self.hc_ratio, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
-                "cv_sse_w_before": self.cv0, "cv_sse_w_after": self.cv1,
+                "cv_sse_w_before": self.cv0, "cv_sse_w_after": self.cv1, "cv_z": self.cv_z, "cv_p_value": self.cv_p,
                 "validation_sse_before_m2": self.validation0, "validation_sse_after_m2": self.validation1,
                 "checks": dict(self.checks), "passed": self.passed, "reason": self.reason}
 
@@ -196,14 +200,14 @@ class Judge:
                             checks={"f_test": False})
         noise = self.model.noise if noise is None else noise
         c = compare(noise, r0, r1, k, len(large.free))
-        cv0 = block_cv(noise, r0, J0, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
-        cv1 = block_cv(noise, r1, J1, self.s.cv_block, self.s.cv_folds)["cv_sse_w"]
+        oos = out_of_sample(noise, r0, J0, r1, J1, self.s.cv_block, self.s.cv_folds)
         new = [j for j, nm in enumerate(large.free) if nm not in set(small.free)]
         rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1)
-        ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], cv0, cv1, c["sse0_w"], c["sse1_w"],
-                      F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"])
+        ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], oos["cv0"], oos["cv1"], c["sse0_w"], c["sse1_w"],
+                      F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"], cv_z=oos["z"],
+                      cv_p=oos["p_value"])
         ev.checks = {"f_test": c["p_value"] < self.s.alpha, "robust_f_test": rob["p_value"] < self.s.alpha,
-                     "bic": c["delta_bic"] < 0, "cross_validation": cv1 < cv0}
+                     "bic": c["delta_bic"] < 0, "cross_validation": oos["p_value"] < self.s.cv_alpha}
         if self.validation is not None:
             ev.validation0, ev.validation1 = self.validation_sse(small), self.validation_sse(large)
             ev.checks["validation_record"] = bool(ev.validation1 < ev.validation0)

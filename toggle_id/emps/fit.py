@@ -19,7 +19,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from ..discovery.noise import NoiseModel, fit_noise
-from ..discovery.stats import block_cv, compare, robust_f
+from ..discovery.stats import compare, out_of_sample, robust_f
 from ..discovery.validation import Evidence, in_sample_summary
 from ..errors import ConfigError
 from .data import EmpsRecord
@@ -225,7 +225,8 @@ def new_params_corr(small: OEFitResult, large: OEFitResult) -> float:
 
 
 def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01, max_corr: float = 0.99,
-                 noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5) -> Evidence:
+                 noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
+                 cv_alpha: float = 0.05) -> Evidence:
     """The case for ``large`` (the free parameters of ``small`` plus new ones, the new ones last) against ``small``:
     the discovery engine's :class:`~toggle_id.discovery.validation.Evidence`, by the rule of the toggle plant's
     :class:`~toggle_id.discovery.validation.Judge` plus an identifiability gate.
@@ -238,7 +239,8 @@ def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01,
     refitted under a coloured noise model first (each costs a closed-loop fit); they are compared as fitted.
     ``Evidence.checks``: ``f_test`` (p < ``alpha``), ``robust_f_test`` (the same for the F statistic corrected for a
     noise level that varies, :func:`~toggle_id.discovery.stats.robust_f`), ``bic`` (ΔBIC < 0), ``cross_validation``
-    (the cross-validated whitened SSE drops) and ``identifiable`` (each new parameter's |correlation| with the
+    (the cross-validated whitened SSE drops by more than the noise would make it, at ``cv_alpha``:
+    :func:`~toggle_id.discovery.stats.out_of_sample`) and ``identifiable`` (each new parameter's |correlation| with the
     others ≤ ``max_corr``, :func:`new_params_corr`); ``Evidence.passed`` when all hold, ``Evidence.reason`` says
     which fail.
     """
@@ -254,13 +256,15 @@ def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01,
         return ev
     noise = fit_noise(r1, noise_max_order)
     c = compare(noise, r0, r1, k, k1)
-    cv0 = float(block_cv(noise, r0, small.jacobian, cv_block, cv_folds)["cv_sse_w"])
-    cv1 = float(block_cv(noise, r1, large.jacobian, cv_block, cv_folds)["cv_sse_w"])
+    oos = out_of_sample(noise, r0, small.jacobian, r1, large.jacobian, cv_block, cv_folds)
+    cv0, cv1 = float(oos["cv0"]), float(oos["cv1"])
     rob = robust_f(float(c["F"]), noise, r1, large.jacobian, list(range(k0, k1)), change=r0 - r1)
     ev = Evidence(noise, float(c["F"]), float(c["p_value"]), float(c["delta_bic"]), cv0, cv1, float(c["sse0_w"]),
-                  float(c["sse1_w"]), F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"])
+                  float(c["sse1_w"]), F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"],
+                  cv_z=oos["z"], cv_p=oos["p_value"])
     ev.checks = {"f_test": bool(ev.p_value < alpha), "robust_f_test": bool(ev.p_robust < alpha),
-                 "bic": bool(ev.delta_bic < 0), "cross_validation": bool(cv1 < cv0), "identifiable": identifiable}
+                 "bic": bool(ev.delta_bic < 0), "cross_validation": bool(oos["p_value"] < cv_alpha),
+                 "identifiable": identifiable}
     return ev
 
 

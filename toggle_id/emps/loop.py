@@ -311,7 +311,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
                   max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
                   reference_fit: bool = True, noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
-                  structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
+                  cv_alpha: float = 0.05, structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
                   explain_fraction: float = 0.5, ambiguity_alpha: float = 0.05, glitch_k: float = 8.0,
                   sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
@@ -321,7 +321,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     :func:`judge_effect` (the discovery engine's :class:`~toggle_id.discovery.validation.Evidence`: AR(p ≤
     ``noise_max_order``) noise model of the refit's residual; prewhitened F-test p < ``alpha``, prewhitened
     ΔBIC < 0, a lower time-block cross-validated whitened SSE with blocks of ``cv_block`` samples dealt to
-    ``cv_folds`` folds, and every new parameter identifiable: |correlation| with each other free parameter ≤
+    ``cv_folds`` folds (lower by more than the noise would make it, at ``cv_alpha``), and every new parameter
+    identifiable: |correlation| with each other free parameter ≤
     ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at standstill). Of the candidates that
     pass, the one with the lowest prewhitened SSE is accepted, the round's residuals all whitened by one noise
     model (:func:`_rank_passing`); the loop stops when none passes. Before the loop, the nominal fit's residual is
@@ -352,7 +353,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     - ``validation`` (if given): the held-out record predicted by the final, published and reference models
       (:func:`predict_validation`; nothing is fitted on it);
     - ``glitches``: {record, count, indices, times_s, residual_m, ...} of the look (None when ``glitch_k`` is 0);
-    - ``seconds``, ``n_samples``, ``alpha``, ``max_corr``, ``noise_max_order``, ``cv_block``, ``cv_folds``,
+    - ``seconds``, ``n_samples``, ``alpha``, ``max_corr``, ``noise_max_order``, ``cv_block``, ``cv_folds``, ``cv_alpha``,
       ``structure_bins``, ``structure_alpha``, ``solver``.
     """
     t0 = time.perf_counter()
@@ -368,6 +369,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         raise ConfigError(f"explain_fraction must lie in (0, 1), got {explain_fraction}")
     if not (0 <= ambiguity_alpha < 1):
         raise ConfigError(f"ambiguity_alpha must lie in [0, 1), got {ambiguity_alpha}")
+    if isinstance(cv_alpha, bool) or not (0 < cv_alpha <= 0.5):
+        raise ConfigError(f"cv_alpha must lie in (0, 0.5], got {cv_alpha!r}")
     if isinstance(glitch_k, bool) or not (np.isfinite(glitch_k) and glitch_k >= 0):
         raise ConfigError(f"glitch_k must be a finite number >= 0, got {glitch_k!r}")
     if not (0 < max_corr <= 1):
@@ -380,7 +383,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     n = record.n
     fit_kw = dict(max_nfev=max_nfev, solver=solver, sim_options=sim_options)
     judge_kw = {"alpha": alpha, "max_corr": max_corr, "noise_max_order": int(noise_max_order),
-                "cv_block": int(cv_block), "cv_folds": int(cv_folds)}
+                "cv_block": int(cv_block), "cv_folds": int(cv_folds), "cv_alpha": float(cv_alpha)}
 
     # nominal model: IDIM-LS (M, Fv only) start, then output error
     theta = OFF.copy()
@@ -450,6 +453,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "noise_max_order": int(noise_max_order),
         "cv_block": int(cv_block),
         "cv_folds": int(cv_folds),
+        "cv_alpha": float(cv_alpha),
         "structure_bins": int(structure_bins),
         "structure_alpha": float(structure_alpha),
         "solver": solver,

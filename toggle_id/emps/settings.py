@@ -30,13 +30,16 @@ class EmpsSettings:
     candidates: list[str] | None = None  # effects to try, None: all of toggle_id.emps.EFFECTS
     #                               (coulomb_friction, offset, stribeck_friction, asymmetric_friction)
     alpha: float = 0.01           # level of the prewhitened F-test an added effect must pass; it must also lower the
-    #                               prewhitened BIC and the cross-validated whitened SSE (as the toggle plant's effects)
+    #                               prewhitened BIC and, significantly (cv_alpha), the cross-validated whitened SSE
+    #                               (as the toggle plant's effects)
     max_effects: int | None = None  # None: no limit on the number of effects added
     max_corr: float = 0.99        # largest |correlation| of a new parameter with the others (identifiability gate)
     noise_max_order: int = 8      # largest order of the AR noise model fitted (Yule-Walker, order by BIC) to the
     #                               larger model's residual of each comparison; 0: white noise assumed
     cv_block: int = 100           # samples per block of the time-block cross-validation (100 ms at 1 kHz)
     cv_folds: int = 5             # folds the blocks are dealt to in turn
+    cv_alpha: float = 0.05        # level of the one-sided test the drop of the cross-validated SSE must pass
+    #                               against the noise's spread of it (0.5: any drop; discovery.stats.out_of_sample)
     structure_bins: int = 12      # bins per signal of the structure test of the final position residual (position,
     #                               position signed by the direction of motion and velocity tested; drive force,
     #                               controller output and time shown; toggle_id.discovery.localise)
