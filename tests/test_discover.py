@@ -1332,3 +1332,54 @@ def test_the_judge_wants_a_significant_out_of_sample_gain():
     for bad in (0.0, 0.6, True, "x"):
         with pytest.raises(ConfigError, match="discover.cv_alpha"):
             D.DiscoverSettings(cv_alpha=bad).validate()
+
+
+def test_a_forward_step_judges_its_best_candidate_at_alpha_over_their_number():
+    """``discover.bonferroni``: the forward step picks the best of the m candidates it has left, so the judge's
+    F-tests are at alpha / m (:attr:`~toggle_id.discovery.validation.Judge.level`). rec12 (backlash, cycling, the
+    fast nominal fit): a Coulomb friction on top at p 5.2e-4, the best of nine, passed alpha = 1e-3."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.noise import NoiseModel
+    from toggle_id.discovery.validation import Judge
+
+    n = 5001
+    rng = np.random.default_rng(8)
+    e = rng.standard_normal(n) * 1e-6
+    small = Fit(np.zeros(3), ("J_m",), 0.0)
+    large = Fit(np.ones(3), ("J_m", "tau_c"), 0.0)
+    wave = np.sin(np.linspace(0, 40, n))
+    wave -= (wave @ e) / (e @ e) * e
+    r0 = e + np.sqrt(13.0 / (wave @ wave)) * 1e-6 * wave  # in-sample gain 13 σ²: F ≈ 13, p ≈ 3e-4
+    judge = Judge(SimpleNamespace(noise=NoiseModel(), n=n), D.DiscoverSettings().validate())
+    judge._cache[judge._key(small)] = (r0, np.zeros((n, 1)))
+    judge._cache[judge._key(large)] = (e, np.zeros((n, 2)))
+    alone = judge.evidence(small, large, NoiseModel())
+    assert 1e-4 < alone.p_value < 1e-3 and alone.checks["f_test"] and judge.level == 1e-3
+    judge.family = 10
+    assert judge.level == pytest.approx(1e-4)
+    among_ten = judge.evidence(small, large, NoiseModel())
+    assert among_ten.p_value == alone.p_value and not among_ten.checks["f_test"]
+    assert not among_ten.passed and "F-test not significant" in among_ten.reason
+    with pytest.raises(ConfigError, match="discover.bonferroni"):
+        D.DiscoverSettings(bonferroni="yes").validate()
+    from toggle_id.discovery import toggle_plant as TP
+
+    seen = []
+
+    def fake_iteration(model, referee, *a, **k):
+        seen.append(referee.family)
+        raise RuntimeError("stop")
+
+    plant = object.__new__(TP.TogglePlant)
+    plant.model, plant.fit_noise, plant.referee = SimpleNamespace(n=n, noise=None), None, judge
+    plant.pool = [EFFECTS_BY_NAME[nm] for nm in ("backlash", "dead_time", "sensor_offset")]
+    plant.anchor, plant.free, plant.held, plant.say, plant.on_refit = None, (), (), print, None
+    for bonferroni, family in ((True, 2), (False, 1)):
+        plant.s = D.DiscoverSettings(bonferroni=bonferroni).validate()
+        judge.family = 1
+        with pytest.MonkeyPatch.context() as mp, pytest.raises(RuntimeError, match="stop"):
+            mp.setattr(TP, "_iteration", fake_iteration)
+            plant.forward_step(large, [{"name": "backlash"}], 2)
+        assert seen[-1] == family and judge.family == 1  # two left; reset after the step, whatever happened

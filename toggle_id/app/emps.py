@@ -73,6 +73,7 @@ class EmpsJobSettings:
     cv_block: int
     cv_folds: int
     cv_alpha: float
+    bonferroni: bool
     solver: str
     max_nfev: int
     reference_fit: bool
@@ -176,6 +177,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
     cv_folds = _number("emps.cv_folds", node["cv_folds"], integer=True)
     if cv_folds < 2:
         raise ConfigError(f"emps.cv_folds must be >= 2, got {cv_folds}")
+    if not isinstance(node["bonferroni"], bool):
+        raise ConfigError(f"emps.bonferroni must be true or false, got {node['bonferroni']!r}")
     cv_alpha = _number("emps.cv_alpha", node["cv_alpha"])
     if not 0 < cv_alpha <= 0.5:
         raise ConfigError(f"emps.cv_alpha must lie in (0, 0.5], got {cv_alpha}")
@@ -219,7 +222,8 @@ def emps_settings(cfg: Mapping, project_root: str | Path = ".") -> EmpsJobSettin
         raise ConfigError(f"tracking must be a mapping, got {tracking!r}")
     return EmpsJobSettings(path=path, data_dir=data_dir, validate=node["validate"], samples=samples, candidates=tuple(cands), alpha=alpha,
                            max_effects=max_effects, max_corr=max_corr, noise_max_order=noise_max_order,
-                           cv_block=cv_block, cv_folds=cv_folds, cv_alpha=cv_alpha, solver=node["solver"], max_nfev=max_nfev,
+                           cv_block=cv_block, cv_folds=cv_folds, cv_alpha=cv_alpha,
+                           bonferroni=node["bonferroni"], solver=node["solver"], max_nfev=max_nfev,
                            reference_fit=bool(node["reference_fit"]), sim=sim_opts, validation_path=vpath,
                            identifiability=bool(get(cfg, "identifiability.enabled", True)), noise_std_m=noise,
                            structure_bins=structure_bins, structure_alpha=structure_alpha,
@@ -411,7 +415,8 @@ def run_emps(cfg: Mapping, run_dir: str | Path, project_root: str | Path = ".",
         report = run_emps_loop(record, validation, candidates=st.candidates, alpha=st.alpha, max_nfev=st.max_nfev,
                                max_effects=st.max_effects, max_corr=st.max_corr, solver=st.solver,
                                reference_fit=st.reference_fit, noise_max_order=st.noise_max_order,
-                               cv_block=st.cv_block, cv_folds=st.cv_folds, cv_alpha=st.cv_alpha, structure_bins=st.structure_bins,
+                               cv_block=st.cv_block, cv_folds=st.cv_folds, cv_alpha=st.cv_alpha,
+                               bonferroni=st.bonferroni, structure_bins=st.structure_bins,
                                structure_alpha=st.structure_alpha, backward=st.backward,
                                explain_fraction=st.explain_fraction, ambiguity_alpha=st.ambiguity_alpha,
                                glitch_k=st.glitch_k, sim_options=st.sim)

@@ -56,8 +56,10 @@ class DiscoverSettings:
       by it (0: white noise assumed); cv_folds, cv_block: folds and block length (samples) of the time-block
       cross-validation an effect must lower the out-of-sample error of (short blocks: the whitened errors are
       nearly independent, and long blocks would take a whole transient out); cv_alpha: level of the one-sided
-      test the drop must pass against the noise's spread of it (:func:`.stats.out_of_sample`; 0.5: any drop, the
-      rule before 2026-12-03); structure_bins: bins per signal of
+      test the drop must pass against the noise's spread of it (:func:`.stats.out_of_sample`; 0.5, the default:
+      any drop — 0.05 refused rec06's true Coulomb friction, F 72, z 1.2); bonferroni: a forward step chooses among
+      the m candidates it has left, so its judge's F-tests are at ``alpha``/m (false: at ``alpha``, as before
+      2026-12-03); structure_bins: bins per signal of
       the structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
       its score (global screening; false: only those whose score passes ``screen_alpha``); backward: drop,
       at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
@@ -179,7 +181,8 @@ class DiscoverSettings:
     noise_max_order: int = 8
     cv_folds: int = 5
     cv_block: int = 10
-    cv_alpha: float = 0.05
+    cv_alpha: float = 0.5
+    bonferroni: bool = True
     structure_bins: int = 12
     scout_all: bool = True
     backward: bool = True
@@ -242,7 +245,7 @@ class DiscoverSettings:
                 raise ConfigError(f"discover.{name} must lie in (0, 1), got {v!r}")
         if isinstance(self.glitch_k, bool) or not isinstance(self.glitch_k, (int, float)) or not self.glitch_k >= 0:
             raise ConfigError(f"discover.glitch_k must be a number ≥ 0 (0: off), got {self.glitch_k!r}")
-        for name in ("robust_structure", "encompassing", "prediction_error", "beside_generic"):
+        for name in ("robust_structure", "encompassing", "prediction_error", "beside_generic", "bonferroni"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.derivatives not in DERIVATIVES:

@@ -113,9 +113,15 @@ class TogglePlant:
     def forward_step(self, current: Fit, added: Sequence[dict], iteration: int) -> Step:
         n = self.model.n
         self._fitting()
-        step = _iteration(self.model, self.referee, current, self.anchor, self.free, self.remaining(added), self.s,
-                          iteration, self.held, self.say, self.on_refit, self.missing_kinds,
-                          self._beside if self.s.beside_generic else None)
+        remaining = self.remaining(added)
+        # the step picks the best of the candidates left: its F-tests at alpha over their number (Bonferroni)
+        self.referee.family = len(remaining) if self.s.bonferroni else 1
+        try:
+            step = _iteration(self.model, self.referee, current, self.anchor, self.free, remaining, self.s,
+                              iteration, self.held, self.say, self.on_refit, self.missing_kinds,
+                              self._beside if self.s.beside_generic else None)
+        finally:
+            self.referee.family = 1
         self.all_refits.extend(step["refits"])
         if self.first_scores is None:
             self.first_scores = step["scores"]

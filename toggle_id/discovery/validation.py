@@ -76,8 +76,7 @@ class Evidence:
                  "robust_f_test": "not significant once the noise's level is let vary along the record "
                                   "(heteroscedasticity-robust F-test)",
                  "bic": "BIC does not improve",
-                 "cross_validation": "no better out of sample than the noise makes a fit "
-                                     "(time-block cross-validation)",
+                 "cross_validation": "no better out of sample (time-block cross-validation)",
                  "validation_record": "does not predict the validation record better",
                  "identifiable": "a new parameter is not identifiable (|correlation| > max_corr)",
                  "reported_fits": "the loop's own fit, whose parameters are reported, does not lower its error "
@@ -105,9 +104,17 @@ class Judge:
         self.validation = Model(validation, model.settings, model.parallel) if validation is not None else None
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
         self._val: dict[bytes, float] = {}
+        #: how many candidates the comparison being judged was chosen among (:attr:`level`; set by the forward step)
+        self.family = 1
         #: the glitches of the measurement left out of both records (:func:`.residual.leave_out_glitches`; None:
         #: not looked for yet)
         self.glitches: list[dict] | None = None
+
+    @property
+    def level(self) -> float:
+        """The F-tests' level: ``alpha`` over the :attr:`family` of candidates a forward step chooses among
+        (Bonferroni: the best of m chance gains passes a test at ``alpha`` about m times as often)."""
+        return self.s.alpha / max(int(self.family), 1)
 
     def leave_out_glitches(self, theta: np.ndarray) -> bool:
         """Look once for glitches of the measurement in the residuals of ``theta`` on the record and the validation
@@ -186,7 +193,7 @@ class Judge:
     def _reported_gain(self, small: Fit, large: Fit) -> bool:
         """The F-test of the loop's own two fits, on their SSEs as they were minimised (:func:`_loop_sse`)."""
         return bool(f_test(*_loop_sse(small, large), len(large.free) - len(small.free), self.model.n,
-                           len(large.free))[1] < self.s.alpha)
+                           len(large.free))[1] < self.level)
 
     def evidence(self, small: Fit, large: Fit, noise: NoiseModel | None = None) -> Evidence:
         """The case for ``large`` (more free parameters) against ``small``, both fitted under ``noise``
@@ -206,7 +213,7 @@ class Judge:
         ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], oos["cv0"], oos["cv1"], c["sse0_w"], c["sse1_w"],
                       F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"], cv_z=oos["z"],
                       cv_p=oos["p_value"])
-        ev.checks = {"f_test": c["p_value"] < self.s.alpha, "robust_f_test": rob["p_value"] < self.s.alpha,
+        ev.checks = {"f_test": c["p_value"] < self.level, "robust_f_test": rob["p_value"] < self.level,
                      "bic": c["delta_bic"] < 0, "cross_validation": oos["p_value"] < self.s.cv_alpha}
         if self.validation is not None:
             ev.validation0, ev.validation1 = self.validation_sse(small), self.validation_sse(large)

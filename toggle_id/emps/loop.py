@@ -190,8 +190,10 @@ class EmpsPlant:
     has_validation = False
 
     def __init__(self, record: EmpsRecord, names: Sequence[str], nominal: OEFitResult, fit_kw: Mapping,
-                 judge_kw: Mapping, sim_kw: Mapping, bins: int, alpha: float, ambiguity_alpha: float) -> None:
+                 judge_kw: Mapping, sim_kw: Mapping, bins: int, alpha: float, ambiguity_alpha: float,
+                 bonferroni: bool = True) -> None:
         self.record, self.names, self.nominal = record, list(names), nominal
+        self.bonferroni = bonferroni
         self.fit_kw, self.judge_kw, self.sim_kw, self.bins, self.alpha = fit_kw, judge_kw, sim_kw, bins, alpha
         self.ambiguity_alpha, self.free, self.tried = ambiguity_alpha, list(nominal.free), []
         self.evidence: dict[int, Evidence] = {}  # id(entry of ``tried``) → its Evidence
@@ -212,15 +214,16 @@ class EmpsPlant:
         in_model = [a["name"] for a in added]
         n, noise_max_order = self.record.n, int(self.judge_kw["noise_max_order"])
         refits: list[tuple[dict, OEFitResult, Effect]] = []
-        for name in self.remaining(added):
+        eligible = [nm for nm in self.remaining(added) if all(req in in_model for req in EFFECTS[nm].requires)]
+        # the round picks the best of its candidates: their F-tests at alpha over their number (Bonferroni)
+        kw = {**self.judge_kw, "alpha": self.judge_kw["alpha"] / (len(eligible) if self.bonferroni else 1)}
+        for name in eligible:
             eff = EFFECTS[name]
-            if any(req not in in_model for req in eff.requires):
-                continue
             th = current.theta.copy()
             for p, d in zip(eff.params, eff.default):
                 th[INDEX[p]] = d
             fit = fit_output_error(self.record, self.free + list(eff.params), th, **self.fit_kw)
-            ev = judge_effect(current, fit, **self.judge_kw)
+            ev = judge_effect(current, fit, **kw)
             entry = {"round": rnd, "name": name,
                      **evidence_entry(ev, n, new_params_corr(current, fit), self.judge_kw["cv_block"],
                                       self.judge_kw["cv_folds"]),
@@ -311,7 +314,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
                   max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
                   reference_fit: bool = True, noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
-                  cv_alpha: float = 0.05, structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
+                  cv_alpha: float = 0.5, bonferroni: bool = True, structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
                   explain_fraction: float = 0.5, ambiguity_alpha: float = 0.05, glitch_k: float = 8.0,
                   sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
@@ -321,9 +324,10 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     :func:`judge_effect` (the discovery engine's :class:`~toggle_id.discovery.validation.Evidence`: AR(p ≤
     ``noise_max_order``) noise model of the refit's residual; prewhitened F-test p < ``alpha``, prewhitened
     ΔBIC < 0, a lower time-block cross-validated whitened SSE with blocks of ``cv_block`` samples dealt to
-    ``cv_folds`` folds (lower by more than the noise would make it, at ``cv_alpha``), and every new parameter
+    ``cv_folds`` folds (lower by more than the noise would make it, at ``cv_alpha``; 0.5: any drop), and every new parameter
     identifiable: |correlation| with each other free parameter ≤
-    ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at standstill). Of the candidates that
+    ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at standstill); with ``bonferroni`` the
+    F-tests of a round are at ``alpha`` over the number of candidates it refits. Of the candidates that
     pass, the one with the lowest prewhitened SSE is accepted, the round's residuals all whitened by one noise
     model (:func:`_rank_passing`); the loop stops when none passes. Before the loop, the nominal fit's residual is
     looked at for glitches of the measurement (:func:`toggle_id.residuals.glitches` at ``glitch_k`` robust σ; 0:
@@ -384,6 +388,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     fit_kw = dict(max_nfev=max_nfev, solver=solver, sim_options=sim_options)
     judge_kw = {"alpha": alpha, "max_corr": max_corr, "noise_max_order": int(noise_max_order),
                 "cv_block": int(cv_block), "cv_folds": int(cv_folds), "cv_alpha": float(cv_alpha)}
+    if not isinstance(bonferroni, bool):
+        raise ConfigError(f"bonferroni must be true or false, got {bonferroni!r}")
 
     # nominal model: IDIM-LS (M, Fv only) start, then output error
     theta = OFF.copy()
@@ -407,7 +413,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
 
     sim_kw = dict(sim_options or {})
     plant = EmpsPlant(record, names, current, fit_kw, judge_kw, sim_kw, structure_bins, structure_alpha,
-                      ambiguity_alpha)
+                      ambiguity_alpha, bonferroni)
     out = run_loop(plant, max_effects=max_effects, backward=backward, ambiguity_alpha=ambiguity_alpha,
                    explain_fraction=explain_fraction, noise_max_order=int(noise_max_order))
     _, compensating, rejected = three_lists(names, plant.tried, plant.evidence, max_effects)
@@ -454,6 +460,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "cv_block": int(cv_block),
         "cv_folds": int(cv_folds),
         "cv_alpha": float(cv_alpha),
+        "bonferroni": bonferroni,
         "structure_bins": int(structure_bins),
         "structure_alpha": float(structure_alpha),
         "solver": solver,

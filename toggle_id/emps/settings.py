@@ -38,8 +38,9 @@ class EmpsSettings:
     #                               larger model's residual of each comparison; 0: white noise assumed
     cv_block: int = 100           # samples per block of the time-block cross-validation (100 ms at 1 kHz)
     cv_folds: int = 5             # folds the blocks are dealt to in turn
-    cv_alpha: float = 0.05        # level of the one-sided test the drop of the cross-validated SSE must pass
+    cv_alpha: float = 0.5         # level of the one-sided test the drop of the cross-validated SSE must pass
     #                               against the noise's spread of it (0.5: any drop; discovery.stats.out_of_sample)
+    bonferroni: bool = True       # a round chooses among the m candidates it refits: their F-tests at alpha / m
     structure_bins: int = 12      # bins per signal of the structure test of the final position residual (position,
     #                               position signed by the direction of motion and velocity tested; drive force,
     #                               controller output and time shown; toggle_id.discovery.localise)
