@@ -94,8 +94,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, "
             f"p {rf.p_value:.3g}{robust}, ΔBIC {rf.delta_bic:.4g}, "
             f"out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
-            f"{ev.get('cv_sse_w_after', np.nan):.4g} (z {ev.get('cv_z', np.nan):.3g}) → {'accepted' if rf.accepted else 'rejected: ' + rf.reason} "
-            f"({rf.seconds:.1f} s)")
+            f"{ev.get('cv_sse_w_after', np.nan):.4g} (z {ev.get('cv_z', np.nan):.3g}) → "
+            f"{'accepted' if rf.accepted else 'rejected: ' + rf.reason} ({rf.seconds:.1f} s)")
         refits.append(rf)
         if on_refit is not None:
             on_refit(rf)

@@ -1,6 +1,7 @@
 """Whether a refitted effect is supported: in sample (prewhitened F-test, its heteroscedasticity-robust twin and
-BIC), out of sample (time-block cross-validation, lower by more than the noise would make it, and a second
-record when the user gives one), and after the others (backward elimination).
+BIC, at ``alpha`` over the number of candidates a forward step chooses among), out of sample (time-block
+cross-validation — by more than the noise would make it at ``cv_alpha`` < 0.5 — and a second record when the user
+gives one), and after the others (backward elimination).
 
 The loop fits by ordinary least squares, or the prediction-error way under the AR model of its current residual
 (``discover.prediction_error``). A comparison (:meth:`Judge.judge_pair`) takes its noise model from

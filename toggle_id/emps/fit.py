@@ -13,7 +13,7 @@ identifiability gate; the greedy loop that uses it is :func:`toggle_id.emps.loop
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -224,9 +224,18 @@ def new_params_corr(small: OEFitResult, large: OEFitResult) -> float:
     return max_abs_corr(large.corr, range(len(small.free), len(large.free)))
 
 
+def effect_last(fit: OEFitResult, params: Sequence[str]) -> OEFitResult:
+    """``fit`` with its free parameters reordered so that ``params`` come last (as :func:`judge_effect` expects of
+    the larger model: its new parameters last)."""
+    order = [i for i, p in enumerate(fit.free) if p not in params] + [i for i, p in enumerate(fit.free) if p in params]
+    corr = None if fit.corr is None else fit.corr[np.ix_(order, order)]
+    jac = None if fit.jacobian is None else fit.jacobian[:, order]
+    return replace(fit, free=tuple(fit.free[i] for i in order), corr=corr, jacobian=jac)
+
+
 def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01, max_corr: float = 0.99,
                  noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
-                 cv_alpha: float = 0.05) -> Evidence:
+                 cv_alpha: float = 0.5) -> Evidence:
     """The case for ``large`` (the free parameters of ``small`` plus new ones, the new ones last) against ``small``:
     the discovery engine's :class:`~toggle_id.discovery.validation.Evidence`, by the rule of the toggle plant's
     :class:`~toggle_id.discovery.validation.Judge` plus an identifiability gate.
@@ -239,8 +248,8 @@ def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01,
     refitted under a coloured noise model first (each costs a closed-loop fit); they are compared as fitted.
     ``Evidence.checks``: ``f_test`` (p < ``alpha``), ``robust_f_test`` (the same for the F statistic corrected for a
     noise level that varies, :func:`~toggle_id.discovery.stats.robust_f`), ``bic`` (ΔBIC < 0), ``cross_validation``
-    (the cross-validated whitened SSE drops by more than the noise would make it, at ``cv_alpha``:
-    :func:`~toggle_id.discovery.stats.out_of_sample`) and ``identifiable`` (each new parameter's |correlation| with the
+    (the cross-validated whitened SSE drops; below 0.5, ``cv_alpha`` asks it to drop by more than the noise would
+    make it: :func:`~toggle_id.discovery.stats.out_of_sample`) and ``identifiable`` (each new parameter's |correlation| with the
     others ≤ ``max_corr``, :func:`new_params_corr`); ``Evidence.passed`` when all hold, ``Evidence.reason`` says
     which fail.
     """

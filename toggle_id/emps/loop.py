@@ -44,6 +44,7 @@ from .fit import (
     OEFitResult,
     _check_solver,
     _compare_published,
+    effect_last,
     evidence_entry,
     fit_output_error,
     judge_effect,
@@ -192,8 +193,7 @@ class EmpsPlant:
     def __init__(self, record: EmpsRecord, names: Sequence[str], nominal: OEFitResult, fit_kw: Mapping,
                  judge_kw: Mapping, sim_kw: Mapping, bins: int, alpha: float, ambiguity_alpha: float,
                  bonferroni: bool = True) -> None:
-        self.record, self.names, self.nominal = record, list(names), nominal
-        self.bonferroni = bonferroni
+        self.record, self.names, self.nominal, self.bonferroni = record, list(names), nominal, bonferroni
         self.fit_kw, self.judge_kw, self.sim_kw, self.bins, self.alpha = fit_kw, judge_kw, sim_kw, bins, alpha
         self.ambiguity_alpha, self.free, self.tried = ambiguity_alpha, list(nominal.free), []
         self.evidence: dict[int, Evidence] = {}  # id(entry of ``tried``) → its Evidence
@@ -216,7 +216,7 @@ class EmpsPlant:
         refits: list[tuple[dict, OEFitResult, Effect]] = []
         eligible = [nm for nm in self.remaining(added) if all(req in in_model for req in EFFECTS[nm].requires)]
         # the round picks the best of its candidates: their F-tests at alpha over their number (Bonferroni)
-        kw = {**self.judge_kw, "alpha": self.judge_kw["alpha"] / (len(eligible) if self.bonferroni else 1)}
+        kw = {**self.judge_kw, "alpha": self.judge_kw["alpha"] / (max(len(eligible), 1) if self.bonferroni else 1)}
         for name in eligible:
             eff = EFFECTS[name]
             th = current.theta.copy()
@@ -262,7 +262,7 @@ class EmpsPlant:
         return _without(self.record, current, a and a["name"], self.fit_kw, rival)
 
     def judge(self, small: OEFitResult, large: OEFitResult) -> Evidence:
-        return judge_effect(small, _effect_last(large, [p for p in large.free if p not in small.free]),
+        return judge_effect(small, effect_last(large, [p for p in large.free if p not in small.free]),
                             **self.judge_kw)
 
     def residual(self, fit: OEFitResult) -> np.ndarray:
@@ -314,7 +314,8 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
                   candidates: Sequence[str] | None = None, alpha: float = 0.01, max_nfev: int = 50,
                   max_effects: int | None = None, max_corr: float = 0.99, solver: str = "polish",
                   reference_fit: bool = True, noise_max_order: int = 8, cv_block: int = 100, cv_folds: int = 5,
-                  cv_alpha: float = 0.5, bonferroni: bool = True, structure_bins: int = 12, structure_alpha: float = 0.01, backward: bool = True,
+                  cv_alpha: float = 0.5, bonferroni: bool = True, structure_bins: int = 12,
+                  structure_alpha: float = 0.01, backward: bool = True,
                   explain_fraction: float = 0.5, ambiguity_alpha: float = 0.05, glitch_k: float = 8.0,
                   sim_options: Mapping | None = None) -> dict:
     """Nominal output-error fit, then greedy effect discovery; returns a plain (JSON-serialisable) dict report.
@@ -322,19 +323,18 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     Each round refits all parameters of the current model plus one candidate (from its registry default) for every
     remaining candidate whose ``requires`` are in the model, and judges each refit against the current model with
     :func:`judge_effect` (the discovery engine's :class:`~toggle_id.discovery.validation.Evidence`: AR(p ≤
-    ``noise_max_order``) noise model of the refit's residual; prewhitened F-test p < ``alpha``, prewhitened
-    ΔBIC < 0, a lower time-block cross-validated whitened SSE with blocks of ``cv_block`` samples dealt to
-    ``cv_folds`` folds (lower by more than the noise would make it, at ``cv_alpha``; 0.5: any drop), and every new parameter
-    identifiable: |correlation| with each other free parameter ≤
-    ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at standstill); with ``bonferroni`` the
-    F-tests of a round are at ``alpha`` over the number of candidates it refits. Of the candidates that
+    ``noise_max_order``) noise model of the refit's residual; prewhitened F-test p < ``alpha`` — over the round's
+    number of candidates with ``bonferroni`` —, prewhitened ΔBIC < 0, a lower time-block cross-validated whitened
+    SSE with blocks of ``cv_block`` samples dealt to ``cv_folds`` folds (by more than the noise would make it at
+    ``cv_alpha`` < 0.5), and every new parameter identifiable: |correlation| with each other free parameter ≤
+    ``max_corr``, e.g. the offset and the Coulomb asymmetry differ only at standstill). Of the candidates that
     pass, the one with the lowest prewhitened SSE is accepted, the round's residuals all whitened by one noise
     model (:func:`_rank_passing`); the loop stops when none passes. Before the loop, the nominal fit's residual is
     looked at for glitches of the measurement (:func:`toggle_id.residuals.glitches` at ``glitch_k`` robust σ; 0:
     no look): samples found are left out of every later fit and test (:attr:`EmpsRecord.excluded`) and the nominal
-    model is fitted again without them. Then the noise-aware structure test localises
-    what the final model leaves in its position residual (:func:`localise`, ``structure_bins`` bins per signal,
-    level ``structure_alpha``). Keys of the report:
+    model is fitted again without them. Then the noise-aware structure test localises what the final model leaves
+    in its position residual (:func:`localise`, ``structure_bins`` bins per signal, level ``structure_alpha``).
+    Keys of the report:
 
     - ``position_rel_error_pct_before`` (nominal M, Fv fit), ``position_rel_error_pct_after`` (final model), %;
     - ``effects_added``, ``compensating``, ``rejected``: the three lists of :func:`three_lists` (each item with
@@ -365,20 +365,18 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     unknown = [c for c in names if c not in EFFECTS]
     if unknown:
         raise ConfigError(f"unknown EMPS effect(s) {unknown}; known: {list(EFFECTS)}")
-    if not (0 < alpha < 1):
-        raise ConfigError(f"alpha must lie in (0, 1), got {alpha}")
-    if not (0 < structure_alpha < 1):
-        raise ConfigError(f"structure_alpha must lie in (0, 1), got {structure_alpha}")
-    if not (0 < explain_fraction < 1):
-        raise ConfigError(f"explain_fraction must lie in (0, 1), got {explain_fraction}")
-    if not (0 <= ambiguity_alpha < 1):
-        raise ConfigError(f"ambiguity_alpha must lie in [0, 1), got {ambiguity_alpha}")
-    if isinstance(cv_alpha, bool) or not (0 < cv_alpha <= 0.5):
-        raise ConfigError(f"cv_alpha must lie in (0, 0.5], got {cv_alpha!r}")
+    for label, value, ok, where in (("alpha", alpha, 0 < alpha < 1, "(0, 1)"),
+                                    ("structure_alpha", structure_alpha, 0 < structure_alpha < 1, "(0, 1)"),
+                                    ("explain_fraction", explain_fraction, 0 < explain_fraction < 1, "(0, 1)"),
+                                    ("ambiguity_alpha", ambiguity_alpha, 0 <= ambiguity_alpha < 1, "[0, 1)"),
+                                    ("cv_alpha", cv_alpha, 0 < cv_alpha <= 0.5, "(0, 0.5]"),
+                                    ("max_corr", max_corr, 0 < max_corr <= 1, "(0, 1]")):
+        if isinstance(value, bool) or not ok:
+            raise ConfigError(f"{label} must lie in {where}, got {value!r}")
     if isinstance(glitch_k, bool) or not (np.isfinite(glitch_k) and glitch_k >= 0):
         raise ConfigError(f"glitch_k must be a finite number >= 0, got {glitch_k!r}")
-    if not (0 < max_corr <= 1):
-        raise ConfigError(f"max_corr must lie in (0, 1], got {max_corr}")
+    if not isinstance(bonferroni, bool):
+        raise ConfigError(f"bonferroni must be true or false, got {bonferroni!r}")
     for label, value, least in (("noise_max_order", noise_max_order, 0), ("cv_block", cv_block, 1),
                                 ("cv_folds", cv_folds, 2), ("structure_bins", structure_bins, 2)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
@@ -388,8 +386,6 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
     fit_kw = dict(max_nfev=max_nfev, solver=solver, sim_options=sim_options)
     judge_kw = {"alpha": alpha, "max_corr": max_corr, "noise_max_order": int(noise_max_order),
                 "cv_block": int(cv_block), "cv_folds": int(cv_folds), "cv_alpha": float(cv_alpha)}
-    if not isinstance(bonferroni, bool):
-        raise ConfigError(f"bonferroni must be true or false, got {bonferroni!r}")
 
     # nominal model: IDIM-LS (M, Fv only) start, then output error
     theta = OFF.copy()
@@ -459,8 +455,7 @@ def run_emps_loop(record: EmpsRecord, validation: EmpsRecord | None = None, *,
         "noise_max_order": int(noise_max_order),
         "cv_block": int(cv_block),
         "cv_folds": int(cv_folds),
-        "cv_alpha": float(cv_alpha),
-        "bonferroni": bonferroni,
+        "cv_alpha": float(cv_alpha), "bonferroni": bonferroni,
         "structure_bins": int(structure_bins),
         "structure_alpha": float(structure_alpha),
         "solver": solver,
@@ -501,11 +496,3 @@ def _without(record: EmpsRecord, current: OEFitResult, name: str | None, fit_kw:
         free += [p for p in EFFECTS[rival["name"]].params if p not in current.free]
     return fit_output_error(record, free, theta, **fit_kw)
 
-
-def _effect_last(fit: OEFitResult, params: Sequence[str]) -> OEFitResult:
-    """``fit`` with its free parameters reordered so that ``params`` come last (as :func:`judge_effect` expects of
-    the larger model: its new parameters last)."""
-    order = [i for i, p in enumerate(fit.free) if p not in params] + [i for i, p in enumerate(fit.free) if p in params]
-    corr = None if fit.corr is None else fit.corr[np.ix_(order, order)]
-    jac = None if fit.jacobian is None else fit.jacobian[:, order]
-    return replace(fit, free=tuple(fit.free[i] for i in order), corr=corr, jacobian=jac)
