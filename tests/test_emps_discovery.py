@@ -195,3 +195,29 @@ def test_a_tie_of_an_earlier_round_is_judged_again_on_the_final_model():
              {"name": "stribeck_friction", "round": 2, "params": {"Fs": 0.0, "vs": 0.005}}]
     kept = verdict_rules(plant, final, added, **rules).added
     assert kept[0]["indistinguishable_from"] == [offset_tie] and "ties_resolved" not in kept[0]
+
+
+def test_a_round_judges_its_candidates_at_alpha_over_their_number(monkeypatch):
+    """``emps.bonferroni``: a round picks the best of the candidates it refits, so each is judged at alpha over
+    their number (those whose ``requires`` are not in the model are not candidates); false: at alpha."""
+    from toggle_id.emps import loop as L
+    from toggle_id.emps.fit import fit_output_error
+
+    truth = theta_from_dict({"M": PUBLISHED["M"], "Fv": PUBLISHED["Fv"]})
+    rec = simulated_record(truth, 800, noise_m=NOISE_M, name="nominal")
+    fit_kw = {"max_nfev": 5, "solver": "polish", "sim_options": None}
+    judge_kw = {"alpha": 0.01, "max_corr": 0.99, "noise_max_order": 8, "cv_block": 100, "cv_folds": 5}
+    nominal = fit_output_error(rec, ["M", "Fv"], truth, **fit_kw)
+    levels = []
+    real = L.judge_effect
+    monkeypatch.setattr(L, "judge_effect",
+                        lambda small, large, **kw: levels.append(kw["alpha"]) or real(small, large, **kw))
+    for bonferroni, level in ((True, 0.01 / 2), (False, 0.01)):
+        levels.clear()
+        plant = L.EmpsPlant(rec, list(L.EFFECTS), nominal, fit_kw, judge_kw, {}, 12, 0.01, 0.05, bonferroni)
+        plant.forward_step(nominal, [], 1)
+        requiring = [nm for nm, e in L.EFFECTS.items() if e.requires]
+        assert requiring and len(levels) == len(L.EFFECTS) - len(requiring) == 2  # Coulomb and the offset
+        assert levels == pytest.approx([level] * 2)
+    with pytest.raises(ConfigError, match="bonferroni"):
+        run_emps_loop(rec, bonferroni="yes")
