@@ -1361,7 +1361,8 @@ def test_a_forward_step_judges_its_best_candidate_at_alpha_over_their_number():
     assert judge.level == pytest.approx(1e-4)
     among_ten = judge.evidence(small, large, NoiseModel())
     assert among_ten.p_value == alone.p_value and not among_ten.checks["f_test"]
-    assert not among_ten.passed and "F-test not significant" in among_ten.reason
+    assert not among_ten.passed and "F-test not significant at 0.0001" in among_ten.reason
+    assert among_ten.to_dict()["level"] == pytest.approx(1e-4)
     with pytest.raises(ConfigError, match="discover.bonferroni"):
         D.DiscoverSettings(bonferroni="yes").validate()
     from toggle_id.discovery import toggle_plant as TP

@@ -62,6 +62,8 @@ class Evidence:
     #: the out-of-sample gain against the noise's spread of it and its one-sided p-value (:func:`.stats.out_of_sample`)
     cv_z: float = float("nan")
     cv_p: float = float("nan")
+    #: the level the F-tests were read at (alpha, over the candidates a forward step chose among: :attr:`Judge.level`)
+    level: float = float("nan")
     checks: dict = field(default_factory=dict)
 
     @property
@@ -73,9 +75,10 @@ class Evidence:
         if self.passed:
             return ("significant in sample (prewhitened F-test, robust to the noise level, and BIC) and better out "
                     "of sample")
-        names = {"f_test": "F-test not significant",
+        at = f" at {self.level:.2g}" if np.isfinite(self.level) else ""
+        names = {"f_test": f"F-test not significant{at}",
                  "robust_f_test": "not significant once the noise's level is let vary along the record "
-                                  "(heteroscedasticity-robust F-test)",
+                                  f"(heteroscedasticity-robust F-test{at})",
                  "bic": "BIC does not improve",
                  "cross_validation": "no better out of sample (time-block cross-validation)",
                  "validation_record": "does not predict the validation record better",
@@ -91,6 +94,7 @@ class Evidence:
                 "delta_bic": self.delta_bic, "F_robust": self.F_robust, "p_value_robust": self.p_robust,
                 "hc_ratio": self.hc_ratio, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
                 "cv_sse_w_before": self.cv0, "cv_sse_w_after": self.cv1, "cv_z": self.cv_z, "cv_p_value": self.cv_p,
+                "level": self.level,
                 "validation_sse_before_m2": self.validation0, "validation_sse_after_m2": self.validation1,
                 "checks": dict(self.checks), "passed": self.passed, "reason": self.reason}
 
@@ -213,7 +217,7 @@ class Judge:
         rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1)
         ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], oos["cv0"], oos["cv1"], c["sse0_w"], c["sse1_w"],
                       F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"], cv_z=oos["z"],
-                      cv_p=oos["p_value"])
+                      cv_p=oos["p_value"], level=self.level)
         ev.checks = {"f_test": c["p_value"] < self.level, "robust_f_test": rob["p_value"] < self.level,
                      "bic": c["delta_bic"] < 0, "cross_validation": oos["p_value"] < self.s.cv_alpha}
         if self.validation is not None:

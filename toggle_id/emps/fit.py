@@ -270,7 +270,7 @@ def judge_effect(small: OEFitResult, large: OEFitResult, *, alpha: float = 0.01,
     rob = robust_f(float(c["F"]), noise, r1, large.jacobian, list(range(k0, k1)), change=r0 - r1)
     ev = Evidence(noise, float(c["F"]), float(c["p_value"]), float(c["delta_bic"]), cv0, cv1, float(c["sse0_w"]),
                   float(c["sse1_w"]), F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"],
-                  cv_z=oos["z"], cv_p=oos["p_value"])
+                  cv_z=oos["z"], cv_p=oos["p_value"], level=float(alpha))
     ev.checks = {"f_test": bool(ev.p_value < alpha), "robust_f_test": bool(ev.p_robust < alpha),
                  "bic": bool(ev.delta_bic < 0), "cross_validation": bool(oos["p_value"] < cv_alpha),
                  "identifiable": identifiable}
