@@ -195,6 +195,11 @@ def _draw(rng: np.random.Generator, k: int, lower: np.ndarray, upper: np.ndarray
     return X
 
 
+def _lowest(sse: Sequence[float]) -> int:
+    """Index of the lowest whole-record SSE; a failed fit (NaN) never wins."""
+    return int(np.argmin(np.where(np.isfinite(sse), sse, np.inf)))
+
+
 def difference_noise(records: Sequence[Record]) -> float:
     """The measurement noise's standard deviation (m) read off the records themselves, pooled over them: for white
     noise on a motion that is smooth at the sampling rate, the third differences of x_B are the noise's, of
@@ -323,7 +328,7 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
                 say(f"path {j + 1}: from stage 1's finalist {j + 1}")
                 paths.append(finish(finals[j], copy.deepcopy(rng), now=False))
             whole = [p[-1].sse for p in paths]
-            chosen = int(np.argmin(np.where(np.isfinite(whole), whole, np.inf)))  # a failed path (NaN) never wins
+            chosen = _lowest(whole)
             say(f"path {chosen + 1} chosen: its error on the whole record is the lowest")
             if chosen > 0:  # stage 1's point is that finalist's
                 sse = first.polish["multistart"]["final_sse_m2"][chosen]
@@ -363,19 +368,21 @@ def identify_fast(records: Sequence[Record], theta: np.ndarray, *, seed: int = 0
             f"{fast.floor_ratio:g} times the record's noise ({sigma * 1e6:.3g} µm, from its differences)")
         tried.append(search(rng, live=False))
     whole = [t[-1].sse for t in tried]
-    chosen = int(np.argmin(np.where(np.isfinite(whole), whole, np.inf)))
+    chosen = _lowest(whole)
     stages = tried[chosen]
     if len(tried) > 1:
         say(f"search {chosen + 1} of {len(tried)} chosen: its error on the whole record is the lowest")
         # the searches not chosen were simulated too: the last stage counts them (the first is on the curve already,
         # so a later winner's points come after every search)
-        first_sims = sum(st.n_simulations for st in tried[0]) if chosen > 0 else 0
-        stages[-1].n_simulations += sum(st.n_simulations for j, t in enumerate(tried) if j != chosen for st in t)
+        others = sum(st.n_simulations for j, t in enumerate(tried) if j != chosen for st in t)
         if chosen > 0:
-            stages[-1].n_simulations -= first_sims
+            first_sims = sum(st.n_simulations for st in tried[0])
+            stages[-1].n_simulations += others - first_sims
             for st in stages:
                 emit(st)
             stages[-1].n_simulations += first_sims
+        else:
+            stages[-1].n_simulations += others
         stages[-1].polish["searches"] = {"whole_record_sse_m2": [float(v) for v in whole], "chosen": chosen + 1,
                                          "noise_m": float(sigma), "floor_ratio": float(fast.floor_ratio)}
     theta = stages[-1].theta.copy()
