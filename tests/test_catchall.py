@@ -132,7 +132,7 @@ def test_an_effect_the_generic_force_makes_unnecessary_is_compensating(monkeypat
     assert report["reading_error"]["needed"] is False and report["sensor_rms_m"] == 0.0
     assert report["effects"]["cogging_torque"]["needed"] is True
     assert report["effects"]["cogging_torque"]["kept_fraction"] == pytest.approx(7.0 / 6.0)
-    assert any("not needed" in s for s in said)
+    assert any(s.startswith("  without constant_load_force:") and s.endswith("→ not needed") for s in said)
 
 
 def test_the_named_effects_values_beside_the_generic_terms_are_reported(monkeypatch):

@@ -80,7 +80,7 @@ def test_job_on_simulated_records_end_to_end(sim_files, tmp_path, job_env):
         assert (run / name).stat().st_size > 10_000
     table = (run / "table.txt").read_text()
     assert "validation sim_validation" in table and "pulses at the controller output" in table
-    assert "effects accepted: coulomb_friction (round 1)" in table and "structure left" in table
+    assert "effects accepted: coulomb_friction (round 1)" in table and "no structure left in the final position residual" in table
     listed = [c["name"] for key in ("effects_added", "compensating", "rejected") for c in rep[key]]
     assert sorted(listed) == sorted({c["name"] for c in rep["candidates"]})
     from mlflow import MlflowClient

@@ -238,7 +238,7 @@ def test_the_refinement_climbs_from_the_best_of_each_family_within_its_budget():
     assert [(e.candidate, e.status, e.score) for e in a] == [(e.candidate, e.status, e.score) for e in b]
     random, refine = a[:-120], a[-120:]
     assert all(sum(e.ok for e in random if e.candidate.family == fam) == 4 for fam in ("steps", "cycling"))
-    assert all(e.ok for e in random if e.candidate.family == "cycling") and 8 <= len(random) <= 8 + 8
+    assert sum(e.candidate.family == "cycling" for e in random) == 4 and 8 <= len(random) <= 8 + 8  # no cycling one refused
     assert len({e.candidate for e in a}) == len(a)  # nothing scored twice
     for fam in ("steps", "cycling"):
         first = max(e.score for e in random if e.ok and e.candidate.family == fam)
@@ -313,14 +313,15 @@ def test_the_simulate_job_refuses_a_bad_input_file_in_one_line_with_a_non_zero_e
 def test_excite_job_end_to_end(tmp_path, job_env):
     from conftest import run_job
 
-    # a discovery that left a tied pair: it becomes a second rival, started from its final model
+    # a discovery that left a tied pair: it becomes a second rival, started from its final model; the proposed input
+    # lasts 2 s (in 1 s the few random inputs of this budget rarely close and open the clamp: nothing is proposed)
     final = {nm: float(THETA[ALL_INDEX[nm]]) for nm in ALL_INDEX}
     (tmp_path / "discovery.json").write_text(json.dumps({
         "effects_added": [], "compensating": [], "final_params": final,
         "ambiguous": [{"name": "torque_constant_saturation", "params": {"c_kt": 1e-6},
                        "indistinguishable_from": [{"name": "contact_nonlinear_stiffness", "params": {"k3": 1e13}}]}]}))
     proc = run_job("jobs.run", "+experiment=excite", f"hydra.run.dir={tmp_path / 'run'}", "data.duration=1.0",
-                   "data.effects.tau_c=0.3", f"excite.discovery={tmp_path / 'discovery.json'}", "excite.duration=1.0", "excite.n_random=2", "excite.n_refine=1",
+                   "data.effects.tau_c=0.3", f"excite.discovery={tmp_path / 'discovery.json'}", "excite.duration=2.0", "excite.n_random=2", "excite.n_refine=1",
                    "excite.refit_top=1", "excite.refit_nfev=5", "excite.refit_rounds=1", "excite.rival_nfev=5",
                    "excite.families=[steps,cycling]", "fast.starts=2", "fast.final_nfev=10", "tracking.log_model=false",
                    "tracking.system_metrics.enabled=false", cwd=tmp_path, env=job_env, timeout=300)
@@ -337,24 +338,23 @@ def test_excite_job_end_to_end(tmp_path, job_env):
     assert rv["effect"] == "coulomb_friction_motor" and rv["params"] == {"tau_c": 0.3}
     assert pair["name"] == "torque_constant_saturation vs contact_nonlinear_stiffness" and pair["source"] == "discovery"
     assert pair["theta_a"]["c_kt"] == 1e-6 and pair["theta_b"]["k3"] > 0 and "k3" in pair["free_b"]
-    if d["proposed"] is not None:
-        assert rv["predicted_separation_um"] >= 0 and "predicted_separation_sigma" in rv
-        # the power of Vuong's test on a record under the proposed input, from the separation and its length
-        z = np.sqrt(1001) * rv["predicted_separation_sigma"] / 2.0
-        assert rv["expected_vuong_z"] == pytest.approx(z) and 0.05 <= rv["vuong_power"] <= 1.0
-        assert f"probability {rv['vuong_power']:.3g}" in (tmp_path / "run" / "excite.txt").read_text()
-        ex = read_csv(tmp_path / "run" / "excitation.csv", require_x_B=False, expect_rate_hz=1000.0)
-        assert ex.n == 1001 and np.max(np.abs(ex.v_in)) <= 0.3
-        assert (tmp_path / "run" / "excite.png").stat().st_size > 10_000
-        assert len(d["parameters"]["singular_values_before"]) == 15
+    assert d["proposed"] is not None
+    assert rv["predicted_separation_um"] >= 0 and "predicted_separation_sigma" in rv
+    # the power of Vuong's test on a record under the proposed input, from the separation and its length
+    z = np.sqrt(2001) * rv["predicted_separation_sigma"] / 2.0
+    assert rv["expected_vuong_z"] == pytest.approx(z) and 0.05 <= rv["vuong_power"] <= 1.0
+    assert f"probability {rv['vuong_power']:.3g}" in (tmp_path / "run" / "excite.txt").read_text()
+    ex = read_csv(tmp_path / "run" / "excitation.csv", require_x_B=False, expect_rate_hz=1000.0)
+    assert ex.n == 2001 and np.max(np.abs(ex.v_in)) <= 0.3
+    assert (tmp_path / "run" / "excite.png").stat().st_size > 10_000
+    assert len(d["parameters"]["singular_values_before"]) == 15
     from mlflow import MlflowClient
 
     client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
     runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
     assert len(runs) == 1 and runs[0].info.run_name.startswith("excite ")
     assert "sigma_um" in runs[0].data.metrics
-    if d["proposed"] is not None:
-        assert "separation_sigma.torque_constant_saturation_vs_contact_nonlinear_stiffness" in runs[0].data.metrics
+    assert "separation_sigma.torque_constant_saturation_vs_contact_nonlinear_stiffness" in runs[0].data.metrics
 
 
 # ---------------------------------------------------------------------------------------------- acceptance
