@@ -20,7 +20,7 @@ when the environment has ``RAY_AUTH_MODE=disabled``.
 
 Local or joined (read from the same files and measured): ``address=None`` starts its own local Ray with
 ``ray.init(address="local")``. Plain ``ray.init()`` would join the cluster named by ``RAY_ADDRESS`` or recorded in
-``/tmp/ray/ray_current_cluster`` by the last ``ray start``, and it waits minutes when that head has died.
+the ``ray_current_cluster`` file of Ray's temporary directory by the last ``ray start``, and it waits minutes when that head has died.
 Joining (``"auto"``, ``"host:port"``) is checked first by :func:`join_address`: the cluster must answer within
 seconds, and the token is sent when one is found. Ray sends it by itself only when it found the cluster on its own.
 """
