@@ -59,6 +59,7 @@ def test_settings_validate_and_reject_bad_values():
     assert D.DiscoverSettings.from_dict({"candidates": "all"}).candidates is None
     assert D.DiscoverSettings.from_dict({"stronger_starts": [2, 5]}).stronger_starts == (2.0, 5.0)
     assert D.DiscoverSettings.from_dict({"stronger_starts": []}).stronger_starts == ()
+    assert D.DiscoverSettings.from_dict({"other_starts_above": 0}).other_starts_above == 0
     for bad, needle in [({"top_k": 0}, "top_k"), ({"alpha": 1.5}, "alpha"), ({"candidates": ["nope"]}, "nope"),
                         ({"bogus": 1}, "bogus"), ({"max_effects": -1}, "max_effects"),
                         ({"noise_std": -1.0}, "noise_std"), ({"catch_all_keep": 1.0}, "catch_all_keep"),
@@ -69,7 +70,9 @@ def test_settings_validate_and_reject_bad_values():
                         ({"route_max_ratio": 1.0}, "route_max_ratio"), ({"route_max_ratio": "x"}, "route_max_ratio"),
                         ({"glitch_k": -1.0}, "glitch_k"), ({"glitch_k": True}, "glitch_k"),
                         ({"unconverged_share": 1.0}, "unconverged_share"),
-                        ({"unconverged_share": "x"}, "unconverged_share")]:
+                        ({"unconverged_share": "x"}, "unconverged_share"),
+                        ({"other_starts_above": 0.5}, "other_starts_above"),
+                        ({"other_starts_above": True}, "other_starts_above")]:
         with pytest.raises(ConfigError, match=needle):
             D.DiscoverSettings.from_dict(bad)
     with pytest.raises(ConfigError, match="nominal"):
@@ -184,7 +187,7 @@ def test_with_nothing_supported_the_catch_alls_kind_of_term_sends_its_untried_ef
         sc = {nm: CandidateScore(nm, 300.0 if nm == names[0] else 1.0, 0.3, {}, None, 1.0, 1.0) for nm in names}
         return SimpleNamespace(label=label, scores=sc, profiles=set(names), proj=SimpleNamespace(rank=len(free)))
 
-    def refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=None):
+    def refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=None, **other_starts):
         return Refit(eff.name, it, Fit(theta, base.free, 0.999), {}, base_sse, 0.999, 1, len(base.free) + 1, 0.5,
                      0.48, 5.0, False, "F-test not significant", {})
 
@@ -1384,9 +1387,157 @@ def test_a_forward_step_judges_its_best_candidate_at_alpha_over_their_number():
     plant.pool = [EFFECTS_BY_NAME[nm] for nm in ("backlash", "dead_time", "sensor_offset")]
     plant.anchor, plant.free, plant.held, plant.say, plant.on_refit = None, (), (), print, None
     for bonferroni, family in ((True, 2), (False, 1)):
-        plant.s = D.DiscoverSettings(bonferroni=bonferroni).validate()
+        plant.s = D.DiscoverSettings(bonferroni=bonferroni, other_starts_above=0).validate()  # (no starts here)
         judge.family = 1
         with pytest.MonkeyPatch.context() as mp, pytest.raises(RuntimeError, match="stop"):
             mp.setattr(TP, "_iteration", fake_iteration)
             plant.forward_step(large, [{"name": "backlash"}], 2)
         assert seen[-1] == family and judge.family == 1  # two left; reset after the step, whatever happened
+
+
+def test_a_nominal_vector_moved_into_anothers_gauge_holds_its_values_and_the_same_x_B():
+    """gauge.in_gauge_of: the held parameters (K_l, K_i, m_C) take the other vector's values, the effects follow
+    their scales (a force with the mechanism, the drive limit with the current, c_kt as its square), and x_B does
+    not move; a move out of the feasible domain gives None."""
+    from toggle_id.discovery.gauge import GAUGE_HELD, in_gauge_of
+
+    rng = np.random.default_rng(11)
+    theta = extend(ASSIGNED * np.exp(0.3 * rng.standard_normal(len(PARAM_NAMES))))[0]
+    like = extend(ASSIGNED * np.exp(0.3 * rng.standard_normal(len(PARAM_NAMES))))[0]
+    theta[ALL_INDEX["tau_c"]], theta[ALL_INDEX["s_sat"]], theta[ALL_INDEX["c_kt"]] = 0.05, 0.17, 1e-6
+    moved = in_gauge_of(theta, like)
+    assert moved is not None
+    for nm in GAUGE_HELD.values():
+        assert moved[ALL_INDEX[nm]] == pytest.approx(like[ALL_INDEX[nm]], rel=1e-12)
+    ki, kl = ALL_INDEX["K_i"], ALL_INDEX["K_l"]
+    assert moved[ALL_INDEX["s_sat"]] * moved[ki] == pytest.approx(theta[ALL_INDEX["s_sat"]] * theta[ki], rel=1e-12)
+    assert moved[ALL_INDEX["c_kt"]] * moved[ki] ** 2 == pytest.approx(theta[ALL_INDEX["c_kt"]] * theta[ki] ** 2,
+                                                                       rel=1e-12)
+    assert moved[ALL_INDEX["tau_c"]] / moved[kl] == pytest.approx(theta[ALL_INDEX["tau_c"]] / theta[kl], rel=1e-12)
+    rec = Record.from_sweep("simulation", 1.0, name="gauge")
+    rec.x_B = np.zeros(rec.n)  # outputs only
+    y = D.Model(rec, PRECISE).outputs(np.array([theta, moved]))
+    assert np.all(np.isfinite(y)) and np.max(np.abs(y[0] - y[1])) < 1e-10
+    far = like.copy()
+    far[ki] = theta[ki] * 1e-4  # K_t would have to grow 1e4-fold, past its bound
+    assert in_gauge_of(theta, far) is None
+
+
+def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baselines_other_starts(monkeypatch):
+    """A large effect's refit from the baseline's start can stop in a valley (a drive limit at 160 µm: 14 µm); above
+    ``floor_m`` the accepted refit is polished again from the other starts given, with its effect values, and the
+    lowest error is judged and reported; below the floor, or with none given, nothing more is fitted."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import refit as RF
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    eff = EFFECTS_BY_NAME["voltage_saturation"]
+    base = Fit(theta.copy(), ("mu",), sse=1000.0)
+    scout_theta = theta.copy()
+    scout_theta[ALL_INDEX["s_sat"]] = 0.2
+    scout = RF.Scout(eff.name, 90.0, scout_theta, {"best_grid": {"s_sat": 0.2}})
+    other = theta.copy()
+    other[ALL_INDEX["mu"]] = 0.3  # the other start: another place of the nominal parameters
+    starts = []
+
+    def fake_fit_free(model, start, names, *a, **k):
+        starts.append(start.copy())
+        from_other = start[ALL_INDEX["mu"]] == 0.3
+        return Fit(start.copy(), tuple(names), sse=1.0 if from_other else 50.0)
+
+    judged = []
+
+    def pair(small, large):
+        judged.append(large.sse)
+        return SimpleNamespace(F=1.0, p_value=0.0, delta_bic=-1.0, passed=True, reason="ok", to_dict=lambda: {})
+
+    monkeypatch.setattr(RF, "fit_free", fake_fit_free)
+    monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
+    monkeypatch.setattr(RF, "revived", lambda th, free: None)
+    monkeypatch.setattr(RF, "screened_starts", lambda model, effect, start: [start])  # (tested on its own below)
+    model = SimpleNamespace(n=1000)
+    floor = 0.1  # RMS 0.224 from the scout's start: above it
+    rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair),
+                            others=[other], floor_m=floor)
+    assert rf.accepted and rf.sse1 == 1.0 and judged == [50.0, 1.0]
+    assert rf.search["before_other_starts"]["rmse_m"] == pytest.approx(np.sqrt(50.0 / 1000))
+    assert rf.search["other_starts"] == [{"rmse_m": pytest.approx(np.sqrt(1.0 / 1000)), "nfev": None}]
+    assert starts[-1][ALL_INDEX["s_sat"]] == 0.2 and starts[-1][ALL_INDEX["mu"]] == 0.3  # with the refit's values
+    for others, floor_m in (([other], 0.3), ([], floor), ([other], 0.0)):  # below the floor, no start, off
+        judged.clear()
+        kept = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair),
+                                  others=others, floor_m=floor_m)
+        assert kept.sse1 == 50.0 and judged == [50.0] and "other_starts" not in kept.search
+
+
+def test_another_start_is_screened_over_the_effects_magnitudes_and_its_threshold_grid_in_one_batch():
+    """refit.screened_starts: the start with the magnitude at SCREEN_FACTORS of its value and, for a drive limit,
+    at its grid there, ranked by the fits' objective in one batch; the best two, failed rows never."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.refit import SCREEN_FACTORS, screened_starts
+
+    theta = extend(ASSIGNED)[0]
+    start = theta.copy()
+    i = ALL_INDEX["s_sat"]
+    start[i] = 0.4
+    v_in = np.full(50, 0.06)
+    asked = []
+
+    def fit_residuals(rows):  # the objective is least at s_sat 0.2; one row fails
+        asked.append(rows.copy())
+        out = np.tile((rows[:, i] - 0.2)[:, None], (1, 3))
+        out[np.isclose(rows[:, i], 0.28), :] = np.nan
+        return out
+
+    model = SimpleNamespace(fit_residuals=fit_residuals, record=SimpleNamespace(v_in=v_in))
+    best = screened_starts(model, EFFECTS_BY_NAME["voltage_saturation"], start, keep=2)
+    tried = asked[0][:, i]
+    assert len(asked) == 1  # one batch
+    assert set(np.round(tried[:len(SCREEN_FACTORS)], 12)) == {0.2, 0.28, 0.4, 0.56, 0.8}
+    grid = EFFECTS_BY_NAME["voltage_saturation"].grid(start, v_in, len(SCREEN_FACTORS))
+    assert np.allclose(np.sort(tried[len(SCREEN_FACTORS):]), np.sort(grid))  # the drive's grid at this start
+    assert [b[i] for b in best] == pytest.approx([0.2, sorted(tried, key=lambda v: abs(v - 0.2))[1]])
+    assert all(np.array_equal(np.delete(b, i), np.delete(start, i)) for b in best)
+    coulomb = screened_starts(model, EFFECTS_BY_NAME["coulomb_friction_motor"],
+                              _with_value(theta, "tau_c", 0.1), keep=5)
+    assert len(asked[-1]) == len(SCREEN_FACTORS) and len(coulomb) == 5  # no grid: the factors alone
+
+
+def _with_value(theta, name, value):
+    out = theta.copy()
+    out[ALL_INDEX[name]] = value
+    return out
+
+
+def test_the_other_starts_are_polished_in_their_screened_order_until_one_reaches_the_floor(monkeypatch):
+    """refit._from_other_starts: a drive limit's basin is narrow and the objective at a start does not rank it, so
+    every screened start is polished in order, and the search stops at the first that reaches the floor."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import refit as RF
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    ends = {0.27: 11.7e-6, 0.25: 11.6e-6, 0.23: 1.0e-6, 0.2: 1.0e-6}  # RMS where a polish from s_sat ends
+    polished = []
+
+    def fake_fit_free(model, start, names, *a, **k):
+        v = round(float(start[ALL_INDEX["s_sat"]]), 6)
+        polished.append(v)
+        return Fit(start.copy(), tuple(names), sse=ends[v] ** 2 * 1000)
+
+    monkeypatch.setattr(RF, "fit_free", fake_fit_free)
+    monkeypatch.setattr(RF, "screened_starts", lambda model, effect, start: [
+        _with_value(start, "s_sat", v) for v in (0.27, 0.25, 0.23, 0.2)])
+    model = SimpleNamespace(n=1000)
+    eff = EFFECTS_BY_NAME["voltage_saturation"]
+    fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 1.5e-6)
+    assert polished == [0.27, 0.25, 0.23] and fits[-1].rmse(1000) == pytest.approx(1.0e-6)
+    polished.clear()
+    fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 0.5e-6)
+    assert polished == [0.27, 0.25, 0.23, 0.2] * 2 and len(fits) == 8  # none reaches it: every start tried

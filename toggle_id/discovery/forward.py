@@ -24,12 +24,14 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                remaining: Sequence[Effect], settings: DiscoverSettings, it: int, held: Sequence[str],
                say: Callable[[str], None], on_refit: Callable[[Refit], None] | None,
                second_look: Callable[[Fit], set[str]] | None = None,
-               beside: Callable[[Fit, list], list[Refit]] | None = None) -> dict:
+               beside: Callable[[Fit, list], list[Refit]] | None = None, others: Sequence[np.ndarray] = (),
+               floor_m: float = 0.0) -> dict:
     """Scores, scouts and refits of one iteration; the candidate to add (or None). ``second_look(fit)``: the kinds
     of effect (:attr:`~toggle_id.effects.Effect.acts_on`) a generic term of the catch-all check finds missing
     from ``fit``, asked when no refit is supported. ``beside(fit, scouts)``: when still none is, the effects of
     ``scouts`` (those of no kind) refitted beside the catch-all's generic terms
-    (:func:`.catchall.beside_generic`)."""
+    (:func:`.catchall.beside_generic`). ``others``: the baseline's other starts, in its gauge, from which an
+    accepted refit above ``floor_m`` (m RMS) is polished again (:func:`.refit.refit_candidate`)."""
     n = model.n
     noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
     points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
@@ -75,8 +77,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     def refit(sc) -> None:
         nonlocal base, better_null
         eff = EFFECTS_BY_NAME[sc.name]
-        start = _with(anchor, {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free})
-        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=start)
+        so_far = {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free}  # the effects added
+        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=_with(anchor, so_far),
+                             others=[_with(st, so_far) for st in others], floor_m=floor_m)
         if rf.accepted:
             null = guard_null(model, base, rf, eff, settings, judge)
             if null is not None and null.sse < base.sse:
@@ -95,7 +98,10 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             f"p {rf.p_value:.3g}{robust}, ΔBIC {rf.delta_bic:.4g}, "
             f"out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "
             f"{ev.get('cv_sse_w_after', np.nan):.4g} (z {ev.get('cv_z', np.nan):.3g}) → "
-            f"{'accepted' if rf.accepted else 'rejected: ' + rf.reason} ({rf.seconds:.1f} s)")
+            f"{'accepted' if rf.accepted else 'rejected: ' + rf.reason} ({rf.seconds:.1f} s)"
+            + (f"; from another start of the baseline (it had stopped at "
+               f"{rf.search['before_other_starts']['rmse_m'] * 1e6:.4g} µm)" if "before_other_starts" in rf.search
+               else ""))
         refits.append(rf)
         if on_refit is not None:
             on_refit(rf)

@@ -126,3 +126,31 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
     info.update({"mechanical_scale": c_m, "current_scale": c_e, "applied": True, "output_change_m": diff,
                  "held": held})
     return out, info
+
+
+def in_gauge_of(theta: np.ndarray, like: np.ndarray) -> np.ndarray | None:
+    """``theta``, a vector of the nominal model, moved along its exact symmetries so that the parameter held for
+    each (K_l, K_i, m_C: :data:`GAUGE_HELD`) takes ``like``'s value: the same x_B(t), in the gauge a polish holding
+    ``like``'s values works in. Effect parameters follow their scales (forces with the mechanism, drive limits and
+    torque saturation with the current). None where a held value is not positive or the move leaves the feasible
+    domain."""
+    from ..plant import GEOMETRY as G
+
+    ix = {nm: ALL_INDEX[nm] for nm in GAUGE_HELD.values()}
+    if not all(theta[i] > 0 and like[i] > 0 for i in ix.values()):
+        return None
+    out = np.array(theta, dtype=float, copy=True)
+    c_m = like[ix["K_l"]] / theta[ix["K_l"]]
+    c_e = theta[ix["K_i"]] / like[ix["K_i"]]  # K_i → K_i/c_e (ELECTRICAL's powers)
+    for nm in MECHANICAL:
+        out[ALL_INDEX[nm]] *= c_m
+    for nm, k in ELECTRICAL.items():
+        out[ALL_INDEX[nm]] *= c_e ** k
+    for nm in ALL_NAMES[P.N_PARAMS:]:
+        out[ALL_INDEX[nm]] *= (c_m if _force_like(nm) else 1.0) * c_e ** current_power(nm)
+    z2 = G.Z ** 2
+    j_m = (out[ix["m_C"]] + out[ALL_INDEX["J_m"]] * z2 - like[ix["m_C"]]) / z2  # m_C + J_m·Z² kept
+    if j_m > 0:
+        out[ix["m_C"]], out[ALL_INDEX["J_m"]] = like[ix["m_C"]], j_m
+    lo, hi = stage_bounds(list(ALL_NAMES))
+    return out if np.all(out >= lo) and np.all(out <= hi) else None

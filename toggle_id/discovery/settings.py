@@ -110,6 +110,13 @@ class DiscoverSettings:
       where the SSE no longer moves with it (docs/discovery.md, *open problems*); empty: off. reanchor_rtol: when
       the polish from the nominal fit as given wins and changes an added effect's parameters by more than this share
       of their values, the nominal fit as given is polished once more at the values reached (≤ 0: off).
+      other_starts_above: an accepted refit that converged above this many times the record's own noise (read off
+      its third differences, :func:`toggle_id.fast.difference_noise`) is polished again from the baseline's other
+      starts (the job's reference values, the nominal fit as given), each moved into the baseline's gauge
+      (:func:`.gauge.in_gauge_of`) with the refit's effect values; the lowest error is judged. The baseline and its
+      start bend the nominal parameters towards what the effect does, and a large effect's refit from there can
+      stop in a valley far from its optimum (a drive limit at 160 µm: 14 µm from the baseline's start, 1.0 µm from
+      the reference values; docs/discovery.md, *A large threshold effect*). 0: off.
     - routes: when the loop runs again from the further nominal fits it is given (:mod:`.routes`): ``unexplained``
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
@@ -199,6 +206,7 @@ class DiscoverSettings:
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
     weaker_starts: tuple[float, ...] = (1 / 3, 1 / 10)
     reanchor_rtol: float = 0.1
+    other_starts_above: float = 5.0
     routes: str = "unexplained"
     route_rtol: float = 1e-3
     route_max_ratio: float = 1.5
@@ -303,6 +311,10 @@ class DiscoverSettings:
         if not (isinstance(self.reanchor_rtol, (int, float)) and not isinstance(self.reanchor_rtol, bool)
                 and np.isfinite(self.reanchor_rtol)):
             raise ConfigError(f"discover.reanchor_rtol must be a number (≤ 0: off), got {self.reanchor_rtol!r}")
+        if isinstance(self.other_starts_above, bool) or not isinstance(self.other_starts_above, (int, float)) \
+                or not (self.other_starts_above == 0 or self.other_starts_above >= 1):
+            raise ConfigError("discover.other_starts_above must be 0 (off) or a number >= 1 (times the record's "
+                              f"noise), got {self.other_starts_above!r}")
         if self.routes not in ("unexplained", "always", "never"):
             raise ConfigError(f"discover.routes must be 'unexplained', 'always' or 'never', got {self.routes!r}")
         if not (isinstance(self.route_max_ratio, (int, float)) and not isinstance(self.route_max_ratio, bool)

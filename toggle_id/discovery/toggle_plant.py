@@ -9,10 +9,11 @@ import numpy as np
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
+from ..fast import difference_noise
 from ..residuals import glitch_text, plant_states
 from .catchall import accepted_beside, beside_generic, catch_all, reading_needed, removal_verdict
 from .engine import Step
-from .gauge import GAUGE_HELD, freed_with
+from .gauge import GAUGE_HELD, freed_with, in_gauge_of
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .periodic import turns, whole_count
@@ -107,6 +108,16 @@ class TogglePlant:
                  f"{fit.rmse(self.model.n) * 1e6:.4g} µm)")
         return out
 
+    def _other_starts(self) -> tuple[list[np.ndarray], float]:
+        """The baseline's starts other than the one it came from, moved into its gauge, and the RMS (m) above which
+        an accepted refit is polished from them too (``other_starts_above`` times the record's own noise); none when
+        that is off."""
+        if not self.s.other_starts_above > 0:
+            return [], 0.0
+        others = [in_gauge_of(th, self.anchor) for th in (self.theta, *self.starts)]
+        others = [th for th in others if th is not None and not np.allclose(th, self.anchor, rtol=1e-9, atol=0.0)]
+        return (others, self.s.other_starts_above * difference_noise([self.model.record])) if others else ([], 0.0)
+
     def remaining(self, added: Sequence[dict]) -> list[Effect]:
         return [e for e in self.pool if e.name not in {a["name"] for a in added}]
 
@@ -119,7 +130,7 @@ class TogglePlant:
         try:
             step = _iteration(self.model, self.referee, current, self.anchor, self.free, remaining, self.s,
                               iteration, self.held, self.say, self.on_refit, self.missing_kinds,
-                              self._beside if self.s.beside_generic else None)
+                              self._beside if self.s.beside_generic else None, *self._other_starts())
         finally:
             self.referee.family = 1
         self.all_refits.extend(step["refits"])
