@@ -1425,8 +1425,9 @@ def test_a_nominal_vector_moved_into_anothers_gauge_holds_its_values_and_the_sam
 
 def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baselines_other_starts(monkeypatch):
     """A large effect's refit from the baseline's start can stop in a valley (a drive limit at 160 µm: 14 µm); above
-    ``floor_m`` the accepted refit is polished again from the other starts given, with its effect values, and the
-    lowest error is judged and reported; below the floor, or with none given, nothing more is fitted."""
+    ``other_starts_above`` times the record's noise the accepted refit is polished again from the other starts
+    given, with its effect values, and the lowest error is judged and reported; below, or with none given, or off,
+    nothing more is fitted."""
     from types import SimpleNamespace
 
     from toggle_id.discovery import refit as RF
@@ -1459,17 +1460,17 @@ def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baseli
     monkeypatch.setattr(RF, "revived", lambda th, free: None)
     monkeypatch.setattr(RF, "screened_starts", lambda model, effect, start: [start])  # (tested on its own below)
     model = SimpleNamespace(n=1000)
-    floor = 0.1  # RMS 0.224 from the scout's start: above it
+    noise = 0.02  # RMS 0.224 from the scout's start: above 5 times it
     rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair),
-                            others=[other], floor_m=floor)
+                            others=[other], noise_m=noise)
     assert rf.accepted and rf.sse1 == 1.0 and judged == [50.0, 1.0]
     assert rf.search["before_other_starts"]["rmse_m"] == pytest.approx(np.sqrt(50.0 / 1000))
     assert rf.search["other_starts"] == [{"rmse_m": pytest.approx(np.sqrt(1.0 / 1000)), "nfev": None}]
     assert starts[-1][ALL_INDEX["s_sat"]] == 0.2 and starts[-1][ALL_INDEX["mu"]] == 0.3  # with the refit's values
-    for others, floor_m in (([other], 0.3), ([], floor), ([other], 0.0)):  # below the floor, no start, off
-        judged.clear()
-        kept = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair),
-                                  others=others, floor_m=floor_m)
+    for others, noise_m, above in (([other], 0.05, 5.0), ([], noise, 5.0), ([other], noise, 0.0)):
+        judged.clear()  # within 5 times the noise, no other start, off
+        kept = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(other_starts_above=above), 1,
+                                  SimpleNamespace(judge_pair=pair), others=others, noise_m=noise_m)
         assert kept.sse1 == 50.0 and judged == [50.0] and "other_starts" not in kept.search
 
 

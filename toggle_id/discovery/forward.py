@@ -25,13 +25,13 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                say: Callable[[str], None], on_refit: Callable[[Refit], None] | None,
                second_look: Callable[[Fit], set[str]] | None = None,
                beside: Callable[[Fit, list], list[Refit]] | None = None, others: Sequence[np.ndarray] = (),
-               floor_m: float = 0.0) -> dict:
+               noise_m: float = 0.0) -> dict:
     """Scores, scouts and refits of one iteration; the candidate to add (or None). ``second_look(fit)``: the kinds
     of effect (:attr:`~toggle_id.effects.Effect.acts_on`) a generic term of the catch-all check finds missing
     from ``fit``, asked when no refit is supported. ``beside(fit, scouts)``: when still none is, the effects of
     ``scouts`` (those of no kind) refitted beside the catch-all's generic terms
     (:func:`.catchall.beside_generic`). ``others``: the baseline's other starts, in its gauge, from which an
-    accepted refit above ``floor_m`` (m RMS) is polished again (:func:`.refit.refit_candidate`)."""
+    accepted refit far above ``noise_m`` (the record's noise, m) is polished again (:func:`.refit.refit_candidate`)."""
     n = model.n
     noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
     points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
@@ -79,7 +79,7 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         eff = EFFECTS_BY_NAME[sc.name]
         so_far = {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free}  # the effects added
         rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=_with(anchor, so_far),
-                             others=[_with(st, so_far) for st in others], floor_m=floor_m)
+                             others=[_with(st, so_far) for st in others], noise_m=noise_m)
         if rf.accepted:
             null = guard_null(model, base, rf, eff, settings, judge)
             if null is not None and null.sse < base.sse:

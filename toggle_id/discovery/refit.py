@@ -136,7 +136,7 @@ def from_current(model: Model, base: Fit, scout: Scout, settings: DiscoverSettin
 
 def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, settings: DiscoverSettings,
                     iteration: int, judge: Judge, held: Collection[str] = (), anchor: np.ndarray | None = None,
-                    others: Sequence[np.ndarray] = (), floor_m: float = 0.0) -> Refit:
+                    others: Sequence[np.ndarray] = (), noise_m: float = 0.0) -> Refit:
     """Polish with the effect's parameters freed, continuing from the scout, then judged against ``base``
     (:class:`~.validation.Judge`: prewhitened F-test and BIC, cross-validation, validation record).
 
@@ -146,9 +146,10 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     from stronger magnitudes of the effect (:func:`_stronger`) and, where one of them ends lower, converged and
     judged again from there: no effect is dismissed for the magnitude its refit started at.
 
-    An accepted refit whose raw RMS is above ``floor_m`` is also polished from ``others`` (the baseline's other
-    starts, in its gauge, with the effects added so far) with the refit's effect values; where one ends lower it is
-    judged instead (``settings.other_starts_above``): no effect is named at the optimum one start happened to give."""
+    An accepted refit whose raw RMS is above ``settings.other_starts_above`` times ``noise_m`` (the record's own
+    noise, m) is also polished from ``others`` (the baseline's other starts, in its gauge, with the effects added so
+    far) at its effect's screened magnitudes (:func:`_from_other_starts`); where one ends lower it is judged
+    instead: no effect is named at the optimum one start happened to give."""
     t0 = time.perf_counter()
     names = effect.names
     free = freed_with(base.free, effect, held)
@@ -178,9 +179,10 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
         fit = min((fit_free(model, st, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
                    for st in starts), key=lambda f: f.sse)
     out = judged(fit, dict(scout.search))
-    if out.accepted and others and fit.rmse(model.n) > floor_m > 0.0:
+    if out.accepted and others and fit.rmse(model.n) > settings.other_starts_above * noise_m > 0.0:
         values = {nm: fit.theta[ALL_INDEX[nm]] for nm in free if nm not in base.free}
-        again = _from_other_starts(model, effect, [_with(other, values) for other in others], free, settings, floor_m)
+        again = _from_other_starts(model, effect, [_with(other, values) for other in others], free, settings,
+                                   NEAR_NOISE * noise_m)
         report = [{"rmse_m": f.rmse(model.n), "nfev": f.info.get("nfev")} for f in again]
         lowest = min(again, key=lambda f: f.sse, default=fit)
         if lowest.sse < fit.sse:
@@ -202,6 +204,8 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     return out
 
 
+#: a polish from another start within this many times the record's noise is at its floor: the search stops there
+NEAR_NOISE = 1.5
 #: factors of a refit's magnitude (its distance from "off") screened at another start (:func:`screened_starts`)
 SCREEN_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0)
 

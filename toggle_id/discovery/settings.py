@@ -113,10 +113,12 @@ class DiscoverSettings:
       other_starts_above: an accepted refit that converged above this many times the record's own noise (read off
       its third differences, :func:`toggle_id.fast.difference_noise`) is polished again from the baseline's other
       starts (the job's reference values, the nominal fit as given), each moved into the baseline's gauge
-      (:func:`.gauge.in_gauge_of`) with the refit's effect values; the lowest error is judged. The baseline and its
-      start bend the nominal parameters towards what the effect does, and a large effect's refit from there can
-      stop in a valley far from its optimum (a drive limit at 160 µm: 14 µm from the baseline's start, 1.0 µm from
-      the reference values; docs/discovery.md, *A large threshold effect*). 0: off.
+      (:func:`.gauge.in_gauge_of`) with the refit's effect values, its magnitude screened there
+      (:func:`.refit.screened_starts`), in order until a polish ends within 1.5 times the noise; the lowest error is
+      judged. The baseline and its start bend the nominal parameters towards what the effect does, and a large
+      effect's refit from there can stop in a valley far from its optimum (a drive limit at 162 µm: 14.08 µm from
+      the baseline's start, 1.40 µm from the reference values; docs/discovery.md, *A large threshold effect*). At 5
+      no white-noise record of the adversarial set reaches it (their nominal fits end within 3.5 σ). 0: off.
     - routes: when the loop runs again from the further nominal fits it is given (:mod:`.routes`): ``unexplained``
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in

@@ -109,14 +109,14 @@ class TogglePlant:
         return out
 
     def _other_starts(self) -> tuple[list[np.ndarray], float]:
-        """The baseline's starts other than the one it came from, moved into its gauge, and the RMS (m) above which
-        an accepted refit is polished from them too (``other_starts_above`` times the record's own noise); none when
-        that is off."""
+        """The baseline's starts other than the one it came from, moved into its gauge, and the record's own noise
+        (m, read off its third differences), from which and against which an accepted refit far above the noise is
+        polished again (``other_starts_above``); none when that is off."""
         if not self.s.other_starts_above > 0:
             return [], 0.0
         others = [in_gauge_of(th, self.anchor) for th in (self.theta, *self.starts)]
         others = [th for th in others if th is not None and not np.allclose(th, self.anchor, rtol=1e-9, atol=0.0)]
-        return (others, self.s.other_starts_above * difference_noise([self.model.record])) if others else ([], 0.0)
+        return (others, difference_noise([self.model.record])) if others else ([], 0.0)
 
     def remaining(self, added: Sequence[dict]) -> list[Effect]:
         return [e for e in self.pool if e.name not in {a["name"] for a in added}]
