@@ -1495,7 +1495,7 @@ def test_another_start_is_screened_over_the_effects_magnitudes_and_its_threshold
         return out
 
     model = SimpleNamespace(fit_residuals=fit_residuals, record=SimpleNamespace(v_in=v_in))
-    best = screened_starts(model, EFFECTS_BY_NAME["voltage_saturation"], start, keep=2)
+    best = screened_starts(model, EFFECTS_BY_NAME["voltage_saturation"], start)[:2]
     tried = asked[0][:, i]
     assert len(asked) == 1  # one batch
     assert set(np.round(tried[:len(SCREEN_FACTORS)], 12)) == {0.2, 0.28, 0.4, 0.56, 0.8}
@@ -1504,7 +1504,7 @@ def test_another_start_is_screened_over_the_effects_magnitudes_and_its_threshold
     assert [b[i] for b in best] == pytest.approx([0.2, sorted(tried, key=lambda v: abs(v - 0.2))[1]])
     assert all(np.array_equal(np.delete(b, i), np.delete(start, i)) for b in best)
     coulomb = screened_starts(model, EFFECTS_BY_NAME["coulomb_friction_motor"],
-                              _with_value(theta, "tau_c", 0.1), keep=5)
+                              _with_value(theta, "tau_c", 0.1))
     assert len(asked[-1]) == len(SCREEN_FACTORS) and len(coulomb) == 5  # no grid: the factors alone
 
 

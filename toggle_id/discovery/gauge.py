@@ -55,6 +55,18 @@ def current_power(name: str) -> int:
     return {"1/V": 1, "1/A²": 2}.get(_UNITS.get(name, ""), 0)
 
 
+def _scale(theta: np.ndarray, c_m: float, c_e: float) -> None:
+    """Move ``theta`` in place along the mechanical scale (every parameter of :data:`MECHANICAL` and every force-type
+    effect × ``c_m``) and the current scale (:data:`ELECTRICAL`'s powers of ``c_e``; drive limits and torque
+    saturation follow it, :func:`current_power`)."""
+    for n in MECHANICAL:
+        theta[ALL_INDEX[n]] *= c_m
+    for n, k in ELECTRICAL.items():
+        theta[ALL_INDEX[n]] *= c_e ** k
+    for n in ALL_NAMES[P.N_PARAMS:]:
+        theta[ALL_INDEX[n]] *= (c_m if _force_like(n) else 1.0) * c_e ** current_power(n)
+
+
 def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,
               tol_m: float = 2e-8, broken: Collection[str] = ()) -> tuple[np.ndarray, dict]:
     """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
@@ -71,7 +83,7 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
     out = theta.copy()
     info: dict = {"mechanical_scale": 1.0, "current_scale": 1.0, "applied": False}
     free = set(free)
-    mech = [n for n in MECHANICAL]
+    mech = list(MECHANICAL)
     sym = gauge_symmetries(free, broken)
     use_m = "mechanical" in sym
     use_e = "current" in sym
@@ -92,17 +104,7 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
     logc = np.linalg.lstsq(A, np.log(ref) - np.log(x), rcond=None)[0]
     c_m = float(np.exp(logc[0])) if use_m else 1.0
     c_e = float(np.exp(logc[-1])) if use_e else 1.0
-    if use_m:
-        for n in mech:
-            out[ALL_INDEX[n]] *= c_m
-        for n in ALL_NAMES[P.N_PARAMS:]:
-            if _force_like(n):
-                out[ALL_INDEX[n]] *= c_m
-    if use_e:
-        for n, k in ELECTRICAL.items():
-            out[ALL_INDEX[n]] *= c_e ** k
-        for n in ALL_NAMES[P.N_PARAMS:]:  # drive limits and torque saturation follow the current scale
-            out[ALL_INDEX[n]] *= c_e ** current_power(n)
+    _scale(out, c_m, c_e)
     if use_split and reference[ALL_INDEX["m_C"]] > 0 and reference[ALL_INDEX["J_m"]] > 0:
         Z2 = G.Z ** 2
         total = out[ALL_INDEX["m_C"]] + out[ALL_INDEX["J_m"]] * Z2
@@ -140,14 +142,7 @@ def in_gauge_of(theta: np.ndarray, like: np.ndarray) -> np.ndarray | None:
     if not all(theta[i] > 0 and like[i] > 0 for i in ix.values()):
         return None
     out = np.array(theta, dtype=float, copy=True)
-    c_m = like[ix["K_l"]] / theta[ix["K_l"]]
-    c_e = theta[ix["K_i"]] / like[ix["K_i"]]  # K_i → K_i/c_e (ELECTRICAL's powers)
-    for nm in MECHANICAL:
-        out[ALL_INDEX[nm]] *= c_m
-    for nm, k in ELECTRICAL.items():
-        out[ALL_INDEX[nm]] *= c_e ** k
-    for nm in ALL_NAMES[P.N_PARAMS:]:
-        out[ALL_INDEX[nm]] *= (c_m if _force_like(nm) else 1.0) * c_e ** current_power(nm)
+    _scale(out, like[ix["K_l"]] / theta[ix["K_l"]], theta[ix["K_i"]] / like[ix["K_i"]])  # K_i → K_i/c_e
     z2 = G.Z ** 2
     j_m = (out[ix["m_C"]] + out[ALL_INDEX["J_m"]] * z2 - like[ix["m_C"]]) / z2  # m_C + J_m·Z² kept
     if j_m > 0:

@@ -223,10 +223,10 @@ def _from_other_starts(model: Model, effect: Effect, others: Sequence[np.ndarray
     return fits
 
 
-def screened_starts(model: Model, effect: Effect, start: np.ndarray, keep: int | None = None) -> list[np.ndarray]:
+def screened_starts(model: Model, effect: Effect, start: np.ndarray) -> list[np.ndarray]:
     """``start`` with the effect's magnitude at :data:`SCREEN_FACTORS` of its value and, for a threshold, at its
     grid there (:attr:`Effect.grid`: what that start's drive crosses), ordered by the fits' objective there (one
-    batch; the ``keep`` first, all by default; failed rows never). A magnitude carried from one start to another need
+    batch; failed rows left out). A magnitude carried from one start to another need
     not sit in the basin it had there: a drive limit's reach depends on all of the drive's parameters, and its basin
     is narrow (measured on a 160-µm limit from the reference values, prewhitened: clip products K_i·s_sat 19.5–23
     reach 1.0 µm, 25–27 end at 11.7 µm, and the objective at the start ranks 27 first)."""
@@ -244,7 +244,7 @@ def screened_starts(model: Model, effect: Effect, start: np.ndarray, keep: int |
         return []
     sse = np.sum(model.fit_residuals(np.array(rows)) ** 2, axis=1)
     sse = np.where(np.isfinite(sse), sse, np.inf)
-    return [rows[j] for j in np.argsort(sse, kind="stable")[:keep] if np.isfinite(sse[j])]
+    return [rows[j] for j in np.argsort(sse, kind="stable") if np.isfinite(sse[j])]
 
 
 def stronger_magnitudes(effect: Effect, fitted: float, grid_best: float | None, factors: Sequence[float]
