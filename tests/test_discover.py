@@ -1085,12 +1085,7 @@ def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest
     from toggle_id.discovery.model import Fit
     from toggle_id.discovery.settings import DiscoverSettings
 
-    theta = extend(ASSIGNED)[0]
-    eff = EFFECTS_BY_NAME["coulomb_friction_motor"]
-    base = Fit(theta.copy(), ("mu",), sse=100.0)
-    scout_theta = theta.copy()
-    scout_theta[ALL_INDEX["tau_c"]] = 0.01
-    scout = RF.Scout(eff.name, 90.0, scout_theta, {"best_grid": {"tau_c": 0.01}})
+    theta, eff, base, scout = _refit_case("coulomb_friction_motor", "tau_c", 0.01, 100.0)
     valley = {0.01: 50.0, 0.03: 45.0, 0.1: 20.0, 0.165: 20.0}  # SSE after a polish started at tau_c
 
     def fake_fit_free(model, start, names, *a, **k):
@@ -1434,12 +1429,7 @@ def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baseli
     from toggle_id.discovery.model import Fit
     from toggle_id.discovery.settings import DiscoverSettings
 
-    theta = extend(ASSIGNED)[0]
-    eff = EFFECTS_BY_NAME["voltage_saturation"]
-    base = Fit(theta.copy(), ("mu",), sse=1000.0)
-    scout_theta = theta.copy()
-    scout_theta[ALL_INDEX["s_sat"]] = 0.2
-    scout = RF.Scout(eff.name, 90.0, scout_theta, {"best_grid": {"s_sat": 0.2}})
+    theta, eff, base, scout = _refit_case("voltage_saturation", "s_sat", 0.2, 1000.0)
     other = theta.copy()
     other[ALL_INDEX["mu"]] = 0.3  # the other start: another place of the nominal parameters
     starts = []
@@ -1542,3 +1532,15 @@ def test_the_other_starts_are_polished_in_their_screened_order_until_one_reaches
     polished.clear()
     fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 0.5e-6)
     assert polished == [0.27, 0.25, 0.23, 0.2] * 2 and len(fits) == 8  # none reaches it: every start tried
+
+
+def _refit_case(effect: str, param: str, value: float, base_sse: float):
+    """(theta, effect, base fit, scout) of a refit test: the assigned values, a baseline with μ free, and a scout
+    at ``param`` = ``value``."""
+    from toggle_id.discovery import refit as RF
+    from toggle_id.discovery.model import Fit
+
+    theta = extend(ASSIGNED)[0]
+    eff = EFFECTS_BY_NAME[effect]
+    scout = RF.Scout(eff.name, 90.0, _with_value(theta, param, value), {"best_grid": {param: value}})
+    return theta, eff, Fit(theta.copy(), ("mu",), sse=base_sse), scout
