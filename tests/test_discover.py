@@ -1506,7 +1506,8 @@ def _with_value(theta, name, value):
 
 def test_the_other_starts_are_polished_in_their_screened_order_until_one_reaches_the_floor(monkeypatch):
     """refit._from_other_starts: a drive limit's basin is narrow and the objective at a start does not rank it, so
-    every screened start is polished in order, and the search stops at the first that reaches the floor."""
+    every screened start is polished in order, and the search stops at the first that reaches the floor; a start
+    whose polish comes back to the refit's own RMS is left there."""
     from types import SimpleNamespace
 
     from toggle_id.discovery import refit as RF
@@ -1532,6 +1533,12 @@ def test_the_other_starts_are_polished_in_their_screened_order_until_one_reaches
     polished.clear()
     fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 0.5e-6)
     assert polished == [0.27, 0.25, 0.23, 0.2] * 2 and len(fits) == 8  # none reaches it: every start tried
+    polished.clear()  # a polish back at the refit's own optimum (11.6 µm, within SAME_OPTIMUM) ends its start
+    fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 0.5e-6, 11.6e-6 * 1.0005)
+    assert polished == [0.27, 0.25] * 2 and len(fits) == 4
+    polished.clear()  # one farther from it (11.7 vs 11.6 µm, 0.9 %) does not
+    fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 0.5e-6, 11.8e-6)
+    assert polished == [0.27, 0.25, 0.23, 0.2] * 2
 
 
 def _refit_case(effect: str, param: str, value: float, base_sse: float):

@@ -1,6 +1,7 @@
 """Scouts and refits of a candidate effect, and the guard against a better nominal optimum."""
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
@@ -182,7 +183,7 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     if out.accepted and others and fit.rmse(model.n) > settings.other_starts_above * noise_m > 0.0:
         values = {nm: fit.theta[ALL_INDEX[nm]] for nm in free if nm not in base.free}
         again = _from_other_starts(model, effect, [_with(other, values) for other in others], free, settings,
-                                   NEAR_NOISE * noise_m)
+                                   NEAR_NOISE * noise_m, fit.rmse(model.n))
         report = [{"rmse_m": f.rmse(model.n), "nfev": f.info.get("nfev")} for f in again]
         lowest = min(again, key=lambda f: f.sse, default=fit)
         if lowest.sse < fit.sse:
@@ -206,20 +207,29 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
 
 #: a polish from another start within this many times the record's noise is at its floor: the search stops there
 NEAR_NOISE = 1.5
+#: a polish from another start whose RMS is within this share of the refit's has come back to the refit's optimum:
+#: the rest of that start's screened magnitudes are not polished
+SAME_OPTIMUM = 1e-3
 #: factors of a refit's magnitude (its distance from "off") screened at another start (:func:`screened_starts`)
 SCREEN_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0)
 
 
 def _from_other_starts(model: Model, effect: Effect, others: Sequence[np.ndarray], free: Sequence[str],
-                       settings: DiscoverSettings, floor_m: float) -> list[Fit]:
+                       settings: DiscoverSettings, floor_m: float, back_m: float = math.nan) -> list[Fit]:
     """Polishes from each of ``others`` at its screened magnitudes (:func:`screened_starts`), in order, until one
-    ends at or below ``floor_m`` (m RMS): every fit made."""
+    ends at or below ``floor_m`` (m RMS): every fit made. A start whose polish comes back to ``back_m`` (the
+    refit's RMS, within :data:`SAME_OPTIMUM`) leads to the refit's own optimum, and its other magnitudes are left:
+    while a second effect is missing no polish can reach the floor, and every screened start would be polished
+    (the two-effect probe of docs/discovery.md, *A large threshold effect*)."""
     fits: list[Fit] = []
     for other in others:
         for st in screened_starts(model, effect, other):
             fits.append(fit_free(model, st, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds))
-            if fits[-1].rmse(model.n) <= floor_m:
+            rmse = fits[-1].rmse(model.n)
+            if rmse <= floor_m:
                 return fits
+            if abs(rmse - back_m) <= SAME_OPTIMUM * back_m:
+                break
     return fits
 
 
