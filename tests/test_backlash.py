@@ -156,3 +156,17 @@ def test_a_free_rotor_without_inertia_is_an_invalid_row(short):
     res = simulate(np.vstack([th, _theta(5e-4)]), short, FAST)
     assert res.status[0] == STATUS_INVALID and res.status[1] == 0
     assert np.all(np.isnan(res.x_B[0])) and np.all(np.isfinite(res.x_B[1]))
+
+
+def test_event_location_stops_where_subnormal_values_no_longer_differ():
+    """A flank force at rest is subnormal noise (a probe's 0.2-mm lash refit at 1e-322 N), where the Illinois
+    method's halving underflows and both ends of the bracket take the same value; the location stops there (it
+    divided by zero and crashed the discover job) and returns a fraction of the step."""
+    from toggle_id.kernels.backlash import N_Y, _locate_event
+
+    y, yn, k = np.zeros(N_Y), np.zeros(N_Y), np.zeros((7, N_Y))
+    y[3], yn[3] = -2.96e-322, 2.17e-322  # the gap δ (event 1) across the step, at the scale of the force's noise
+    k[:, 3] = [1.09999e-318, -4.54995e-319, 1.03999e-318, 1.25e-319, 2.34997e-319, 1.484983e-318, -1.10999e-318]
+    th = _locate_event(1, y[3], yn[3], 0.0, 1e-3, y, yn, k, 0, 0, 1.0, 1e-4, np.zeros(64), 1.0, np.zeros(8),
+                       np.zeros((2, 2)), np.zeros(2), np.zeros(2), np.zeros(N_Y), np.zeros(N_Y))
+    assert 0.0 < th <= 1.0

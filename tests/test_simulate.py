@@ -122,6 +122,35 @@ def test_step_budget_turns_into_solver_failure():
     assert res.fell_back.tolist() == [False]  # no fallback configured
 
 
+def test_a_kernel_that_raises_fails_its_rows_instead_of_the_job(monkeypatch):
+    """A numerical corner a kernel does not survive (a batch's exception) costs the rows that raise on their own a
+    solver-failure status and a warning; the batch's other rows are simulated as they would be alone."""
+    import toggle_id.simulate as S
+
+    rec = Record.from_sweep("simulation", duration=0.2)
+    theta = np.array([ASSIGNED, _mod(K_t=ASSIGNED[INDEX["K_t"]] * 1.01), ASSIGNED])
+    serial = S._KERNELS[False, False]
+
+    def parallel_raises(thetas, rows, *args):
+        raise ZeroDivisionError("division by zero")
+
+    def serial_raises_on_row_1(thetas, rows, *args):
+        if 1 in rows:
+            raise ZeroDivisionError("division by zero")
+        serial(thetas, rows, *args)
+
+    monkeypatch.setitem(S._KERNELS, (True, False), parallel_raises)
+    monkeypatch.setitem(S._KERNELS, (False, False), serial_raises_on_row_1)
+    with pytest.warns(RuntimeWarning, match="raised ZeroDivisionError .* 1 of them fail on their own"):
+        res = simulate(theta, rec, FAST, parallel=True)
+    assert res.status.tolist() == [STATUS_OK, S.STATUS_SOLVER_FAILURE, STATUS_OK]
+    assert np.all(np.isnan(res.x_B[1])) and np.all(np.isnan(res.i_q[1]))
+    monkeypatch.undo()
+    alone = simulate(ASSIGNED[None], rec, FAST)
+    np.testing.assert_array_equal(res.x_B[0], alone.x_B[0])
+    np.testing.assert_array_equal(res.x_B[2], alone.x_B[0])
+
+
 def test_rows_past_the_step_budget_are_redone_by_the_fallback_and_flagged():
     rec = Record.from_sweep("simulation", duration=0.5)
     tight = replace(PRECISE, max_steps=300, fallback=FAST)

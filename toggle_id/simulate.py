@@ -11,6 +11,7 @@ x_B and i_q for all of them, and a per-individual status.
 from __future__ import annotations
 
 import threading
+import warnings
 from collections.abc import MutableMapping, Sequence
 from dataclasses import dataclass
 
@@ -279,10 +280,14 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
 
         def run(rows: np.ndarray, tier: SolverSettings) -> None:
             lash = thetas[rows, K.B_L] > 0.0  # backlash: the two-body integrator, compiled apart (kernels.driver)
-            for kern, part in ((_KERNELS[parallel, False], rows[~lash]), (_KERNELS[parallel, True], rows[lash])):
+            for is_lash, part in ((False, rows[~lash]), (True, rows[lash])):
                 if part.size:
-                    kern(thetas, part, geo, tab, head, t, N, v_in, sweep, record.sweep is not None, float(t0), y0,
-                         int(contact0), tier.as_array(), x, i, status, n_steps, events)
+                    args = (geo, tab, head, t, N, v_in, sweep, record.sweep is not None, float(t0), y0,
+                            int(contact0), tier.as_array(), x, i, status, n_steps, events)
+                    try:
+                        _KERNELS[parallel, is_lash](thetas, part, *args)
+                    except Exception as exc:  # a kernel's numerical corner must not end a job: its rows fail
+                        _rows_apart(_KERNELS[False, is_lash], thetas, part, args, exc)
 
         run(good, settings)
         redo = np.flatnonzero(status == STATUS_SOLVER_FAILURE)
@@ -290,6 +295,23 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
             fell_back[redo] = True
             run(redo, settings.fallback)
     return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events, fell_back=fell_back)
+
+
+def _rows_apart(kern, thetas: np.ndarray, rows: np.ndarray, args: tuple, exc: Exception) -> None:
+    """After a batch's kernel raised ``exc``: each row again on its own, and a row that raises too is a solver
+    failure (its outputs NaN), with one warning naming the exception — a failed simulation is data, not a crash."""
+    x, i, status = args[12], args[13], args[14]
+    failed = []
+    for r in rows:
+        try:
+            kern(thetas, np.array([r]), *args)
+        except Exception:
+            status[r] = STATUS_SOLVER_FAILURE
+            x[r], i[r] = np.nan, np.nan
+            failed.append(int(r))
+    warnings.warn(f"the simulation kernel raised {type(exc).__name__} ({exc}) on a batch of {rows.size} rows; "
+                  f"{len(failed)} of them fail on their own and are marked solver failures", RuntimeWarning,
+                  stacklevel=3)
 
 
 @dataclass

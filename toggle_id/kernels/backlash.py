@@ -191,6 +191,8 @@ def _locate_event(kind, g0, g1, t, h, y, yn, k, mode, contact, q_L, b, pc, jz2, 
     a, bb, ga, gb = 0.0, 1.0, g0, g1
     side = 0
     for _ in range(100):
+        if gb == ga:  # values too small to tell apart (a flank force at rest is subnormal; halving underflows)
+            break
         th_ = (a * gb - bb * ga) / (gb - ga)
         gm = _event_value(kind, th_, t, h, y, yn, k, mode, contact, q_L, b, pc, jz2, geo, tab, head, v, ytmp, ftmp)
         a, bb, ga, gb, side = _illinois(a, bb, ga, gb, side, th_, gm)
