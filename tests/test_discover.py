@@ -213,6 +213,112 @@ def test_with_nothing_supported_the_catch_alls_kind_of_term_sends_its_untried_ef
     assert "dead_time" not in [rf.name for rf in out["refits"]]
 
 
+@pytest.mark.parametrize("base_rms_um, reached", [(30.0, True), (30.0, False), (3.0, False)])
+def test_far_above_the_noise_the_dismissed_candidates_are_polished_again_from_the_other_starts(
+        monkeypatch, base_rms_um, reached):
+    """A 3-ms dead time hidden by a bent baseline (its refit there does not move): while nothing supported reaches
+    within ``other_starts_above`` times the record's noise, the dismissed candidates whose score is significant are
+    polished again from the baseline's other starts, strongest score first, until one ends near the noise; one that
+    ends lower replaces its refit and is judged. Within that factor of the noise nothing more is fitted."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import forward as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.refit import Refit, Scout
+    from toggle_id.discovery.scoring import CandidateScore
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    n, noise_m = 1000, 1e-6
+    base_sse = (base_rms_um * 1e-6) ** 2 * n
+    stat = {"viscous_friction_slider": 211.0, "dead_time": 54.1, "sensor_offset": 27.4, "backlash": 0.5}
+    names = list(stat)
+    theta = extend(ASSIGNED)[0]
+
+    def assess(model, label, th, free, remaining, settings, noise):
+        sc = {nm: CandidateScore(nm, stat[nm], 0.3, {}, None, 1.0, 1.0) for nm in names}
+        return SimpleNamespace(label=label, scores=sc, profiles=set(names), proj=SimpleNamespace(rank=len(free)))
+
+    def refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=None, **other_starts):
+        return Refit(eff.name, it, Fit(theta, base.free, base_sse * 0.99), {}, base_sse, base_sse * 0.99, 1,
+                     len(base.free) + 1, 0.5, 0.48, 5.0, False, "F-test not significant", {})
+
+    asked = []
+
+    def from_other_starts(model, base, rf, settings, judge, others, noise):
+        asked.append(rf.name)
+        if rf.name != "dead_time" or not reached:
+            return None
+        return Refit(rf.name, rf.iteration, Fit(theta, base.free, (0.99e-6) ** 2 * n), {"tau_d": 3e-3}, base_sse,
+                     (0.99e-6) ** 2 * n, 1, len(base.free) + 1, 1e4, 0.0, -1e3, True, "ok",
+                     {"before_other_starts": {"rmse_m": 30e-6}})
+
+    monkeypatch.setattr(TP, "assess", assess)
+    monkeypatch.setattr(TP, "scout_candidate", lambda model, base, points, eff, settings, held: Scout(
+        eff.name, base_sse * 0.99, None, {}))
+    monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
+    monkeypatch.setattr(TP, "from_other_starts", from_other_starts)
+    monkeypatch.setattr(TP, "guard_null", lambda *a: None)
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    said = []
+    st = DiscoverSettings(top_k=4, second_point=False, ambiguity_alpha=0.0)
+    out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
+                        [EFFECTS_BY_NAME[nm] for nm in names], st, 1, (), said.append, None,
+                        others=[theta.copy()], noise_m=noise_m)
+    assert sorted(rf.name for rf in out["refits"]) == sorted(names)
+    if base_rms_um < st.other_starts_above:
+        assert asked == [] and out["chosen"] is None
+    elif reached:  # strongest first; the dead time ends near the noise, so the search stops there
+        assert asked == ["viscous_friction_slider", "dead_time"]
+        assert out["chosen"].name == "dead_time" and out["chosen"].params == {"tau_d": 3e-3}
+        assert any("refit dead_time" in s and "from another start of the baseline" in s for s in said)
+    else:  # every significant dismissed candidate tried (the backlash's score is not), none lower
+        assert asked == ["viscous_friction_slider", "dead_time", "sensor_offset"] and out["chosen"] is None
+
+
+def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_magnitude_where_it_left_it_off(
+        monkeypatch):
+    """refit.from_other_starts: a refit left at "off" (τ_d ≈ 0) starts from its profile's best grid magnitude at
+    each other start, in order until one ends within NEAR_NOISE times the noise; the lowest is judged when it is
+    lower than the refit (its first error kept in the report), None otherwise."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import refit as RF
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.refit import Refit
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    base = Fit(theta.copy(), ("mu",), sse=900.0 * 1e-12 * 1000)
+    left = _with_value(theta, "tau_d", 1e-9)  # the refit from the bent baseline did not move
+    rf = Refit("dead_time", 1, Fit(left, ("mu", "tau_d"), 890e-12 * 1000), {"tau_d": 1e-9}, base.sse,
+               890e-12 * 1000, 1, 2, 1.0, 0.3, 5.0, False, "F-test not significant", {"best_grid": {"tau_d": 2e-3}})
+    ends = iter([0.9e-6, 1.0e-6])  # RMS of the polishes, in order
+    starts = []
+
+    def fake_fit_free(model, start, names, *a, **k):
+        starts.append(start.copy())
+        return Fit(start.copy(), tuple(names), sse=next(ends) ** 2 * 1000)
+
+    def pair(small, large):
+        return SimpleNamespace(F=1e4, p_value=0.0, delta_bic=-1e3, passed=True, reason="ok", to_dict=lambda: {})
+
+    monkeypatch.setattr(RF, "fit_free", fake_fit_free)
+    monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
+    model = SimpleNamespace(n=1000)
+    other = _with_value(theta, "mu", 0.3)
+    got = RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
+                               [other, other], 1e-6)
+    assert len(starts) == 1  # 0.9 µm is within 1.5 times the noise: the second start is not polished
+    assert starts[0][ALL_INDEX["tau_d"]] == 2e-3 and starts[0][ALL_INDEX["mu"]] == 0.3
+    assert got.accepted and got.sse1 == pytest.approx(0.81e-12 * 1000) and got.params["tau_d"] == 2e-3
+    assert got.search["before_other_starts"]["rmse_m"] == pytest.approx(np.sqrt(890e-12))
+    ends = iter([40e-6, 35e-6])  # neither lower than the refit: nothing replaces it
+    starts.clear()
+    assert RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
+                                [other, other], 1e-6) is None
+    assert len(starts) == 2 and [round(p["rmse_m"] * 1e6) for p in rf.search["other_starts"]] == [40, 35]
+
+
 def test_a_second_look_refit_starts_from_the_current_model_with_the_effect_fitted_alone(monkeypatch):
     """refit.from_current: the effect's parameters alone polished at the current model, from the scout's
     values and from its grid's best; the lower kept, the scout's search kept with it."""

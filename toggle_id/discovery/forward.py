@@ -13,7 +13,8 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from .gauge import freed_with
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
-from .refit import Refit, from_current, guard_null, refit_candidate, scout_candidate
+from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_null, refit_candidate,
+                    scout_candidate)
 from .scoring import assess, score_leaders, worth_refitting
 from .settings import DiscoverSettings
 from .ties import indistinguishable
@@ -31,7 +32,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     from ``fit``, asked when no refit is supported. ``beside(fit, scouts)``: when still none is, the effects of
     ``scouts`` (those of no kind) refitted beside the catch-all's generic terms
     (:func:`.catchall.beside_generic`). ``others``: the baseline's other starts, in its gauge, from which an
-    accepted refit far above ``noise_m`` (the record's noise, m) is polished again (:func:`.refit.refit_candidate`)."""
+    accepted refit far above ``noise_m`` (the record's noise, m) is polished again (:func:`.refit.refit_candidate`),
+    and, while no supported refit ends within ``other_starts_above`` times that noise, every dismissed candidate the
+    score test ranks significant, strongest first, until one ends near it (:func:`.refit.from_other_starts`)."""
     n = model.n
     noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
     points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
@@ -75,11 +78,15 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     stat = {c.name: c.statistic for c in scores}
 
     def refit(sc) -> None:
-        nonlocal base, better_null
         eff = EFFECTS_BY_NAME[sc.name]
         so_far = {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free}  # the effects added
-        rf = refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=_with(anchor, so_far),
-                             others=[_with(st, so_far) for st in others], noise_m=noise_m)
+        take(refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=_with(anchor, so_far),
+                             others=[_with(st, so_far) for st in others], noise_m=noise_m))
+
+    def take(rf: Refit, replaces: Refit | None = None) -> None:
+        """``rf`` guarded, logged and kept (in the place of ``replaces``)."""
+        nonlocal base, better_null
+        eff = EFFECTS_BY_NAME[rf.name]
         if rf.accepted:
             null = guard_null(model, base, rf, eff, settings, judge)
             if null is not None and null.sse < base.sse:
@@ -102,7 +109,10 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             + (f"; from another start of the baseline (it had stopped at "
                f"{rf.search['before_other_starts']['rmse_m'] * 1e6:.4g} µm)" if "before_other_starts" in rf.search
                else ""))
-        refits.append(rf)
+        if replaces is None:
+            refits.append(rf)
+        else:
+            refits[refits.index(replaces)] = rf
         if on_refit is not None:
             on_refit(rf)
 
@@ -137,6 +147,19 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             refits.append(rf)
             if on_refit is not None:
                 on_refit(rf)
+    far = settings.other_starts_above * noise_m
+    if others and far > 0.0 and min((rf.fit.rmse(n) for rf in refits if rf.accepted), default=base.rmse(n)) > far:
+        # nothing supported reaches near the noise: the dismissed candidates the score test ranks significant,
+        # strongest first, polished again from the baseline's other starts (a bent baseline can hide a large effect)
+        so_far = {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free}
+        for rf in sorted((rf for rf in refits if not rf.accepted and stat.get(rf.name, 0.0) > screen),
+                         key=lambda rf: -stat[rf.name]):
+            again = from_other_starts(model, base, rf, settings, judge, [_with(st, so_far) for st in others],
+                                      noise_m)
+            if again is not None:
+                take(again, replaces=rf)
+                if again.accepted and again.fit.rmse(n) <= NEAR_NOISE * noise_m:
+                    break
     winners = [rf for rf in refits if rf.accepted]
     chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
     rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []
