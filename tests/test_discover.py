@@ -284,6 +284,7 @@ def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_mag
 
     from toggle_id.discovery import refit as RF
     from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.noise import WHITE, NoiseModel
     from toggle_id.discovery.refit import Refit
     from toggle_id.discovery.settings import DiscoverSettings
 
@@ -304,7 +305,7 @@ def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_mag
 
     monkeypatch.setattr(RF, "fit_free", fake_fit_free)
     monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
-    model = SimpleNamespace(n=1000)
+    model = SimpleNamespace(n=1000, noise=WHITE)
     other = _with_value(theta, "mu", 0.3)
     got = RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
                                [other, other], 1e-6)
@@ -317,6 +318,21 @@ def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_mag
     assert RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
                                 [other, other], 1e-6) is None
     assert len(starts) == 2 and [round(p["rmse_m"] * 1e6) for p in rf.search["other_starts"]] == [40, 35]
+    # under a coloured noise model (fitted to a residual the missing effect dominates) the search is by least
+    # squares, and the lowest is polished once more under the loop's noise model to be judged
+    coloured = NoiseModel(a=(0.9,), sigma2_e=1e-12, sigma2=5e-12, n=1000)
+    model.noise, seen, starts[:] = coloured, [], []
+    ends = iter([0.9e-6, 0.92e-6])
+
+    def noted(model_, start, names, *a, **k):
+        seen.append(model_.noise)
+        return fake_fit_free(model_, start, names, *a, **k)
+
+    monkeypatch.setattr(RF, "fit_free", noted)
+    got = RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
+                               [other, other], 1e-6)
+    assert seen == [WHITE, coloured] and model.noise is coloured
+    assert got.sse1 == pytest.approx(0.92e-6 ** 2 * 1000) and got.search["other_starts"][-1]["under"] == "noise model"
 
 
 def test_a_second_look_refit_starts_from_the_current_model_with_the_effect_fitted_alone(monkeypatch):
