@@ -226,7 +226,8 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
     in 0–5 ms, every least-squares polish ends at 0.989 µm with τ_d = 3.000 ms. The search is by least squares:
     the loop's prediction-error noise model is fitted to a residual the missing effect dominates (AR(8), innovation
     6.4 µm against the record's 1 µm) and whitens the effect's signature away — under it the same polishes end at
-    30.97 µm with τ_d → 0. The lowest is then polished under that noise model, as every fit the judge compares is."""
+    30.97 µm with τ_d → 0. The lowest is then polished under that noise model, as the fits the judge compares
+    are."""
     if rf.fit is None or not np.isfinite(rf.sse1):
         return None
     t0 = time.perf_counter()

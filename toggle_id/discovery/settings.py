@@ -117,9 +117,10 @@ class DiscoverSettings:
       (:func:`.refit.screened_starts`), in order until a polish ends within 1.5 times the noise (a start whose
       polish comes back to the refit's own error is left there); the lowest error is judged. While no supported
       refit of an iteration ends within this many times the noise, the dismissed candidates whose score is
-      significant are polished once from each other start too, strongest score first, until one ends within 1.5
-      times the noise (:func:`.refit.from_other_starts`: a 3-ms dead time the baseline hid, refitted from there to
-      τ_d ≈ 0, reaches 0.989 µm from the reference values). The baseline and its start bend the nominal parameters towards what the effect does, and a large
+      significant are polished once from each other start too (by least squares), strongest score first, until one
+      ends within 1.5 times the noise (:func:`.refit.from_other_starts`: a 3-ms dead time the baseline hid,
+      refitted from there to τ_d ≈ 0, reaches 0.989 µm from the reference values). The baseline and its start bend
+      the nominal parameters towards what the effect does, and a large
       effect's refit from there can stop in a valley far from its optimum (a drive limit at 162 µm: 14.08 µm from
       the baseline's start, 1.40 µm from the reference values; docs/discovery.md, *A large threshold effect*). At 5
       no white-noise record of the adversarial set reaches it (their nominal fits end within 3.5 σ). 0: off.
