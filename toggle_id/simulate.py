@@ -287,7 +287,7 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
                     try:
                         _KERNELS[parallel, is_lash](thetas, part, *args)
                     except Exception as exc:  # a kernel's numerical corner must not end a job: its rows fail
-                        _rows_apart(_KERNELS[False, is_lash], thetas, part, args, exc)
+                        _rows_apart(_KERNELS[False, is_lash], thetas, part, args, (x, i, status), exc)
 
         run(good, settings)
         redo = np.flatnonzero(status == STATUS_SOLVER_FAILURE)
@@ -297,10 +297,12 @@ def simulate(theta: np.ndarray, record: Record, settings: SolverSettings = FAST,
     return SimResult(x_B=x, i_q=i, status=status, n_steps=n_steps, contact=events, fell_back=fell_back)
 
 
-def _rows_apart(kern, thetas: np.ndarray, rows: np.ndarray, args: tuple, exc: Exception) -> None:
-    """After a batch's kernel raised ``exc``: each row again on its own, and a row that raises too is a solver
-    failure (its outputs NaN), with one warning naming the exception — a failed simulation is data, not a crash."""
-    x, i, status = args[12], args[13], args[14]
+def _rows_apart(kern, thetas: np.ndarray, rows: np.ndarray, args: tuple,
+                outputs: tuple[np.ndarray, np.ndarray, np.ndarray], exc: Exception) -> None:
+    """After a batch's kernel raised ``exc``: each row again on its own (the kernel's other arguments ``args``), and
+    a row that raises too is a solver failure (its ``outputs`` x_B, i_q NaN and its status set), with one warning
+    naming the exception — a failed simulation is data, not a crash."""
+    x, i, status = outputs
     failed = []
     for r in rows:
         try:

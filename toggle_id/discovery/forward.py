@@ -14,7 +14,7 @@ from .gauge import freed_with
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
 from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_null, refit_candidate,
-                    scout_candidate)
+                    scout_candidate, share_of_room)
 from .scoring import assess, score_leaders, worth_refitting
 from .settings import DiscoverSettings
 from .ties import indistinguishable
@@ -77,11 +77,15 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                             settings.ambiguity_alpha, screen)
     stat = {c.name: c.statistic for c in scores}
 
+    def so_far() -> dict:
+        """The values of the effects added so far (in the current ``base``)."""
+        return {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free}
+
     def refit(sc) -> None:
-        eff = EFFECTS_BY_NAME[sc.name]
-        so_far = {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free}  # the effects added
-        take(refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=_with(anchor, so_far),
-                             others=[_with(st, so_far) for st in others], noise_m=noise_m))
+        added = so_far()
+        take(refit_candidate(model, base, EFFECTS_BY_NAME[sc.name], sc, settings, it, judge, held,
+                             anchor=_with(anchor, added), others=[_with(st, added) for st in others],
+                             noise_m=noise_m))
 
     def take(rf: Refit, replaces: Refit | None = None) -> None:
         """``rf`` guarded, logged and kept (in the place of ``replaces``)."""
@@ -151,10 +155,10 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     if others and far > 0.0 and min((rf.fit.rmse(n) for rf in refits if rf.accepted), default=base.rmse(n)) > far:
         # nothing supported reaches near the noise: the dismissed candidates the score test ranks significant,
         # strongest first, polished again from the baseline's other starts (a bent baseline can hide a large effect)
-        so_far = {nm: base.theta[ALL_INDEX[nm]] for nm in base.free if nm not in free}
+        added = so_far()
         for rf in sorted((rf for rf in refits if not rf.accepted and stat.get(rf.name, 0.0) > screen),
                          key=lambda rf: -stat[rf.name]):
-            again = from_other_starts(model, base, rf, settings, judge, [_with(st, so_far) for st in others],
+            again = from_other_starts(model, base, rf, settings, judge, [_with(st, added) for st in others],
                                       noise_m)
             if again is not None:
                 take(again, replaces=rf)
@@ -209,9 +213,7 @@ AT_BOUND = 0.95
 def at_bound(effect: Effect, value: float) -> bool:
     """Whether the magnitude ``value`` of ``effect`` lies beyond :data:`AT_BOUND` of the way from "off" to the
     feasible bound on its side."""
-    mag = effect.magnitude
-    room = (mag.upper if value >= mag.off else mag.lower) - mag.off
-    return bool(np.isfinite(room) and room != 0.0 and (value - mag.off) / room >= AT_BOUND)
+    return bool(share_of_room(effect, value) >= AT_BOUND)
 
 
 def moved_effects(start: np.ndarray, end: np.ndarray, names: Sequence[str], rtol: float) -> list[str]:

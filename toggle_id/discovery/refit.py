@@ -235,8 +235,7 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
     mag = effect.magnitude
     free = rf.fit.free
     values = {nm: float(rf.fit.theta[ALL_INDEX[nm]]) for nm in free if nm not in base.free}
-    room = (mag.upper if values.get(mag.name, mag.off) >= mag.off else mag.lower) - mag.off
-    if abs(values.get(mag.name, mag.off) - mag.off) <= OFF_SHARE * abs(room):
+    if abs(share_of_room(effect, values.get(mag.name, mag.off))) <= OFF_SHARE:
         best = (rf.search.get("best_grid") or {}).get(mag.name)
         values[mag.name] = float(best) if best is not None and best != mag.off else \
             float(effect.probe[0][mag.name])
@@ -264,6 +263,14 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
                   judge, rf.iteration, rf.k, rf.p1)
     out.seconds = rf.seconds + time.perf_counter() - t0
     return out
+
+
+def share_of_room(effect: Effect, value: float) -> float:
+    """How far the magnitude ``value`` of ``effect`` lies from "off" towards the feasible bound on its side, as a
+    share of that room (NaN where the room is 0 or unbounded)."""
+    mag = effect.magnitude
+    room = (mag.upper if value >= mag.off else mag.lower) - mag.off
+    return (value - mag.off) / room if np.isfinite(room) and room != 0.0 else math.nan
 
 
 #: a refit's magnitude within this share of the room between "off" and its bound is "off" (:func:`from_other_starts`)
