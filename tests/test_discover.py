@@ -23,6 +23,20 @@ from toggle_id.simulate import PRECISE, extend, simulate
 NOISE = 1e-6
 
 
+
+def _fake_model(**attrs):
+    """A stand-in for :class:`toggle_id.discovery.model.Model` with ``attrs``, whose effects keep to the library's
+    feasible domains (no gauge of its own)."""
+    from types import SimpleNamespace
+
+    from toggle_id.stages import stage_bounds
+
+    def domain(name):
+        lo, hi = stage_bounds([name])
+        return float(lo[0]), float(hi[0])
+
+    return SimpleNamespace(domain=domain, gauge_bounds={}, **attrs)
+
 def make_record(effects: dict, duration: float = 1.0, seed: int = 0, pert: float = 0.05, start_pert: float = 0.03,
                 noise: float = NOISE) -> tuple[Record, np.ndarray, np.ndarray]:
     """A simulated record with ``effects`` switched on, the other parameters perturbed away from the assigned
@@ -305,7 +319,7 @@ def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_mag
 
     monkeypatch.setattr(RF, "fit_free", fake_fit_free)
     monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
-    model = SimpleNamespace(n=1000, noise=WHITE)
+    model = SimpleNamespace(n=1000, noise=WHITE, domain=lambda nm: (0.0, 0.05))  # the library's τ_d domain
     other = _with_value(theta, "mu", 0.3)
     got = RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
                                [other, other], 1e-6)
@@ -319,20 +333,29 @@ def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_mag
                                 [other, other], 1e-6) is None
     assert len(starts) == 2 and [round(p["rmse_m"] * 1e6) for p in rf.search["other_starts"]] == [40, 35]
     # under a coloured noise model (fitted to a residual the missing effect dominates) the search is by least
-    # squares, and the lowest is polished once more under the loop's noise model to be judged
+    # squares, and the lowest is polished once more the prediction-error way under the noise model of its own
+    # residual — not the loop's, which whitened the effect away — and the loop's is left in place
     coloured = NoiseModel(a=(0.9,), sigma2_e=1e-12, sigma2=5e-12, n=1000)
-    model.noise, seen, starts[:] = coloured, [], []
+    own = NoiseModel(a=(0.2,), sigma2_e=1e-12, sigma2=1.04e-12, n=1000)
+    model.noise, seen, starts[:], residuals_of = coloured, [], [], []
     ends = iter([0.9e-6, 0.92e-6])
 
     def noted(model_, start, names, *a, **k):
         seen.append(model_.noise)
         return fake_fit_free(model_, start, names, *a, **k)
 
+    def own_noise(model_, theta_, settings_):
+        residuals_of.append(theta_.copy())
+        return own
+
     monkeypatch.setattr(RF, "fit_free", noted)
+    monkeypatch.setattr(RF, "fitting_noise", own_noise)
     got = RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
                                [other, other], 1e-6)
-    assert seen == [WHITE, coloured] and model.noise is coloured
-    assert got.sse1 == pytest.approx(0.92e-6 ** 2 * 1000) and got.search["other_starts"][-1]["under"] == "noise model"
+    assert seen == [WHITE, own] and model.noise is coloured
+    assert len(residuals_of) == 1 and np.array_equal(residuals_of[0], starts[0])  # the least-squares fit's residual
+    assert got.sse1 == pytest.approx(0.92e-6 ** 2 * 1000)
+    assert got.search["other_starts"][-1]["under"] == own.describe()
 
 
 def test_a_second_look_refit_starts_from_the_current_model_with_the_effect_fitted_alone(monkeypatch):
@@ -649,7 +672,7 @@ def test_an_effect_polished_to_the_edge_of_its_domain_is_polished_again_from_wea
         th = theta.copy()
         th[ALL_INDEX["b_l"]] = b_l
         chosen = SimpleNamespace(name="backlash", fit=Fit(th, (*free, "b_l"), 2.0))
-        out = FW._polish_with_effect(SimpleNamespace(n=100), chosen, anchor, free, D.DiscoverSettings(),
+        out = FW._polish_with_effect(_fake_model(n=100), chosen, anchor, free, D.DiscoverSettings(),
                                      lambda m: None)
         return starts, out
 
@@ -699,7 +722,7 @@ def test_a_second_start_that_moves_the_effect_is_started_again_at_the_values_rea
         th = theta.copy()
         th[ALL_INDEX["b_l"]] = 3.26e-4
         chosen = SimpleNamespace(name="backlash", fit=Fit(th, (*free, "b_l"), 60.0))
-        out = FW._polish_with_effect(SimpleNamespace(n=100), chosen, anchor, free,
+        out = FW._polish_with_effect(_fake_model(n=100), chosen, anchor, free,
                                      D.DiscoverSettings(reanchor_rtol=rtol), lambda m: None)
         return starts, out
 
@@ -1228,7 +1251,7 @@ def test_a_significant_refit_is_repeated_from_stronger_magnitudes_and_the_lowest
     monkeypatch.setattr(RF, "fit_free", fake_fit_free)
     monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
     monkeypatch.setattr(RF, "revived", lambda th, free: None)
-    model = SimpleNamespace(n=1000)
+    model = _fake_model(n=1000)
     rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair))
     assert [s["start"] for s in rf.search["stronger_starts"]] == pytest.approx([0.03, 0.1])
     assert [s["chosen"] for s in rf.search["stronger_starts"]] == [False, True]
@@ -1387,7 +1410,7 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
     monkeypatch.setattr(TP, "_polish_with_effect", lambda m, chosen, *a: Fit(theta, ("mu", "x_off"), 3.0,
                                                                               noise=m.noise))
     noises, chosen = [], [None, SimpleNamespace(name="sensor_offset", F=50.0, p_value=1e-9, delta_bic=-40.0,
-                                                params={}, evidence={})]
+                                                params={}, evidence={}, fit=Fit(theta, ("mu", "x_off"), 3.0))]
 
     def iteration(m, *a, **k):
         noises.append(m.noise)
@@ -1408,6 +1431,47 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
     model.noise = "changed by a judge"
     plant.without(base, None, [])  # every fit of the plant under its noise model
     assert polished[-1] == (ar[1] if refit else WHITE)
+
+
+def test_an_effect_found_under_its_own_noise_model_is_polished_under_it(monkeypatch):
+    """An accepted refit fitted under another noise model than the loop's (refit.from_other_starts: the noise model
+    of its own residual) is polished with its effect under that one, which the loop's fits use from then on; under
+    the loop's, fitted to a residual the effect dominated, the polish could whiten the effect away again."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.noise import NoiseModel
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    theta = extend(ASSIGNED)[0]
+    loops, own, after = (NoiseModel(a=(a,), sigma2_e=1e-12, sigma2=2e-12, n=100) for a in (0.95, 0.3, 0.2))
+    estimates = iter([after])
+    monkeypatch.setattr(TP, "fitting_noise", lambda model, th, s: next(estimates))
+    monkeypatch.setattr(TP, "fit_free", lambda m, start, free, *a, **k: Fit(start, tuple(free), 2.0, noise=m.noise))
+    under = []
+
+    def polish_with_effect(m, chosen, *a):
+        under.append(m.noise)
+        return Fit(theta, ("mu", "tau_d"), 3.0, noise=m.noise)
+
+    monkeypatch.setattr(TP, "_polish_with_effect", polish_with_effect)
+    found = SimpleNamespace(name="dead_time", F=50.0, p_value=1e-9, delta_bic=-40.0, params={}, evidence={},
+                            fit=Fit(theta, ("mu", "tau_d"), 3.0, noise=own))
+    monkeypatch.setattr(TP, "_iteration", lambda m, *a, **k: {
+        "refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": found, "rivals": []})
+    model = SimpleNamespace(n=100, noise=loops)
+    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), DiscoverSettings(glitch_k=0.0), theta, [], ("mu",),
+                           (), [], None, lambda s: None, None)
+    plant.fit_noise = loops
+    step = plant.forward_step(Fit(theta, ("mu",), 4.0, noise=loops), [], 1)
+    assert under == [own]  # not the loop's
+    assert step.after.noise is after and plant.fit_noise is after  # then its residual's, as after every effect
+    found.fit.noise = loops  # fitted under the loop's own: polished under it, as before
+    estimates = iter([after])
+    plant.fit_noise = model.noise = loops
+    plant.forward_step(Fit(theta, ("mu",), 4.0, noise=loops), [], 2)
+    assert under == [own, loops]
 
 
 def test_the_fitting_noise_model_leaves_out_what_the_states_express():
@@ -1500,7 +1564,7 @@ def test_a_forward_step_judges_its_best_candidate_at_alpha_over_their_number():
         raise RuntimeError("stop")
 
     plant = object.__new__(TP.TogglePlant)
-    plant.model, plant.fit_noise, plant.referee = SimpleNamespace(n=n, noise=None), None, judge
+    plant.model, plant.fit_noise, plant.referee, plant.gauge_bounds = _fake_model(n=n, noise=None), None, judge, {}
     plant.pool = [EFFECTS_BY_NAME[nm] for nm in ("backlash", "dead_time", "sensor_offset")]
     plant.anchor, plant.free, plant.held, plant.say, plant.on_refit = None, (), (), print, None
     for bonferroni, family in ((True, 2), (False, 1)):
@@ -1540,6 +1604,38 @@ def test_a_nominal_vector_moved_into_anothers_gauge_holds_its_values_and_the_sam
     assert in_gauge_of(theta, far) is None
 
 
+def test_the_effects_domains_hold_at_the_reference_scale_in_any_gauge():
+    """gauge.domains_in_gauge: a loop whose mechanism sits at 1.6 times the reference scale and its current at half
+    of it reads a force-type magnitude's domain 1.6 times wider, a drive limit's (1/V) twice and a torque
+    saturation's (1/A²) four times; an effect the gauge does not scale (a dead time, a lash) keeps the library's.
+    So a magnitude inside the domain at the reference scale (a viscous friction of 9000 N·s/m, domain 0–10⁴) is
+    inside it in the loop's gauge, and the model's fits keep to that (Model.domains, the record's own over it)."""
+    from toggle_id.discovery.gauge import _scale, domains_in_gauge, gauge_scales
+    from toggle_id.stages import stage_bounds
+
+    ref = extend(ASSIGNED)[0]
+    ref[ALL_INDEX["c_B"]] = 9000.0
+    loop = ref.copy()
+    _scale(loop, 1.6, 0.5)  # mechanism ×1.6; current ×0.5 (K_i ×2, K_t ×0.5)
+    c_m, c_e = gauge_scales(loop, PARAM_NAMES, ref)
+    assert (c_m, c_e) == (pytest.approx(1 / 1.6, rel=1e-12), pytest.approx(2.0, rel=1e-12))
+    dom = domains_in_gauge(c_m, c_e)
+    lib = {nm: tuple(float(b[0]) for b in stage_bounds([nm])) for nm in ("c_B", "s_sat", "c_kt", "tau_c")}
+    assert dom["c_B"] == pytest.approx((0.0, 1.6 * lib["c_B"][1]), rel=1e-12)
+    assert dom["tau_c"] == pytest.approx((0.0, 1.6 * lib["tau_c"][1]), rel=1e-12)
+    assert dom["s_sat"] == pytest.approx((0.0, lib["s_sat"][1] / 2.0), rel=1e-12)  # s_sat·K_i is what x_B sees
+    assert dom["c_kt"] == pytest.approx((0.0, lib["c_kt"][1] / 4.0), rel=1e-12)
+    assert "tau_d" not in dom and "b_l" not in dom and "n_cog" not in dom
+    assert loop[ALL_INDEX["c_B"]] == pytest.approx(14400.0) and dom["c_B"][0] <= 14400.0 <= dom["c_B"][1]
+    assert domains_in_gauge(1.0, 1.0) == {}
+    rec = Record.from_sweep("simulation", 0.2, name="domains")
+    rec.x_B = np.zeros(rec.n)
+    model = D.Model(rec, PRECISE)
+    model.gauge_bounds, model.bounds = dom, {"c_B": (0.0, 5000.0)}
+    assert model.domain("c_B") == (0.0, 5000.0) and model.domain("s_sat") == dom["s_sat"]
+    assert model.domain("tau_d") == tuple(float(b[0]) for b in stage_bounds(["tau_d"]))
+
+
 def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baselines_other_starts(monkeypatch):
     """A large effect's refit from the baseline's start can stop in a valley (a drive limit at 160 µm: 14 µm); above
     ``other_starts_above`` times the record's noise the accepted refit is polished again from the other starts
@@ -1571,7 +1667,7 @@ def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baseli
     monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
     monkeypatch.setattr(RF, "revived", lambda th, free: None)
     monkeypatch.setattr(RF, "screened_starts", lambda model, effect, start: [start])  # (tested on its own below)
-    model = SimpleNamespace(n=1000)
+    model = _fake_model(n=1000)
     noise = 0.02  # RMS 0.224 from the scout's start: above 5 times it
     rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair),
                             others=[other], noise_m=noise)
@@ -1606,7 +1702,7 @@ def test_another_start_is_screened_over_the_effects_magnitudes_and_its_threshold
         out[np.isclose(rows[:, i], 0.28), :] = np.nan
         return out
 
-    model = SimpleNamespace(fit_residuals=fit_residuals, record=SimpleNamespace(v_in=v_in))
+    model = _fake_model(fit_residuals=fit_residuals, record=SimpleNamespace(v_in=v_in))
     best = screened_starts(model, EFFECTS_BY_NAME["voltage_saturation"], start)[:2]
     tried = asked[0][:, i]
     assert len(asked) == 1  # one batch
@@ -1648,7 +1744,7 @@ def test_the_other_starts_are_polished_in_their_screened_order_until_one_reaches
     monkeypatch.setattr(RF, "fit_free", fake_fit_free)
     monkeypatch.setattr(RF, "screened_starts", lambda model, effect, start: [
         _with_value(start, "s_sat", v) for v in (0.27, 0.25, 0.23, 0.2)])
-    model = SimpleNamespace(n=1000)
+    model = _fake_model(n=1000)
     eff = EFFECTS_BY_NAME["voltage_saturation"]
     fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 1.5e-6)
     assert polished == [0.27, 0.25, 0.23] and fits[-1].rmse(1000) == pytest.approx(1.0e-6)

@@ -210,10 +210,10 @@ def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: Dis
 AT_BOUND = 0.95
 
 
-def at_bound(effect: Effect, value: float) -> bool:
+def at_bound(effect: Effect, value: float, domain: tuple[float, float] | None = None) -> bool:
     """Whether the magnitude ``value`` of ``effect`` lies beyond :data:`AT_BOUND` of the way from "off" to the
-    feasible bound on its side."""
-    return bool(share_of_room(effect, value) >= AT_BOUND)
+    feasible bound on its side (of ``domain``, default the library's)."""
+    return bool(share_of_room(effect, value, domain) >= AT_BOUND)
 
 
 def moved_effects(start: np.ndarray, end: np.ndarray, names: Sequence[str], rtol: float) -> list[str]:
@@ -276,7 +276,7 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
     effect = EFFECTS_BY_NAME[chosen.name]
     mag = effect.magnitude
     value = float(current.theta[ALL_INDEX[mag.name]])
-    if settings.weaker_starts and at_bound(effect, value):
+    if settings.weaker_starts and at_bound(effect, value, model.domain(mag.name)):
         for f in settings.weaker_starts:
             weaker = polish(_with(as_given, {mag.name: mag.off + f * (value - mag.off)}))
             say(f"  {mag.name} at the edge of its domain ({value:.4g}): from {f:.3g} of it, "

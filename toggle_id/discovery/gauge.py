@@ -7,7 +7,7 @@ from collections.abc import Collection, Sequence
 import numpy as np
 
 from .. import params as P
-from ..effects import ALL_INDEX, ALL_NAMES, EFFECTS, Effect
+from ..effects import ALL_INDEX, ALL_NAMES, EFFECTS, Effect, effect_bounds
 from ..identify import stage_bounds
 from .model import Model
 
@@ -67,6 +67,47 @@ def _scale(theta: np.ndarray, c_m: float, c_e: float) -> None:
         theta[ALL_INDEX[n]] *= (c_m if _force_like(n) else 1.0) * c_e ** current_power(n)
 
 
+def gauge_scales(theta: np.ndarray, free: Collection[str], reference: np.ndarray, broken: Collection[str] = ()
+                 ) -> tuple[float, float] | None:
+    """The mechanical and current scales (c_m, c_e) that move ``theta`` along the symmetries ``free`` leaves open to
+    the representative nearest ``reference`` in log space (:func:`_scale`; 1 for a symmetry not open); None where no
+    scale symmetry is open, the inertia split alone (a move with no scale), or a value of either is not positive."""
+    sym = gauge_symmetries(free, broken)
+    use_m, use_e = "mechanical" in sym, "current" in sym
+    if not (use_m or use_e or "inertia_split" in sym):
+        return None
+    names = sorted(set(MECHANICAL if use_m else ()) | set(ELECTRICAL if use_e else ()))
+    if not names:
+        return 1.0, 1.0
+    x = np.array([theta[ALL_INDEX[n]] for n in names])
+    ref = np.array([reference[ALL_INDEX[n]] for n in names])
+    if np.any(x <= 0) or np.any(ref <= 0):
+        return None
+    cols = []
+    if use_m:
+        cols.append([1.0 if n in MECHANICAL else 0.0 for n in names])
+    if use_e:
+        cols.append([ELECTRICAL.get(n, 0.0) for n in names])
+    logc = np.linalg.lstsq(np.array(cols).T, np.log(ref) - np.log(x), rcond=None)[0]
+    return (float(np.exp(logc[0])) if use_m else 1.0), (float(np.exp(logc[-1])) if use_e else 1.0)
+
+
+def domains_in_gauge(c_m: float, c_e: float) -> dict[str, tuple[float, float]]:
+    """The library's feasible domains of the effect parameters that follow the mechanical or the current scale, as
+    they read in a gauge that (``c_m``, ``c_e``) move to the reference scale (:func:`gauge_scales`): each divided by
+    the factor :func:`_scale` multiplies it by. A force-type magnitude is fixed by x_B only relative to the
+    mechanism, and the report states it at the reference scale (:func:`gauge_fix`), so its domain holds there: a
+    slider viscous friction of 8000 N·s/m (domain 0–10⁴) in a loop whose mechanism sat at 1.6 times the reference
+    scale was pinned at 10⁴ there (6158 N·s/m as reported), 3.9 times the record's noise."""
+    out = {}
+    for n in ALL_NAMES[P.N_PARAMS:]:
+        f = (c_m if _force_like(n) else 1.0) * c_e ** current_power(n)
+        if f != 1.0 and f > 0 and np.isfinite(f):
+            lo, hi = effect_bounds([n])
+            out[n] = (float(lo[0]) / f, float(hi[0]) / f)
+    return out
+
+
 def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,
               tol_m: float = 2e-8, broken: Collection[str] = ()) -> tuple[np.ndarray, dict]:
     """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
@@ -82,28 +123,12 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
 
     out = theta.copy()
     info: dict = {"mechanical_scale": 1.0, "current_scale": 1.0, "applied": False}
-    free = set(free)
-    mech = list(MECHANICAL)
     sym = gauge_symmetries(free, broken)
-    use_m = "mechanical" in sym
-    use_e = "current" in sym
-    use_split = "inertia_split" in sym
-    if not (use_m or use_e or use_split):
+    use_m, use_e, use_split = ("mechanical" in sym), ("current" in sym), ("inertia_split" in sym)
+    scales = gauge_scales(theta, free, reference, broken)
+    if scales is None:
         return out, info
-    names = sorted(set(mech if use_m else []) | set(ELECTRICAL if use_e else []))
-    x = np.array([out[ALL_INDEX[n]] for n in names])
-    ref = np.array([reference[ALL_INDEX[n]] for n in names])
-    if np.any(x <= 0) or np.any(ref <= 0):
-        return out, info
-    cols = []
-    if use_m:
-        cols.append([1.0 if n in mech else 0.0 for n in names])
-    if use_e:
-        cols.append([ELECTRICAL.get(n, 0.0) for n in names])
-    A = np.array(cols).T
-    logc = np.linalg.lstsq(A, np.log(ref) - np.log(x), rcond=None)[0]
-    c_m = float(np.exp(logc[0])) if use_m else 1.0
-    c_e = float(np.exp(logc[-1])) if use_e else 1.0
+    c_m, c_e = scales
     _scale(out, c_m, c_e)
     if use_split and reference[ALL_INDEX["m_C"]] > 0 and reference[ALL_INDEX["J_m"]] > 0:
         Z2 = G.Z ** 2

@@ -95,8 +95,12 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     split = split if 0 < split < record.n else None
     n = record.n
 
+    # the representatives of the fits nearest the reference along the exact symmetries (same output) are reported,
+    # and the effects' domains hold at its scale
+    ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
+
     def plant_from(theta0: np.ndarray, others: Sequence[np.ndarray]) -> TogglePlant:
-        return TogglePlant(model, judge, settings, theta0, others, free, held, pool, split, say, on_refit)
+        return TogglePlant(model, judge, settings, theta0, others, free, held, pool, split, say, on_refit, ref)
 
     def loop(p: TogglePlant):
         return run_loop(p, max_effects=settings.max_effects, backward=settings.backward,
@@ -114,6 +118,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         for d in route_report:
             say(route_line(d))
     plant, out, nominal = routes[pick].plant, routes[pick].outcome, routes[pick].nominal
+    model.gauge_bounds = plant.gauge_bounds  # the fits of the report keep to the chosen route's domains
     baseline, current, added, compensating, eliminated = (plant.baseline_fit, out.final, out.added, out.compensating,
                                                           out.eliminated)
     diag_after, r_after, _ = out.structure
@@ -123,8 +128,6 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     with_compensating, catch_report = out.with_compensating, plant.catch_report
     compensating += compensating_refits(all_refits, compensating, added)
 
-    # the representatives of the fits nearest the reference along the exact symmetries (same output)
-    ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
     gauge_before = gauge_after = {"applied": False}
     if settings.gauge:
         broken = {sym for a in added for sym in EFFECTS_BY_NAME[a["name"]].breaks}

@@ -91,17 +91,31 @@ class Model:
         #: feasible domains this record narrows (name → (low, high)), over the library's own: every fit of the
         #: model keeps to them and the score tests and grids probe within them (:meth:`probes`)
         self.bounds: dict[str, tuple[float, float]] = {}
+        #: the library's domains of the effect parameters that scale with the mechanism or the current, as they read
+        #: in the gauge the loop's fits work in (:func:`.gauge.domains_in_gauge`; set by the plant whose fits run)
+        self.gauge_bounds: dict[str, tuple[float, float]] = {}
 
     @property
     def n(self) -> int:
         return self.record.n
 
+    def domains(self) -> dict[str, tuple[float, float]]:
+        """The feasible domains every fit of the model keeps to, over the library's own: the gauge's
+        (:attr:`gauge_bounds`), then the record's (:attr:`bounds`)."""
+        return {**self.gauge_bounds, **self.bounds}
+
+    def domain(self, name: str) -> tuple[float, float]:
+        """The feasible domain of parameter ``name`` in the model's fits (:meth:`domains`, else the library's)."""
+        lo, hi = stage_bounds([name], self.domains())
+        return float(lo[0]), float(hi[0])
+
     def probes(self, effect) -> list[dict]:
-        """The probe settings of ``effect`` (:attr:`~toggle_id.effects.Effect.probe`) moved into :attr:`bounds`,
-        each once, in order."""
+        """The probe settings of ``effect`` (:attr:`~toggle_id.effects.Effect.probe`) moved into its domains
+        (:meth:`domains`), each once, in order."""
         out: list[dict] = []
+        domains = self.domains()
         for pr in effect.probe:
-            pr = {k: float(np.clip(v, *self.bounds[k])) if k in self.bounds else v for k, v in pr.items()}
+            pr = {k: float(np.clip(v, *domains[k])) if k in domains else v for k, v in pr.items()}
             if pr not in out:
                 out.append(pr)
         return out
@@ -334,7 +348,7 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
     free = tuple(free)
     tier, step = (model.jacobian, model.jacobian_step or fd_rel_step) if coarse else (model.settings, fd_rel_step)
     idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
-    lo, hi = stage_bounds(list(free), {**model.bounds, **(bounds or {})})
+    lo, hi = stage_bounds(list(free), {**model.domains(), **(bounds or {})})
     x0 = np.clip(theta[idx].astype(float), lo, hi)
     typ = _typical(free, theta)
     mask = (lo >= 0.0) & (x0 > 0.0)

@@ -13,7 +13,7 @@ from ..fast import difference_noise
 from ..residuals import glitch_text, plant_states
 from .catchall import accepted_beside, beside_generic, catch_all, reading_needed, removal_verdict
 from .engine import Step
-from .gauge import GAUGE_HELD, freed_with, in_gauge_of
+from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_gauge_of
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .periodic import turns, whole_count
@@ -37,8 +37,12 @@ class TogglePlant:
 
     def __init__(self, model: Model, judge: Judge, settings: DiscoverSettings, theta: np.ndarray,
                  starts: Sequence[np.ndarray], free: Sequence[str], held: Sequence[str], pool: Sequence[Effect],
-                 split: int | None, say: Callable[[str], None], on_refit: Callable[[Refit], None] | None) -> None:
+                 split: int | None, say: Callable[[str], None], on_refit: Callable[[Refit], None] | None,
+                 reference: np.ndarray | None = None) -> None:
         self.model, self.referee, self.s = model, judge, settings
+        #: the values whose scale the report states force-type magnitudes at (:func:`.gauge.gauge_fix`), and the
+        #: effects' domains in this route's gauge (:meth:`_in_gauge`)
+        self.reference, self.gauge_bounds = reference, {}
         self.theta, self.starts, self.free, self.held, self.pool, self.split = theta, starts, free, held, pool, split
         self._say, self.on_refit = say, on_refit
         self.baseline_fit: Fit | None = None
@@ -68,6 +72,7 @@ class TogglePlant:
             self._fitting()
             return self.baseline_fit
         self.model.noise = self.fit_noise = WHITE
+        self.model.gauge_bounds = self.gauge_bounds = {}
         self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s, self.say)
         if self.s.glitch_k > 0 and self.referee.glitches is None and self.referee.leave_out_glitches(
                 self.baseline_fit.theta):
@@ -83,6 +88,7 @@ class TogglePlant:
                                          self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
             self.baseline_fit.info["starts"] = starts
             self.say(f"  baseline without them: rms {self.baseline_fit.rmse(self.model.n) * 1e6:.4g} µm")
+        self._in_gauge(self.baseline_fit)
         self.noise0 = fit_noise(self.model.residuals(self.baseline_fit.theta[None, :])[0], self.s.noise_max_order)
         self.say(f"noise model of the nominal residual: {self.noise0.describe()}")
         if self.s.prediction_error:
@@ -90,8 +96,21 @@ class TogglePlant:
         return self.baseline_fit
 
     def _fitting(self) -> None:
-        """The model's fits minimise under this route's noise model (routes share the model)."""
+        """The model's fits minimise under this route's noise model and keep to its gauge's domains (routes share
+        the model)."""
         self.model.noise = self.fit_noise
+        self.model.gauge_bounds = self.gauge_bounds
+
+    def _in_gauge(self, fit: Fit) -> None:
+        """The effects' feasible domains in the gauge of ``fit`` (the baseline, whose gauge parameters the loop
+        holds): the library's at the reference scale (:func:`.gauge.domains_in_gauge`); the library's as they are
+        without a reference or where the scales cannot be read (a gauge parameter not positive)."""
+        scales = gauge_scales(fit.theta, tuple(fit.free) + tuple(self.held), self.reference) \
+            if self.reference is not None and self.s.gauge else None
+        self.model.gauge_bounds = self.gauge_bounds = domains_in_gauge(*scales) if scales is not None else {}
+        if scales is not None and any(abs(np.log(c)) > 1e-9 for c in scales):
+            self.say(f"  gauge of the baseline: mechanism ×{1 / scales[0]:.4g}, current ×{1 / scales[1]:.4g} the "
+                     f"reference scale; the effects' domains read there")
 
     def _under(self, fit: Fit) -> Fit:
         """``fit`` polished again the prediction-error way under the noise model of its residual
@@ -143,6 +162,12 @@ class TogglePlant:
         chosen = step["chosen"]
         if chosen is None:
             return Step(base)
+        if self.s.prediction_error and chosen.fit.noise is not None and chosen.fit.noise.a != self.fit_noise.a:
+            # fitted under the noise model of its own residual (the dismissed candidates' search from the other
+            # starts, :func:`.refit.from_other_starts`): the loop's fits minimise under that one from here, as they
+            # would once the effect is added — under the old one, fitted to a residual the effect dominated, the
+            # polish can whiten the effect away again
+            self.model.noise = self.fit_noise = chosen.fit.noise
         after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say)
         if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
             after = self._under(after)
