@@ -356,6 +356,19 @@ def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_mag
     assert len(residuals_of) == 1 and np.array_equal(residuals_of[0], starts[0])  # the least-squares fit's residual
     assert got.sse1 == pytest.approx(0.92e-6 ** 2 * 1000)
     assert got.search["other_starts"][-1]["under"] == own.describe()
+    # fitted under different noise models, the find and the refit compare by their raw errors: a whitened SSE under
+    # its own model above the refit's (under the loop's) is no reason to drop a raw error of a third of it
+    rf.fit = Fit(left, ("mu", "tau_d"), (2.5e-6) ** 2 * 1000, raw_sse=(6e-6) ** 2 * 1000, noise=coloured)
+
+    def own_fit(model_, start, names, *a, **k):
+        seen.append(model_.noise)
+        return Fit(start.copy(), tuple(names), sse=(3e-6) ** 2 * 1000, raw_sse=(2e-6) ** 2 * 1000,
+                   noise=model_.noise)
+
+    monkeypatch.setattr(RF, "fit_free", own_fit)
+    got = RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
+                               [other], 1e-6)
+    assert got is not None and got.fit.noise is own and got.fit.rmse(1000) == pytest.approx(2e-6)
 
 
 def test_a_second_look_refit_starts_from_the_current_model_with_the_effect_fitted_alone(monkeypatch):
@@ -1433,6 +1446,28 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
     assert polished[-1] == (ar[1] if refit else WHITE)
 
 
+def test_the_step_chooses_by_raw_errors_among_refits_fitted_under_different_noise_models():
+    """forward.lowest_of: the lowest SSE as minimised when every supported refit shares a noise model; by the raw
+    error when they do not (whitened SSEs under different models do not compare)."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.forward import lowest_of
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.noise import NoiseModel
+
+    theta = extend(ASSIGNED)[0]
+    loops, own = NoiseModel(a=(0.9,), sigma2_e=1e-12, sigma2=5e-12, n=100), NoiseModel(a=(0.2,), n=100)
+
+    def refit(name, sse_w, rms, noise):
+        return SimpleNamespace(name=name, sse1=sse_w, fit=Fit(theta, ("mu",), sse_w, raw_sse=rms ** 2 * 100,
+                                                                noise=noise))
+
+    offset, found = refit("sensor_offset", 1.0e-9, 6.7e-6, loops), refit("dead_time", 1.2e-9, 2.6e-6, loops)
+    assert lowest_of([offset, found], 100) is offset and lowest_of([], 100) is None
+    found.fit.noise = own
+    assert lowest_of([offset, found], 100) is found
+
+
 def test_an_effect_found_under_its_own_noise_model_is_polished_under_it(monkeypatch):
     """An accepted refit fitted under another noise model than the loop's (refit.from_other_starts: the noise model
     of its own residual) is polished with its effect under that one, which the loop's fits use from then on; under
@@ -1634,6 +1669,33 @@ def test_the_effects_domains_hold_at_the_reference_scale_in_any_gauge():
     model.gauge_bounds, model.bounds = dom, {"c_B": (0.0, 5000.0)}
     assert model.domain("c_B") == (0.0, 5000.0) and model.domain("s_sat") == dom["s_sat"]
     assert model.domain("tau_d") == tuple(float(b[0]) for b in stage_bounds(["tau_d"]))
+    # a user's domain takes the library's place, read at the reference scale too; one the gauge does not scale as given
+    given = domains_in_gauge(c_m, c_e, {"c_B": (0.0, 3e4), "tau_d": (0.0, 0.01)})
+    assert given["c_B"] == pytest.approx((0.0, 4.8e4)) and given["tau_d"] == (0.0, 0.01)
+    assert given["s_sat"] == dom["s_sat"]
+
+
+def test_an_added_effect_left_at_the_edge_of_its_domain_is_said_and_a_bad_domain_is_one_line():
+    """loop.at_the_edge: an added effect whose magnitude the final fit left within 5 % of its domain's bound (in the
+    loop's gauge) gets a sentence; one inside does not. discover(bounds=...) with an unknown or empty domain fails
+    with one line before any work."""
+    from toggle_id.discovery.loop import at_the_edge
+    from toggle_id.discovery.model import Fit
+
+    rec = Record.from_sweep("simulation", 0.2, name="edge")
+    rec.x_B = np.zeros(rec.n)
+    model = D.Model(rec, PRECISE)
+    model.gauge_bounds = {"c_B": (0.0, 1.6e4)}
+    theta = extend(ASSIGNED)[0]
+    theta[ALL_INDEX["c_B"]] = 1.59e4
+    added = [{"name": "viscous_friction_slider"}]
+    edge = at_the_edge(model, added, Fit(theta, ("c_B",), 1.0))
+    assert len(edge) == 1 and "c_B" in edge[0] and "1.6e+04" in edge[0]
+    theta[ALL_INDEX["c_B"]] = 1.2e4  # beyond the library's 10⁴, inside the gauge's domain
+    assert at_the_edge(model, added, Fit(theta, ("c_B",), 1.0)) == []
+    for bad, word in (({"c_X": (0.0, 1.0)}, "unknown"), ({"c_B": (5.0, 1.0)}, "inverted")):
+        with pytest.raises(ConfigError, match=word):
+            D.discover(rec, bounds=bad)
 
 
 def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baselines_other_starts(monkeypatch):

@@ -130,7 +130,7 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
 
         res = discover(record, nominal=nominal, settings=settings, fixed=fixed, starts=starts, reference=base_start,
                        validation=validation, label=label, alternatives=alternatives, restarts=restarts,
-                       on_refit=on_refit,
+                       on_refit=on_refit, bounds=dict(cfg.get("bounds") or {}),
                        progress=(lambda msg: print(msg, flush=True)) if show else None)
         curve.add("discovery", curve.simulations + res.n_simulations, rmse_m=res.rmse_after_m)
         wall = time.perf_counter() - t0

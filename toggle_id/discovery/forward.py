@@ -165,7 +165,7 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                 if again.accepted and again.fit.rmse(n) <= NEAR_NOISE * noise_m:
                     break
     winners = [rf for rf in refits if rf.accepted]
-    chosen = min(winners, key=lambda rf: rf.sse1) if winners else None
+    chosen = lowest_of(winners, n)
     rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []
     for rf in winners:
         if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
@@ -208,6 +208,16 @@ def _rivals(judge: Judge, chosen: Refit, winners: Sequence[Refit], settings: Dis
 #: Share of the room between "off" and its feasible bound beyond which an effect's fitted magnitude is at the edge
 #: (the stronger starts stop at 0.98 of it: :func:`.refit.stronger_magnitudes`).
 AT_BOUND = 0.95
+
+
+def lowest_of(winners: Sequence[Refit], n: int) -> Refit | None:
+    """The supported refit of lowest SSE as the fits minimised it; by their raw errors where they minimised under
+    different noise models (a find of the search from the other starts is fitted under the noise model of its own
+    residual, :func:`.refit.from_other_starts`), whose whitened SSEs do not compare."""
+    if not winners:
+        return None
+    same = len({rf.fit.noise.a if rf.fit.noise is not None else () for rf in winners}) == 1
+    return min(winners, key=(lambda rf: rf.sse1) if same else (lambda rf: rf.fit.rmse(n)))
 
 
 def at_bound(effect: Effect, value: float, domain: tuple[float, float] | None = None) -> bool:

@@ -2,7 +2,7 @@
 fit nearest the reference values for the report."""
 from __future__ import annotations
 
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -92,19 +92,22 @@ def gauge_scales(theta: np.ndarray, free: Collection[str], reference: np.ndarray
     return (float(np.exp(logc[0])) if use_m else 1.0), (float(np.exp(logc[-1])) if use_e else 1.0)
 
 
-def domains_in_gauge(c_m: float, c_e: float) -> dict[str, tuple[float, float]]:
+def domains_in_gauge(c_m: float, c_e: float, given: Mapping[str, Sequence[float]] | None = None
+                     ) -> dict[str, tuple[float, float]]:
     """The library's feasible domains of the effect parameters that follow the mechanical or the current scale, as
     they read in a gauge that (``c_m``, ``c_e``) move to the reference scale (:func:`gauge_scales`): each divided by
     the factor :func:`_scale` multiplies it by. A force-type magnitude is fixed by x_B only relative to the
     mechanism, and the report states it at the reference scale (:func:`gauge_fix`), so its domain holds there: a
     slider viscous friction of 8000 N·s/m (domain 0–10⁴) in a loop whose mechanism sat at 1.6 times the reference
-    scale was pinned at 10⁴ there (6158 N·s/m as reported), 3.9 times the record's noise."""
+    scale was pinned at 10⁴ there (6158 N·s/m as reported), 3.9 times the record's noise. ``given``: effect
+    parameters' domains a user set (``bounds``), at the reference scale like the library's, in their place."""
+    given = dict(given or {})
     out = {}
     for n in ALL_NAMES[P.N_PARAMS:]:
         f = (c_m if _force_like(n) else 1.0) * c_e ** current_power(n)
-        if f != 1.0 and f > 0 and np.isfinite(f):
-            lo, hi = effect_bounds([n])
-            out[n] = (float(lo[0]) / f, float(hi[0]) / f)
+        if (f != 1.0 or n in given) and f > 0 and np.isfinite(f):
+            lo, hi = given.get(n) or tuple(float(b[0]) for b in effect_bounds([n]))
+            out[n] = (float(lo) / f, float(hi) / f)
     return out
 
 

@@ -15,6 +15,7 @@ from ..identify import IdentificationResult
 from ..plant import GEOMETRY
 from ..record import Record
 from ..simulate import PRECISE, extend
+from ..stages import stage_bounds
 from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symmetries
 from .model import Fit, Model, _with, parameter_uncertainty
 from .refit import Refit
@@ -22,6 +23,7 @@ from .toggle_plant import TogglePlant, cogging_domain
 from .report import DiscoveryResult, _conclusion
 from .settings import DiscoverSettings
 from .engine import run_loop
+from .forward import at_bound
 from .routes import Route, choose, more_routes, route_line
 from .residual import (convergence_of, level_varies, line_text, noise_lines, periodic_text, predicted_left,
                        prediction_report, residual_report)
@@ -49,6 +51,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              starts: Sequence[np.ndarray | Mapping[str, float]] = (),
              reference: np.ndarray | Mapping[str, float] | None = None, validation: Record | None = None,
              on_refit: Callable[[Refit], None] | None = None, progress: Callable[[str], None] | None = None,
+             bounds: Mapping[str, Sequence[float]] | None = None,
              label: str = "nominal", alternatives: Sequence[tuple[str, object]] = (),
              restarts: Sequence[tuple[str, object]] = ()) -> DiscoveryResult:
     """Run the discovery loop on ``record`` (see the package docstring).
@@ -63,6 +66,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         output (:func:`gauge_fix`; default the assigned values) — it fixes the otherwise arbitrary scale of the
         mechanism, and with it the magnitude of force-type effects.
     validation: a second record of the same machine, never fitted: an effect must predict it better too.
+    bounds: feasible domains of effect parameters in the library's place ({name: (low, high)}, at the reference
+        scale; physical parameters' entries are the identification's and are left out here).
     on_refit: called with every :class:`Refit` (e.g. to log an MLflow child run); progress: one-line messages.
     label: where ``nominal`` came from (e.g. ``two_stage``); alternatives: further nominal fits, as (label, fit)
         pairs — a fit as ``nominal``, or a callable without arguments that makes it (run only when needed) —
@@ -71,6 +76,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         every route's so far, and only while no route has explained the record (:func:`.routes.more_routes`).
     """
     settings = (settings or DiscoverSettings()).validate()
+    domains = {k: v for k, v in (bounds or {}).items() if k not in P.INDEX}
+    stage_bounds(list(domains), domains)  # an unknown name or an empty domain: one line, before any work
     say = progress or (lambda msg: log.info(msg))
     t_start = time.perf_counter()
     model = Model(record, PRECISE, settings.parallel, jacobian=settings.jacobian,
@@ -100,7 +107,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     ref = _with(_nominal_theta(reference), fixed) if reference is not None else _with(extend(P.ASSIGNED)[0], fixed)
 
     def plant_from(theta0: np.ndarray, others: Sequence[np.ndarray]) -> TogglePlant:
-        return TogglePlant(model, judge, settings, theta0, others, free, held, pool, split, say, on_refit, ref)
+        return TogglePlant(model, judge, settings, theta0, others, free, held, pool, split, say, on_refit, ref,
+                           domains)
 
     def loop(p: TogglePlant):
         return run_loop(p, max_effects=settings.max_effects, backward=settings.backward,
@@ -128,6 +136,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     with_compensating, catch_report = out.with_compensating, plant.catch_report
     compensating += compensating_refits(all_refits, compensating, added)
 
+    edge = at_the_edge(model, added, current)  # in the loop's gauge, before the report's representatives
     gauge_before = gauge_after = {"applied": False}
     if settings.gauge:
         broken = {sym for a in added for sym in EFFECTS_BY_NAME[a["name"]].breaks}
@@ -184,6 +193,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
     if repeats := periodic_text(diag_after):
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
+    if edge:
+        conclusion += (" " + "; ".join(edge) + " — the record asks for more than its feasible domain allows, and the "
+                       "error left may be that: widen it (bounds.NAME=[low,high], at the reference scale) and run "
+                       "again.")
     conv = convergence_of(diag_after)
     if conv and not conv["converged"]:
         conclusion += (" The final fit had not converged — its own parameters still explain "
@@ -252,6 +265,19 @@ def compensating_refits(refits: Sequence[Refit], compensating: Sequence[dict], a
     return [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
              "evidence": rf.evidence} for rf in latest.values()
             if rf.iteration > complete and rf.lowers_error and not rf.accepted and rf.name not in listed]
+
+
+def at_the_edge(model: Model, added: Sequence[dict], current: Fit) -> list[str]:
+    """A sentence for each added effect whose magnitude the final fit left at the edge of its feasible domain in
+    the loop's gauge (:func:`.forward.at_bound`)."""
+    out = []
+    for a in added:
+        mag = EFFECTS_BY_NAME[a["name"]].magnitude
+        dom = model.domain(mag.name)
+        if at_bound(EFFECTS_BY_NAME[a["name"]], float(current.theta[ALL_INDEX[mag.name]]), dom):
+            out.append(f"{a['name']}'s {mag.name} ends at the edge of its domain [{dom[0]:.4g}, {dom[1]:.4g}] "
+                       f"(in the loop's gauge)")
+    return out
 
 
 def _describe_added(added: list[dict], current: Fit, uncertainty: dict, gauge_after: dict) -> None:

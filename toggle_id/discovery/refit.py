@@ -16,7 +16,7 @@ from .residual import fitting_noise
 from .scoring import Point, refit_start
 from .settings import DiscoverSettings
 from .stats import f_test
-from .validation import Evidence, Judge
+from .validation import Evidence, Judge, _loop_sse
 
 
 def in_sample(checks: dict) -> bool:
@@ -266,7 +266,7 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
             model.noise = noise
         report.append({"rmse_m": lowest.rmse(model.n), "nfev": lowest.info.get("nfev"),
                        "under": own.describe()})
-    if lowest is None or not lowest.sse < rf.fit.sse:
+    if lowest is None or not np.less(*_loop_sse(lowest, rf.fit)):  # raw where the two noise models differ
         rf.search["other_starts"] = report
         return None
     first = {"rmse_m": rf.fit.rmse(model.n), "reason": rf.reason}

@@ -3,7 +3,7 @@ forward step (scores, scouts, refits and their guards), the refits without an ef
 catch-all check. :func:`.loop.discover` runs the engine's loop over it."""
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -38,11 +38,11 @@ class TogglePlant:
     def __init__(self, model: Model, judge: Judge, settings: DiscoverSettings, theta: np.ndarray,
                  starts: Sequence[np.ndarray], free: Sequence[str], held: Sequence[str], pool: Sequence[Effect],
                  split: int | None, say: Callable[[str], None], on_refit: Callable[[Refit], None] | None,
-                 reference: np.ndarray | None = None) -> None:
+                 reference: np.ndarray | None = None, domains: Mapping[str, Sequence[float]] | None = None) -> None:
         self.model, self.referee, self.s = model, judge, settings
-        #: the values whose scale the report states force-type magnitudes at (:func:`.gauge.gauge_fix`), and the
-        #: effects' domains in this route's gauge (:meth:`_in_gauge`)
-        self.reference, self.gauge_bounds = reference, {}
+        #: the values whose scale the report states force-type magnitudes at (:func:`.gauge.gauge_fix`), the effect
+        #: domains a user gave (at that scale), and the effects' domains in this route's gauge (:meth:`_in_gauge`)
+        self.reference, self.domains, self.gauge_bounds = reference, dict(domains or {}), dict(domains or {})
         self.theta, self.starts, self.free, self.held, self.pool, self.split = theta, starts, free, held, pool, split
         self._say, self.on_refit = say, on_refit
         self.baseline_fit: Fit | None = None
@@ -72,7 +72,7 @@ class TogglePlant:
             self._fitting()
             return self.baseline_fit
         self.model.noise = self.fit_noise = WHITE
-        self.model.gauge_bounds = self.gauge_bounds = {}
+        self.model.gauge_bounds = self.gauge_bounds = dict(self.domains)
         self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s, self.say)
         if self.s.glitch_k > 0 and self.referee.glitches is None and self.referee.leave_out_glitches(
                 self.baseline_fit.theta):
@@ -104,10 +104,12 @@ class TogglePlant:
     def _in_gauge(self, fit: Fit) -> None:
         """The effects' feasible domains in the gauge of ``fit`` (the baseline, whose gauge parameters the loop
         holds): the library's at the reference scale (:func:`.gauge.domains_in_gauge`); the library's as they are
-        without a reference or where the scales cannot be read (a gauge parameter not positive)."""
+        without a reference or where the scales cannot be read (a gauge parameter not positive). The domains a
+        user gave (``domains``) take the library's place."""
         scales = gauge_scales(fit.theta, tuple(fit.free) + tuple(self.held), self.reference) \
             if self.reference is not None and self.s.gauge else None
-        self.model.gauge_bounds = self.gauge_bounds = domains_in_gauge(*scales) if scales is not None else {}
+        self.model.gauge_bounds = self.gauge_bounds = domains_in_gauge(*scales, self.domains) \
+            if scales is not None else dict(self.domains)
         if scales is not None and any(abs(np.log(c)) > 1e-9 for c in scales):
             self.say(f"  gauge of the baseline: mechanism ×{1 / scales[0]:.4g}, current ×{1 / scales[1]:.4g} the "
                      f"reference scale; the effects' domains read there")
