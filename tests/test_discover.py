@@ -1446,62 +1446,6 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
     assert polished[-1] == (ar[1] if refit else WHITE)
 
 
-def test_an_effect_at_the_edge_of_its_domain_is_polished_again_with_the_domain_read_at_the_fits_own_scale(
-        monkeypatch):
-    """TogglePlant._past_the_edge: a magnitude at the edge of its domain (read at the baseline's scale) is polished
-    again while the domain read at the fit's own scale is wider — the fits move the mechanism's scale as they go —
-    at most EDGE_REREADS times; not where it is inside, nor where the fit's own scale gives no more room, nor once
-    a polish no longer lowers the error."""
-    from toggle_id.discovery import toggle_plant as TP
-    from toggle_id.discovery.model import Fit
-    from toggle_id.discovery.settings import DiscoverSettings
-    from toggle_id.stages import stage_bounds
-
-    theta = extend(ASSIGNED)[0]
-    i = ALL_INDEX["c_B"]
-    plant = object.__new__(TP.TogglePlant)
-    plant.s, plant.held, plant.domains, plant.reference, plant.gauge_bounds = DiscoverSettings(), (), {}, theta, {}
-    said = []
-    plant._say = said.append
-
-    def domain(name):
-        return plant.model.gauge_bounds.get(name) or tuple(float(b[0]) for b in stage_bounds([name]))
-
-    plant.model = _fake_model(n=100)
-    plant.model.domain = domain
-
-    def run(start, scales, ends):
-        """``start`` c_B; the mechanism scale each re-read finds (× the reference); each polish's c_B and SSE."""
-        scales, ends, polished = iter(scales), iter(ends), []
-        monkeypatch.setattr(TP, "gauge_scales", lambda th, free, ref, broken=(): (1.0 / next(scales), 1.0))
-
-        def fit_free(model, start_, free, *a, **k):
-            c_b, sse = next(ends)
-            polished.append(float(start_[i]))
-            out = start_.copy()
-            out[i] = c_b
-            return Fit(out, tuple(free), sse)
-
-        monkeypatch.setattr(TP, "fit_free", fit_free)
-        plant.model.gauge_bounds = {}
-        first = theta.copy()
-        first[i] = start
-        out = plant._past_the_edge(Fit(first, ("mu", "c_B"), 10.0), EFFECTS_BY_NAME["viscous_friction_slider"])
-        return out, polished
-
-    out, polished = run(5e3, [], [])  # inside its domain: as it was
-    assert polished == [] and out.sse == 10.0
-    out, polished = run(9.9e3, [1.1, 1.2], [(1.09e4, 5.0), (1.1e4, 2.0)])  # wider twice; the second ends inside
-    assert polished == [9.9e3, 1.09e4] and out.sse == 2.0 and out.theta[i] == 1.1e4
-    assert plant.model.gauge_bounds["c_B"] == pytest.approx((0.0, 1.2e4))  # the loop's domains read there now
-    out, polished = run(9.9e3, [1.0], [])  # no wider at the fit's own scale
-    assert polished == [] and out.sse == 10.0
-    out, polished = run(9.9e3, [1.1, 1.2], [(1.09e4, 5.0), (1.19e4, 6.0)])  # a polish that does not lower: the one before
-    assert len(polished) == 2 and out.sse == 5.0
-    out, polished = run(9.9e3, [1.1 ** k for k in range(1, 9)], [(0.99e4 * 1.1 ** k, 10.0 - k) for k in range(1, 9)])
-    assert len(polished) == TP.EDGE_REREADS and out.sse == 10.0 - TP.EDGE_REREADS
-
-
 def test_the_step_chooses_by_raw_errors_among_refits_fitted_under_different_noise_models():
     """forward.lowest_of: the lowest SSE as minimised when every supported refit shares a noise model; by the raw
     error when they do not (whitened SSEs under different models do not compare)."""

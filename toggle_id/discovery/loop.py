@@ -195,7 +195,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
     if edge:
         conclusion += (" " + "; ".join(edge) + " — the record asks for more than its feasible domain allows, and the "
-                       "error left may be that: widen it (+bounds.NAME=[low,high], at the reference scale) and run "
+                       "error left may be that: widen it (bounds.NAME=[low,high], at the reference scale) and run "
                        "again.")
     conv = convergence_of(diag_after)
     if conv and not conv["converged"]:

@@ -17,18 +17,13 @@ from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_ga
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .periodic import turns, whole_count
-from .forward import _iteration, _polish_with_effect, at_bound
+from .forward import _iteration, _polish_with_effect
 from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
 from .scoring import CandidateScore
 from .settings import DiscoverSettings
 from .validation import Evidence, Judge
-
-
-#: at most this many polishes of an added effect at the edge of its domain, read again each time at the fit's own
-#: scale (:meth:`TogglePlant._past_the_edge`)
-EDGE_REREADS = 4
 
 
 class TogglePlant:
@@ -106,33 +101,7 @@ class TogglePlant:
         self.model.noise = self.fit_noise
         self.model.gauge_bounds = self.gauge_bounds
 
-    def _past_the_edge(self, fit: Fit, effect: Effect) -> Fit:
-        """``fit`` (with ``effect`` just added) polished again while its magnitude sits at the edge of its domain
-        and the domain read at ``fit``'s own scale (:meth:`_in_gauge`) is wider, up to :data:`EDGE_REREADS` times;
-        the loop's domains are read there from then on. The domains are read at the baseline's scale, and the fits
-        move the mechanism's scale as they go: a slider viscous friction of 8000 N·s/m on a machine 15–40 % off the
-        reference was pinned at the edge read at the baseline's 1.042 times the reference scale (2.84 µm against
-        the record's 1 µm) where its fit with the domain widened by hand ends at 0.994 µm, c_B 8991 N·s/m at the
-        reference scale — inside the library's domain there (docs/discovery.md)."""
-        mag = effect.magnitude
-        for _ in range(EDGE_REREADS):
-            value = float(fit.theta[ALL_INDEX[mag.name]])
-            if not at_bound(effect, value, self.model.domain(mag.name)):
-                break
-            self._in_gauge(fit, f"the fit with {effect.name}")
-            if at_bound(effect, value, self.model.domain(mag.name)):
-                break  # no wider at the fit's own scale
-            again = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step,
-                             rounds=self.s.rounds)
-            self.say(f"  {mag.name} at the edge of its domain ({value:.4g}); read again at the fit's own scale, "
-                     f"{self.model.domain(mag.name)[1]:.4g}: {again.rmse(self.model.n) * 1e6:.4g} µm at "
-                     f"{again.theta[ALL_INDEX[mag.name]]:.4g}")
-            if not again.sse < fit.sse:
-                break
-            fit = again
-        return fit
-
-    def _in_gauge(self, fit: Fit, what: str = "the baseline") -> None:
+    def _in_gauge(self, fit: Fit) -> None:
         """The effects' feasible domains in the gauge of ``fit`` (the baseline, whose gauge parameters the loop
         holds): the library's at the reference scale (:func:`.gauge.domains_in_gauge`); the library's as they are
         without a reference or where the scales cannot be read (a gauge parameter not positive). The domains a
@@ -142,7 +111,7 @@ class TogglePlant:
         self.model.gauge_bounds = self.gauge_bounds = domains_in_gauge(*scales, self.domains) \
             if scales is not None else dict(self.domains)
         if scales is not None and any(abs(np.log(c)) > 1e-9 for c in scales):
-            self.say(f"  gauge of {what}: mechanism ×{1 / scales[0]:.4g}, current ×{1 / scales[1]:.4g} the "
+            self.say(f"  gauge of the baseline: mechanism ×{1 / scales[0]:.4g}, current ×{1 / scales[1]:.4g} the "
                      f"reference scale; the effects' domains read there")
 
     def _under(self, fit: Fit) -> Fit:
@@ -201,8 +170,7 @@ class TogglePlant:
             # would once the effect is added — under the old one, fitted to a residual the effect dominated, the
             # polish can whiten the effect away again
             self.model.noise = self.fit_noise = chosen.fit.noise
-        after = self._past_the_edge(_polish_with_effect(self.model, chosen, self.anchor, self.free, self.s,
-                                                        self.say), EFFECTS_BY_NAME[chosen.name])
+        after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say)
         if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
             after = self._under(after)
         item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
