@@ -97,10 +97,12 @@ def domains_in_gauge(c_m: float, c_e: float, given: Mapping[str, Sequence[float]
     """The library's feasible domains of the effect parameters that follow the mechanical or the current scale, as
     they read in a gauge that (``c_m``, ``c_e``) move to the reference scale (:func:`gauge_scales`): each divided by
     the factor :func:`_scale` multiplies it by. A force-type magnitude is fixed by x_B only relative to the
-    mechanism, and the report states it at the reference scale (:func:`gauge_fix`), so its domain holds there: a
-    slider viscous friction of 8000 N·s/m (domain 0–10⁴) in a loop whose mechanism sat at 1.6 times the reference
-    scale was pinned at 10⁴ there (6158 N·s/m as reported), 3.9 times the record's noise. ``given``: effect
-    parameters' domains a user set (``bounds``), at the reference scale like the library's, in their place."""
+    mechanism, and the report states it at the reference scale (:func:`gauge_fix`), so its domain holds there. The
+    scales are read once, at the baseline; the fits move the mechanism's scale as they go, so the domain holds at
+    the reference scale only approximately (a slider viscous friction of 8000 N·s/m on a machine 15–40 % off the
+    reference: the baseline at 1.042 times the reference scale, the final fit at 1.11; docs/discovery.md).
+    ``given``: effect parameters' domains a user set (``bounds``), at the reference scale like the library's, in
+    their place."""
     given = dict(given or {})
     out = {}
     for n in ALL_NAMES[P.N_PARAMS:]:

@@ -194,9 +194,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     if repeats := periodic_text(diag_after):
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
     if edge:
-        conclusion += (" " + "; ".join(edge) + " — the record asks for more than its feasible domain allows, and the "
-                       "error left may be that: widen it (bounds.NAME=[low,high], at the reference scale) and run "
-                       "again.")
+        conclusion += (" " + "; ".join(edge) + " — the record asks for more than the feasible domain allows, and the "
+                       "error left may be that: widen it and run again.")
     conv = convergence_of(diag_after)
     if conv and not conv["converged"]:
         conclusion += (" The final fit had not converged — its own parameters still explain "
@@ -276,7 +275,7 @@ def at_the_edge(model: Model, added: Sequence[dict], current: Fit) -> list[str]:
         dom = model.domain(mag.name)
         if at_bound(EFFECTS_BY_NAME[a["name"]], float(current.theta[ALL_INDEX[mag.name]]), dom):
             out.append(f"{a['name']}'s {mag.name} ends at the edge of its domain [{dom[0]:.4g}, {dom[1]:.4g}] "
-                       f"(in the loop's gauge)")
+                       f"(in the loop's gauge; +bounds.{mag.name}=[low,high] sets it at the reference scale)")
     return out
 
 
