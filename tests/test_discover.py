@@ -1381,15 +1381,15 @@ def test_the_reported_fits_check_compares_the_loops_fits_as_they_were_minimised(
     from types import SimpleNamespace
 
     from toggle_id.discovery.model import Fit
-    from toggle_id.discovery.validation import _loop_sse
+    from toggle_id.discovery.validation import loop_sse
 
     ar = SimpleNamespace(a=(0.9,))
     theta = extend(ASSIGNED)[0]
     small = Fit(theta, ("mu",), 2.0, raw_sse=10.0, noise=ar)
     large = Fit(theta, ("mu", "c_B"), 1.0, raw_sse=10.5, noise=ar)
-    assert _loop_sse(small, large) == (2.0, 1.0)
+    assert loop_sse(small, large) == (2.0, 1.0)
     large.noise = SimpleNamespace(a=(0.8,))
-    assert _loop_sse(small, large) == (10.0, 10.5)
+    assert loop_sse(small, large) == (10.0, 10.5)
 
 
 @pytest.mark.parametrize("pem, white", [(True, False), (False, False), (True, True)])

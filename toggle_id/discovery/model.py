@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
+from contextlib import contextmanager
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -278,6 +279,17 @@ class Fit:
     def rmse(self, n: int) -> float:
         """RMS of the (raw) residual [m]."""
         return float(np.sqrt((self.sse if self.raw_sse is None else self.raw_sse) / n))
+
+
+@contextmanager
+def minimising_under(model: Model, noise: NoiseModel) -> Iterator[Model]:
+    """Inside the block the fits of ``model`` minimise under ``noise`` (white: least squares); after it, under the
+    noise model they had."""
+    before, model.noise = model.noise, noise
+    try:
+        yield model
+    finally:
+        model.noise = before
 
 
 def strictly_inside(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, rtol: float = 1e-6) -> np.ndarray:

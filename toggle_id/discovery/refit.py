@@ -10,13 +10,13 @@ import numpy as np
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from .gauge import freed_with
-from .model import Fit, Model, _off_values, _std_errors, _with, fit_free, revived
+from .model import Fit, Model, _off_values, _std_errors, _with, fit_free, minimising_under, revived
 from .noise import WHITE
 from .residual import fitting_noise
 from .scoring import Point, refit_start
 from .settings import DiscoverSettings
 from .stats import f_test
-from .validation import Evidence, Judge, _loop_sse
+from .validation import Evidence, Judge, loop_sse
 
 
 def in_sample(checks: dict) -> bool:
@@ -243,30 +243,24 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
         values[mag.name] = float(best) if best is not None and best != mag.off else \
             float(effect.probe[0][mag.name])
     fits: list[Fit] = []
-    noise, model.noise = model.noise, WHITE  # the search by least squares (see above)
-    try:
+    with minimising_under(model, WHITE):  # the search by least squares (see above)
         for other in others:
             fits.append(fit_free(model, _with(other, values), free, settings.baseline_nfev, settings.fd_rel_step,
                                  rounds=settings.rounds))
             if fits[-1].rmse(model.n) <= NEAR_NOISE * noise_m:
                 break
-    finally:
-        model.noise = noise
     report = [{"rmse_m": f.rmse(model.n), "nfev": f.info.get("nfev"), "start": values} for f in fits]
     lowest = min(fits, key=lambda f: f.rmse(model.n), default=None)
-    if lowest is not None and not noise.white:
+    if lowest is not None and not model.noise.white:
         # then a prediction-error fit as the loop's are, under the noise model of its own residual (as an accepted
         # effect's fit is, ``_under``), not the loop's: that one is what whitened the effect away
         own = fitting_noise(model, lowest.theta, settings)
-        model.noise = own
-        try:
+        with minimising_under(model, own):
             lowest = fit_free(model, lowest.theta, free, settings.baseline_nfev, settings.fd_rel_step,
                               rounds=settings.rounds)
-        finally:
-            model.noise = noise
         report.append({"rmse_m": lowest.rmse(model.n), "nfev": lowest.info.get("nfev"),
                        "under": own.describe()})
-    if lowest is None or not np.less(*_loop_sse(lowest, rf.fit)):  # raw where the two noise models differ
+    if lowest is None or not np.less(*loop_sse(lowest, rf.fit)):  # raw where the two noise models differ
         rf.search["other_starts"] = report
         return None
     first = {"rmse_m": rf.fit.rmse(model.n), "reason": rf.reason}

@@ -33,7 +33,7 @@ import numpy as np
 from ..record import Record
 from ..effects import ALL_INDEX
 from .derivatives import sensitivities
-from .model import Fit, Model, _with, fit_free
+from .model import Fit, Model, _with, fit_free, minimising_under
 from .noise import NoiseModel, fit_noise
 from .residual import leave_out_glitches
 from .settings import DiscoverSettings
@@ -168,9 +168,7 @@ class Judge:
                 # prediction-error fits judged as they are: their own gain, as they were minimised, must show too
                 ev.checks["reported_fits"] = self._reported_gain(small, large)
             return ev
-        before = self.model.noise
-        self.model.noise = noise
-        try:
+        with minimising_under(self.model, noise):
             small_w = fit_free(self.model, small.theta, small.free, self.s.null_nfev, self.s.fd_rel_step)
             large_w = fit_free(self.model, large.theta, large.free, self.s.null_nfev, self.s.fd_rel_step)
             if nested:
@@ -188,16 +186,14 @@ class Judge:
                 nested = fit_free(self.model, _with(large.theta, shared), large.free, self.s.null_nfev,
                                   self.s.fd_rel_step)
                 large_w = min((large_w, nested), key=lambda f: f.sse)
-        finally:
-            self.model.noise = before
         ev = self.evidence(small_w, large_w, noise)
         if nested:  # the loop's own fits, whose parameters are reported, must show the gain too
             ev.checks["reported_fits"] = self._reported_gain(small, large)
         return ev
 
     def _reported_gain(self, small: Fit, large: Fit) -> bool:
-        """The F-test of the loop's own two fits, on their SSEs as they were minimised (:func:`_loop_sse`)."""
-        return bool(f_test(*_loop_sse(small, large), len(large.free) - len(small.free), self.model.n,
+        """The F-test of the loop's own two fits, on their SSEs as they were minimised (:func:`loop_sse`)."""
+        return bool(f_test(*loop_sse(small, large), len(large.free) - len(small.free), self.model.n,
                            len(large.free))[1] < self.level)
 
     def evidence(self, small: Fit, large: Fit, noise: NoiseModel | None = None) -> Evidence:
@@ -232,7 +228,7 @@ def minimised_under(fit: Fit) -> tuple[float, ...]:
     return fit.noise.a if fit.noise is not None else ()
 
 
-def _loop_sse(small: Fit, large: Fit) -> tuple[float, float]:
+def loop_sse(small: Fit, large: Fit) -> tuple[float, float]:
     """The two fits' SSEs as the loop minimised them: prewhitened when both were fitted under one noise model
     (``discover.prediction_error``), else raw (least squares)."""
     if minimised_under(small) == minimised_under(large):
