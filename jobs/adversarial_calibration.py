@@ -9,15 +9,8 @@ import time
 
 import numpy as np
 
-from jobs.adversarial_set import (
-    DURATION,
-    HELD,
-    Spec,
-    base_record,
-    clean_response,
-    draw_truth,
-    effect_values,
-)
+from jobs.adversarial_set import base_record, clean_response, draw_truth, effect_values
+from jobs.adversarial_specs import DURATION, HELD, Spec
 
 #: First guesses of the calibration (a magnitude of about the right order on the 5-s records).
 GUESS = {"tau_c": 1.5, "F_s": 150.0, "c_B": 3000.0, "tau_d": 5e-4, "b_l": 2e-5, "a_cog": 0.1, "F_load": 150.0,

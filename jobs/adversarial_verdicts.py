@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jobs.adversarial_set import SIGMA
+from jobs.adversarial_specs import SIGMA
 from toggle_id.discovery.residual import periodic_text
 
 

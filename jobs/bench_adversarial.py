@@ -36,16 +36,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from jobs.adversarial_calibration import calibrate, calibration_table
-from jobs.adversarial_set import (
-    CALIBRATED,
-    DURATION,
-    NAMES,
-    ROOT,
-    generate,
-    replicate_count,
-    replicate_name,
-    select,
-)
+from jobs.adversarial_set import ROOT, generate, replicate_count, replicate_name, select
+from jobs.adversarial_specs import CALIBRATED, DURATION, NAMES
 from jobs.adversarial_verdicts import result_row, results_markdown, summarise
 from toggle_id.simulate import share_cores
 

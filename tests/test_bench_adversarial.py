@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from jobs import adversarial_set as S
+from jobs import adversarial_specs as SP
 from jobs import adversarial_verdicts as V
 from jobs import bench_adversarial as B
 from toggle_id.data import read_csv
@@ -20,55 +21,55 @@ from toggle_id.simulate import PRECISE, extend, simulate
 
 
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
-    cats = [s.category for s in S.SPECS]
-    assert len(S.SPECS) >= 18
+    cats = [s.category for s in SP.SPECS]
+    assert len(SP.SPECS) >= 18
     assert cats.count("library") == 21 and cats.count("pair") == 5 and cats.count("outside") == 11
     # a library effect and one outside it at once, on a sweep and on the cycling command
-    mixed = [s for s in S.SPECS if s.category == "mixed"]
+    mixed = [s for s in SP.SPECS if s.category == "mixed"]
     assert {(s.command, s.outside) for s in mixed} == {("simulation", "bump"), ("cycling", "drag")}
     assert all(s.effects == ("cogging_torque",) and s.target_of("a_cog") == 2.0 and
                s.target_of(s.calibrate[1]) == 3.0 for s in mixed)
     # real effects under the noise that must not look like one: AR(1) ρ = 0.9 (five, one faint) and the encoder
-    coloured = [(s.noise_m, s.noise_ar, s.quantum_m) for s in S.SPECS if s.category == "library" and
+    coloured = [(s.noise_m, s.noise_ar, s.quantum_m) for s in SP.SPECS if s.category == "library" and
                 (s.noise_ar or s.quantum_m)]
     assert sorted(coloured) == [(0.0, 0.0, 1e-6)] + [(1e-6, 0.9, 0.0)] * 5
     # and a threshold effect under gross errors, whose sharp turns are no glitches
-    assert [s.effects for s in S.SPECS if s.category == "library" and s.outlier_fraction] == [("backlash",)]
+    assert [s.effects for s in SP.SPECS if s.category == "library" and s.outlier_fraction] == [("backlash",)]
     # threshold effects under that slow noise: both leave long runs of one sign in the residual
-    assert {s.effects[0] for s in S.SPECS if s.category == "library" and s.noise_ar == 0.9} >= {
+    assert {s.effects[0] for s in SP.SPECS if s.category == "library" and s.noise_ar == 0.9} >= {
         "voltage_saturation", "backlash"}
-    assert any(s.noise_ar == 0.9 for s in S.SPECS if s.category == "pair")  # and two effects at once under it
+    assert any(s.noise_ar == 0.9 for s in SP.SPECS if s.category == "pair")  # and two effects at once under it
     # and an effect outside the library under it: coloured noise and missing physics at once, as in measured data
-    assert any(s.noise_ar == 0.9 and s.outside == "bump" for s in S.SPECS if s.category == "outside")
+    assert any(s.noise_ar == 0.9 and s.outside == "bump" for s in SP.SPECS if s.category == "outside")
     # a threshold effect among two at once (the drive's voltage saturation beside a cogging torque)
-    assert any("voltage_saturation" in s.effects for s in S.SPECS if s.category == "pair")
-    assert {s.effects[0] for s in S.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
-    noise = {(s.noise_m, s.noise_ar, s.quantum_m, s.outlier_fraction) for s in S.SPECS
+    assert any("voltage_saturation" in s.effects for s in SP.SPECS if s.category == "pair")
+    assert {s.effects[0] for s in SP.SPECS if s.category == "library"} == {e.name for e in EFFECTS}
+    noise = {(s.noise_m, s.noise_ar, s.quantum_m, s.outlier_fraction) for s in SP.SPECS
              if s.category == "noise" and not s.disturbance}
     assert noise == {(1e-6, 0.0, 0.0, 0.0), (1e-6, 0.5, 0.0, 0.0), (1e-6, 0.9, 0.0, 0.0), (0.0, 0.0, 1e-6, 0.0),
                      (1e-6, 0.0, 0.0, 0.01)}  # the last: gross errors (an encoder that glitches) on 1 % of samples
     # and disturbances of the reading beyond that model, alone (the model itself off)
-    assert sorted(s.disturbance for s in S.SPECS if s.disturbance) == sorted(S.DISTURBANCES)
-    assert all(s.category == "noise" and s.noise_m == 0 for s in S.SPECS if s.disturbance)
-    assert S.effective_sigma(1e-6, 0.0, 0.01, 10e-6) == pytest.approx(np.sqrt(2) * 1e-6)
-    assert {s.outside for s in S.SPECS if s.category == "outside"} == {"bump", "drag", "scale", "pin_friction",
+    assert sorted(s.disturbance for s in SP.SPECS if s.disturbance) == sorted(S.DISTURBANCES)
+    assert all(s.category == "noise" and s.noise_m == 0 for s in SP.SPECS if s.disturbance)
+    assert SP.effective_sigma(1e-6, 0.0, 0.01, 10e-6) == pytest.approx(np.sqrt(2) * 1e-6)
+    assert {s.outside for s in SP.SPECS if s.category == "outside"} == {"bump", "drag", "scale", "pin_friction",
                                                                         "scale_factor", "deadband", "kt_drift"}
     # threshold effects on the paper's sweep too, not only on the cycling command
-    assert {s.command for s in S.SPECS if s.category == "library" and s.effects[0] in ("voltage_saturation",
+    assert {s.command for s in SP.SPECS if s.category == "library" and s.effects[0] in ("voltage_saturation",
                                                                                           "backlash")} >= {
         "simulation", "cycling"}
     # the paper's sweep (0.04-0.06 V) never enters the dead band: there it is an offset of the command; the cycling
     # command crosses zero, where the band is a threshold
-    assert {s.command for s in S.SPECS if s.outside == "deadband"} == {"simulation", "cycling"}
-    assert len(set(S.NAMES.values())) == len(S.SPECS) and S.NAMES["torque_saturation_simulation"] == "rec08"
-    assert {s.command for s in S.SPECS} == {"simulation", "experiment", "cycling"}
+    assert {s.command for s in SP.SPECS if s.outside == "deadband"} == {"simulation", "cycling"}
+    assert len(set(SP.NAMES.values())) == len(SP.SPECS) and SP.NAMES["torque_saturation_simulation"] == "rec08"
+    assert {s.command for s in SP.SPECS} == {"simulation", "experiment", "cycling"}
     # every calibrated magnitude is there, with a measured ratio near its target
-    for s in S.SPECS:
-        assert set(S.CALIBRATED.get(s.key, {})) == set(s.calibrate), s.key
-        for param, (value, ratio) in S.CALIBRATED.get(s.key, {}).items():
+    for s in SP.SPECS:
+        assert set(SP.CALIBRATED.get(s.key, {})) == set(s.calibrate), s.key
+        for param, (value, ratio) in SP.CALIBRATED.get(s.key, {}).items():
             assert value > 0 and ratio == pytest.approx(s.target_of(param), rel=0.12), s.key
     # names are unique and say nothing about the content
-    names = list(S.NAMES.values())
+    names = list(SP.NAMES.values())
     assert len(set(names)) == len(names) and all(n.startswith("rec") and n[3:].isdigit() for n in names)
     assert names != sorted(names)  # nor does the order
 
@@ -105,7 +106,7 @@ def test_replicates_are_the_same_machine_with_independent_noise(tmp_path):
     itself is unchanged by asking for them."""
     assert B.main(["--out", str(tmp_path / "one"), "--only", "noise_white", "--duration", "0.5"]) == 0
     assert B.main(["--out", str(tmp_path), "--only", "noise_white", "--duration", "0.5", "--replicates", "2"]) == 0
-    name = S.NAMES["noise_white"]
+    name = SP.NAMES["noise_white"]
     man = {r["name"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
     assert sorted(man) == [name, f"{name}_r1", f"{name}_r2"]
     assert [man[n]["replicate"] for n in sorted(man)] == [0, 1, 2]
@@ -124,19 +125,19 @@ def test_replicates_are_the_same_machine_with_independent_noise(tmp_path):
     assert B.main(["--out", str(tmp_path / "q"), "--only", "noise_quantised", "--duration", "0.5",
                    "--replicates", "2"]) == 0
     assert [r["name"] for r in json.loads((tmp_path / "q" / "manifest.json").read_text())["records"]] == \
-        [S.NAMES["noise_quantised"]]
+        [SP.NAMES["noise_quantised"]]
 
 
 def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp_path):
     B.main(["--out", str(tmp_path), "--only", "torque_saturation_simulation,dead_time", "--duration", "0.5"])
     man = {r["key"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
     sat, dt = man["torque_saturation_simulation"], man["dead_time"]
-    assert sat["outside"]["saturating_torque_constant"]["i_sat"] == S.CALIBRATED[sat["key"]]["i_sat"][0]
+    assert sat["outside"]["saturating_torque_constant"]["i_sat"] == SP.CALIBRATED[sat["key"]]["i_sat"][0]
     assert "outside_plant" in sat["simulator"] and sat["calibration"]["target_ratio"] == 3.0
     assert sat["effects"] == ["torque_constant_saturation"] and sat["category"] == "library"
     assert sat["effect_params"]["torque_constant_saturation"]["c_kt"] == pytest.approx(
-        S.CALIBRATED[sat["key"]]["i_sat"][0] ** -2, rel=1e-12)
-    assert dt["effect_params"]["dead_time"]["tau_d"] == S.CALIBRATED["dead_time"]["tau_d"][0]
+        SP.CALIBRATED[sat["key"]]["i_sat"][0] ** -2, rel=1e-12)
+    assert dt["effect_params"]["dead_time"]["tau_d"] == SP.CALIBRATED["dead_time"]["tau_d"][0]
     assert dt["jobs_simulate"].startswith("python -m jobs.simulate") and "effects.tau_d=" in dt["jobs_simulate"]
     for r in man.values():
         assert read_csv(tmp_path / r["file"]).n == 501
@@ -157,14 +158,14 @@ def test_a_disturbed_reading_is_the_measured_one_plus_its_disturbance_of_the_sta
     B.main(["--out", str(tmp_path), "--only", "noise_tone_simulation", "--duration", "0.5", "--validation"])
     man = json.loads((tmp_path / "manifest.json").read_text())["records"][0]
     rec = read_csv(tmp_path / man["file"])
-    spec = S.SPECS_BY_KEY["noise_tone_simulation"]
+    spec = SP.SPECS_BY_KEY["noise_tone_simulation"]
     clean, _ = S.make_record(dataclasses.replace(spec, disturbance=None), {}, duration=0.5)
     e = S.disturbance("tone", rec.t, man["noise"]["disturbance_seed"])
     np.testing.assert_allclose(rec.x_B, clean.x_B + e, rtol=0, atol=1e-18)
     assert man["noise"]["effective_sigma_m"] == pytest.approx(np.sqrt(np.mean(e ** 2)), rel=1e-12)
     assert S.disturbance_seed(spec, man["validation"]["noise_seed"]) != man["noise"]["disturbance_seed"]  # its own
     # a disturbed reading is random though its measurement model is off: its replicates are drawn again
-    assert S.replicate_count(spec, 2) == 3 and S.replicate_count(S.SPECS_BY_KEY["noise_quantised"], 2) == 1
+    assert S.replicate_count(spec, 2) == 3 and S.replicate_count(SP.SPECS_BY_KEY["noise_quantised"], 2) == 1
     _, rep = S.make_record(spec, {}, duration=0.5, replicate=1)
     assert rep["noise"]["disturbance_seed"] != man["noise"]["disturbance_seed"]
 
@@ -176,7 +177,7 @@ def test_a_mixed_record_holds_a_library_effect_and_one_outside_the_library(tmp_p
 
     B.main(["--out", str(tmp_path), "--only", "mixed_cogging_bump_simulation", "--duration", "0.5"])
     (r,) = json.loads((tmp_path / "manifest.json").read_text())["records"]
-    cal = S.CALIBRATED["mixed_cogging_bump_simulation"]
+    cal = SP.CALIBRATED["mixed_cogging_bump_simulation"]
     assert r["category"] == "mixed" and r["effects"] == ["cogging_torque"] and "outside_plant" in r["simulator"]
     assert r["effect_params"]["cogging_torque"] == {"a_cog": cal["a_cog"][0], "n_cog": 6.0, "phi_cog": 0.5}
     assert list(r["outside"]) == ["friction_bump"] and r["outside"]["friction_bump"]["F_b"] == cal["F_b"][0]
@@ -184,7 +185,7 @@ def test_a_mixed_record_holds_a_library_effect_and_one_outside_the_library(tmp_p
     rec = read_csv(tmp_path / r["file"])
     theta = np.array([r["params"][n] for n in PARAM_NAMES])
     base = S.base_record("simulation", 0.5)
-    both = Outside(bump=(cal["F_b"][0], S.BUMP_AT, S.BUMP_WIDTH), cogging=(cal["a_cog"][0], 6.0, 0.5))
+    both = Outside(bump=(cal["F_b"][0], SP.BUMP_AT, SP.BUMP_WIDTH), cogging=(cal["a_cog"][0], 6.0, 0.5))
     clean, _, _ = simulate_outside(theta, base, both)
     assert np.std(rec.x_B - clean) == pytest.approx(1e-6, rel=0.15)
     bump_only, _, _ = simulate_outside(theta, base, Outside(bump=both.bump))
@@ -392,7 +393,7 @@ def test_run_judges_one_record_with_the_discover_job(tmp_path):
     assert B.main(args) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     (row,) = res["rows"]
-    assert row["record"] == S.NAMES["noise_white"] and row["verdict"] == "exact" and row["accepted"] == []
+    assert row["record"] == SP.NAMES["noise_white"] and row["verdict"] == "exact" and row["accepted"] == []
     assert row["rmse_after_um"] == pytest.approx(1.0, rel=0.15) and Path(row["report"]).is_file()
     assert "nothing accepted on 1 of 1" in (tmp_path / "results.md").read_text()
     report = json.loads(Path(row["report"]).read_text())
@@ -410,14 +411,14 @@ def test_calibration_finds_the_magnitude_whose_refit_leaves_the_target_ratio():
 
     from jobs import adversarial_calibration as C
 
-    spec = S.SPECS_BY_KEY["ar09_voltage_saturation_cycling"]
+    spec = SP.SPECS_BY_KEY["ar09_voltage_saturation_cycling"]
     theta, _ = S.draw_truth(spec)
     out = C.calibrate_param(spec, "s_sat", theta, duration=1.0, log=lambda m: None)
     assert abs(out["ratio"] / spec.target - 1.0) <= 0.03 and out["evaluations"][-1]["value"] == out["value"]
     rec = S.base_record(spec.command, 1.0)
     x, _ = S.clean_response(spec, theta, {"s_sat": out["value"]}, {"s_sat": out["value"]}, rec)
     r = C.refit_rms(spec, theta, rec, x)
-    sigma = S.effective_sigma(spec.noise_m, spec.quantum_m)
+    sigma = SP.effective_sigma(spec.noise_m, spec.quantum_m)
     assert math.sqrt(r * r + sigma ** 2) / sigma == pytest.approx(out["ratio"], rel=1e-6)
     assert C.calibration_table({spec.key: {"s_sat": out}}).startswith(f'    "{spec.key}": {{"s_sat": (')
 

@@ -1040,7 +1040,8 @@ def test_a_threshold_effect_under_slow_noise_is_named():
     """A screw backlash under AR(1) noise with ρ = 0.9 (rec36's machine of the adversarial set, the cycling command,
     the lash calibrated to ≈ 2σ), on an independent draw of the noise (its first replicate), the nominal fit given
     a few per cent off the truth: slow noise and a lash both leave long runs of one sign; the lash alone is named."""
-    from jobs.adversarial_set import CALIBRATED, draw_truth, make_record, select
+    from jobs.adversarial_set import draw_truth, make_record, select
+    from jobs.adversarial_specs import CALIBRATED
 
     spec = select("ar09_backlash_cycling")[0]
     rec, _ = make_record(spec, CALIBRATED[spec.key], replicate=1)
