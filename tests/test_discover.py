@@ -22,7 +22,7 @@ from toggle_id.params import ASSIGNED, PARAM_NAMES
 from toggle_id.record import Record
 from toggle_id.simulate import PRECISE, simulate
 
-from discovery_cases import NOISE, make_record, FAST, SUBSET, discover_on
+from discovery_cases import FAST, NOISE, SUBSET, discover_on, make_record
 
 
 # ---------------------------------------------------------------------------------------------- the loop

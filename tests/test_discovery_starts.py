@@ -11,7 +11,7 @@ from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED
 from toggle_id.simulate import extend
 
-from discovery_cases import fake_model, with_value, refit_case
+from discovery_cases import fake_model, refit_case, with_value
 
 
 # ---------------------------------------------------------------------------------------------- other starts
