@@ -18,7 +18,7 @@ from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_nu
 from .scoring import assess, score_leaders, worth_refitting
 from .settings import DiscoverSettings
 from .ties import indistinguishable
-from .validation import Judge, minimised_under
+from .validation import Judge
 
 
 def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, free: Sequence[str],
@@ -216,7 +216,7 @@ def lowest_of(winners: Sequence[Refit], n: int) -> Refit | None:
     residual, :func:`.refit.from_other_starts`), whose whitened SSEs do not compare."""
     if not winners:
         return None
-    same = len({minimised_under(rf.fit) for rf in winners}) == 1
+    same = len({rf.fit.minimised_under for rf in winners}) == 1
     return min(winners, key=(lambda rf: rf.sse1) if same else (lambda rf: rf.fit.rmse(n)))
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from contextlib import contextmanager
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -279,6 +279,12 @@ class Fit:
     def rmse(self, n: int) -> float:
         """RMS of the (raw) residual [m]."""
         return float(np.sqrt((self.sse if self.raw_sse is None else self.raw_sse) / n))
+
+    @property
+    def minimised_under(self) -> tuple[float, ...]:
+        """The AR coefficients of the noise model the fit was minimised under (none: least squares): two fits whose
+        whitened SSEs compare have the same."""
+        return self.noise.a if self.noise is not None else ()
 
 
 @contextmanager

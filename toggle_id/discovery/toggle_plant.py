@@ -23,7 +23,7 @@ from .residual import (fitting_noise, prediction_report, residual_report, residu
                        structure_energy_of)
 from .scoring import CandidateScore
 from .settings import DiscoverSettings
-from .validation import Evidence, Judge, minimised_under
+from .validation import Evidence, Judge
 
 
 class TogglePlant:
@@ -120,7 +120,7 @@ class TogglePlant:
         is the one it was fitted under, or white and ``fit`` a least-squares fit."""
         noise = fitting_noise(self.model, fit.theta, self.s)
         self.model.noise = self.fit_noise = noise
-        if noise.a == minimised_under(fit):
+        if noise.a == fit.minimised_under:
             return fit
         out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
         out.info["starts"] = fit.info.get("starts")

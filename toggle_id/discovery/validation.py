@@ -222,16 +222,10 @@ class Judge:
         return ev
 
 
-def minimised_under(fit: Fit) -> tuple[float, ...]:
-    """The AR coefficients of the noise model ``fit`` was minimised under (none: least squares): two fits whose
-    whitened SSEs compare have the same."""
-    return fit.noise.a if fit.noise is not None else ()
-
-
 def loop_sse(small: Fit, large: Fit) -> tuple[float, float]:
     """The two fits' SSEs as the loop minimised them: prewhitened when both were fitted under one noise model
     (``discover.prediction_error``), else raw (least squares)."""
-    if minimised_under(small) == minimised_under(large):
+    if small.minimised_under == large.minimised_under:
         return small.sse, large.sse
     return tuple(f.raw_sse if f.raw_sse is not None else f.sse for f in (small, large))
 
