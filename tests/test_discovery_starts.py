@@ -365,3 +365,96 @@ def test_the_other_starts_are_polished_in_their_screened_order_until_one_reaches
     polished.clear()  # one farther from it (11.7 vs 11.6 µm, 0.9 %) does not
     fits = RF._from_other_starts(model, eff, [theta, theta], ("s_sat",), DiscoverSettings(), 0.5e-6, 11.8e-6)
     assert polished == [0.27, 0.25, 0.23, 0.2] * 2
+
+
+# ---------------------------------------------------------------------------------------------- the gauge's edge
+def _edge_case(monkeypatch, truth: float, *, name: str = "c_B", given: dict | None = None,
+               settings: D.DiscoverSettings | None = None, start: float = 1e4):
+    """TogglePlant._widened_at_edge on a stand-in model whose fits end at ``truth`` clipped into the domain of
+    ``name`` in the loop's gauge (its error grows with the distance from ``truth``); the fit starts at ``start``."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.stages import stage_bounds
+
+    def domain(k):
+        if k in model.gauge_bounds:
+            return tuple(model.gauge_bounds[k])
+        lo, hi = stage_bounds([k])
+        return float(lo[0]), float(hi[0])
+
+    model = SimpleNamespace(n=100, bounds={}, gauge_bounds={}, domain=domain)
+    calls = []
+
+    def fake_fit(m, th, fr, *a, **k):
+        out = th.copy()
+        out[ALL_INDEX[name]] = float(np.clip(truth, *domain(name)))
+        calls.append(domain(name))
+        return Fit(out, fr, 1.0 + abs(out[ALL_INDEX[name]] - truth) / abs(truth))
+
+    monkeypatch.setattr(TP, "fit_free", fake_fit)
+    plant = TP.TogglePlant(model, None, (settings or D.DiscoverSettings()).validate(), extend(ASSIGNED)[0], [],
+                           ("J_m",), (), [], None, lambda m: None, None, domains=given)
+    plant.model.gauge_bounds = plant.gauge_bounds = {name: (0.0, 1e4)} if name == "c_B" else {}
+    th = extend(ASSIGNED)[0]
+    th[ALL_INDEX[name]] = start if name == "c_B" else 1.99e-3
+    fit = Fit(th, ("J_m", name), 1.0 + abs(th[ALL_INDEX[name]] - truth) / abs(truth))
+    return plant, plant._widened_at_edge({"c_B": "viscous_friction_slider", "b_l": "backlash"}[name], fit), calls
+
+
+def test_a_scale_type_magnitude_pressing_on_its_domain_in_the_gauge_gets_a_wider_domain(monkeypatch):
+    """A slider viscous friction whose fit ends at the edge of its domain in the loop's gauge (the library's, read at
+    the baseline's scale, which the fits then move; probe q4): the room from "off" grows edge_widen times and the fit
+    is polished again while it presses on the edge and gains, at most edge_widenings times; the widened domain holds
+    for the plant's later fits and is recorded."""
+    plant, out, calls = _edge_case(monkeypatch, 2.5e4)
+    assert calls == [(0.0, 3e4)]  # once: inside the widened domain, it no longer presses
+    assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(2.5e4)
+    assert plant.widened == {"c_B": (0.0, 3e4)} and plant.model.gauge_bounds["c_B"] == (0.0, 3e4)
+    plant, out, calls = _edge_case(monkeypatch, 1e6)
+    assert calls == [(0.0, 3e4), (0.0, 9e4)]  # at most twice
+    assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(9e4) and plant.widened == {"c_B": (0.0, 9e4)}
+    plant, out, calls = _edge_case(monkeypatch, 2.5e4, settings=D.DiscoverSettings(edge_widen=2.0, edge_widenings=1))
+    assert calls == [(0.0, 2e4)] and out.theta[ALL_INDEX["c_B"]] == pytest.approx(2e4)
+
+
+@pytest.mark.parametrize("case", ["inside", "given", "absolute", "off"])
+def test_a_domain_is_left_as_it_is_where_the_fit_does_not_press_or_the_domain_is_not_the_gauges(monkeypatch, case):
+    """Nothing is widened for a magnitude inside its domain, one whose domain a user gave, one x_B fixes absolutely
+    (a backlash, in metres), or with edge_widenings 0."""
+    kw = {"inside": dict(truth=5e3, start=5e3), "given": dict(truth=2.5e4, given={"c_B": (0.0, 1e4)}),
+          "absolute": dict(truth=5e-3, name="b_l"), "off": dict(truth=2.5e4, settings=D.DiscoverSettings(
+              edge_widenings=0))}[case]
+    plant, out, calls = _edge_case(monkeypatch, **kw)
+    assert calls == [] and plant.widened == {}
+
+
+def test_a_wider_domain_that_does_not_lower_the_error_is_taken_back(monkeypatch):
+    """At the edge but not pressing on it (the error least at the edge itself): polished once in the wider domain,
+    no gain, the domain as it was."""
+    plant, out, calls = _edge_case(monkeypatch, 1e4)
+    assert calls == [(0.0, 3e4)] and plant.widened == {} and plant.model.gauge_bounds["c_B"] == (0.0, 1e4)
+    assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(1e4)
+
+
+@pytest.mark.parametrize("bad", [{"edge_widen": 1.0}, {"edge_widen": True}, {"edge_widenings": -1},
+                                 {"edge_widenings": 1.5}])
+def test_edge_widening_settings_are_checked(bad):
+    with pytest.raises(ConfigError, match=next(iter(bad))):
+        D.DiscoverSettings(**bad).validate()
+
+
+def test_a_magnitude_outside_the_library_at_the_reference_scale_is_said():
+    """loop.beyond_the_library: the value the report states (at the reference scale) against the domain a user gave,
+    else the library's."""
+    from toggle_id.discovery.loop import beyond_the_library
+    from toggle_id.discovery.model import Fit
+
+    th = extend(ASSIGNED)[0]
+    th[ALL_INDEX["c_B"]] = 2.5e4
+    added = [{"name": "viscous_friction_slider"}]
+    fit = Fit(th, ("c_B",), 1.0)
+    (line,) = beyond_the_library(added, fit, {})
+    assert "c_B = 2.5e+04" in line and "[0, 1e+04]" in line
+    assert beyond_the_library(added, fit, {"c_B": (0.0, 3e4)}) == []

@@ -55,6 +55,12 @@ def current_power(name: str) -> int:
     return {"1/V": 1, "1/A²": 2}.get(_UNITS.get(name, ""), 0)
 
 
+def scale_type(name: str) -> bool:
+    """Whether x_B fixes effect parameter ``name`` only relative to the mechanism's or the current's scale (a
+    force-type magnitude, :func:`_force_like`, or one that follows the current, :func:`current_power`)."""
+    return _force_like(name) or current_power(name) != 0
+
+
 def _scale(theta: np.ndarray, c_m: float, c_e: float) -> None:
     """Move ``theta`` in place along the mechanical scale (every parameter of :data:`MECHANICAL` and every force-type
     effect × ``c_m``) and the current scale (:data:`ELECTRICAL`'s powers of ``c_e``; drive limits and torque

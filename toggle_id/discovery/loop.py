@@ -146,6 +146,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                                                    broken=broken)
         else:
             gauge_after = gauge_before
+    beyond = beyond_the_library(added, current, domains) if plant.widened else []
     r_final = model.residuals(current.theta[None, :])[0]
     noise_after = fit_noise(r_final, settings.noise_max_order)
     uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ()), noise_after) \
@@ -193,6 +194,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                        "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
     if repeats := periodic_text(diag_after):
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
+    if beyond:
+        conclusion += (" " + "; ".join(beyond) + " — its domain in the loop's gauge was widened where the fit pressed "
+                       "against it (discover.edge_widen): a value the library does not expect of this machine; "
+                       "check the effect's physics, or fix one mechanical parameter (e.g. fixed.K_t) to pin the "
+                       "scale.")
     if edge:
         conclusion += (" " + "; ".join(edge) + " — the record asks for more than the feasible domain allows, and the "
                        "error left may be that: widen it and run again.")
@@ -239,7 +245,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              "localisation": diag_after.get("localisation"),
              "validation_record": validation.name if validation is not None else None, "catch_all": catch_report,
              "validation_prediction": predicted,
-             "routes": route_report, "route_comparisons": compared, "glitches": glitches}
+             "routes": route_report, "route_comparisons": compared, "glitches": glitches,
+             # the domains in the chosen route's gauge widened where an added effect pressed against them
+             "domains_widened": {k: list(v) for k, v in plant.widened.items()}}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
     return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,
@@ -276,6 +284,21 @@ def at_the_edge(model: Model, added: Sequence[dict], current: Fit) -> list[str]:
         if at_bound(EFFECTS_BY_NAME[a["name"]], float(current.theta[ALL_INDEX[mag.name]]), dom):
             out.append(f"{a['name']}'s {mag.name} ends at the edge of its domain [{dom[0]:.4g}, {dom[1]:.4g}] "
                        f"(in the loop's gauge; +bounds.{mag.name}=[low,high] sets it at the reference scale)")
+    return out
+
+
+def beyond_the_library(added: Sequence[dict], current: Fit, domains: Mapping[str, Sequence[float]]) -> list[str]:
+    """A sentence for each added effect whose magnitude, as ``current`` (the report's representative, at the
+    reference scale) states it, lies outside its domain there: the one a user gave (``domains``), else the
+    library's."""
+    out = []
+    for a in added:
+        mag = EFFECTS_BY_NAME[a["name"]].magnitude
+        lo, hi = domains.get(mag.name) or (mag.lower, mag.upper)
+        value = float(current.theta[ALL_INDEX[mag.name]])
+        if not lo <= value <= hi:
+            out.append(f"{a['name']}'s {mag.name} = {value:.4g} {mag.unit} at the reference scale lies outside "
+                       f"its domain there [{lo:.4g}, {hi:.4g}]")
     return out
 
 

@@ -110,6 +110,11 @@ class DiscoverSettings:
       where the SSE no longer moves with it (docs/discovery.md, *open problems*); empty: off. reanchor_rtol: when
       the polish from the nominal fit as given wins and changes an added effect's parameters by more than this share
       of their values, the nominal fit as given is polished once more at the values reached (≤ 0: off).
+      edge_widen, edge_widenings: when the accepted effect's magnitude, one x_B fixes only relative to the
+      mechanism's or the current's scale, still ends at the edge of its domain in the loop's gauge, the room from
+      "off" to that edge grows ``edge_widen`` (> 1) times and the fit is polished again, while it ends at the edge and
+      gains, at most ``edge_widenings`` times (0: off); the report says where the value it states at the reference
+      scale lies outside the library's domain (:meth:`.toggle_plant.TogglePlant._widened_at_edge`).
       other_starts_above: an accepted refit that converged above this many times the record's own noise (read off
       its third differences, :func:`toggle_id.fast.difference_noise`) is polished again from the baseline's other
       starts (the job's reference values, the nominal fit as given), each moved into the baseline's gauge
@@ -213,6 +218,8 @@ class DiscoverSettings:
     stronger_starts: tuple[float, ...] = (3.0, 10.0)
     weaker_starts: tuple[float, ...] = (1 / 3, 1 / 10)
     reanchor_rtol: float = 0.1
+    edge_widen: float = 3.0
+    edge_widenings: int = 2
     other_starts_above: float = 5.0
     routes: str = "unexplained"
     route_rtol: float = 1e-3
@@ -318,6 +325,13 @@ class DiscoverSettings:
         if not (isinstance(self.reanchor_rtol, (int, float)) and not isinstance(self.reanchor_rtol, bool)
                 and np.isfinite(self.reanchor_rtol)):
             raise ConfigError(f"discover.reanchor_rtol must be a number (≤ 0: off), got {self.reanchor_rtol!r}")
+        if isinstance(self.edge_widen, bool) or not isinstance(self.edge_widen, (int, float)) \
+                or not float(self.edge_widen) > 1.0 or not np.isfinite(self.edge_widen):
+            raise ConfigError(f"discover.edge_widen must be a number above 1, got {self.edge_widen!r}")
+        if isinstance(self.edge_widenings, bool) or not isinstance(self.edge_widenings, int) \
+                or self.edge_widenings < 0:
+            raise ConfigError(f"discover.edge_widenings must be a whole number ≥ 0 (0: off), got "
+                              f"{self.edge_widenings!r}")
         if isinstance(self.other_starts_above, bool) or not isinstance(self.other_starts_above, (int, float)) \
                 or not (self.other_starts_above == 0 or self.other_starts_above >= 1):
             raise ConfigError("discover.other_starts_above must be 0 (off) or a number >= 1 (times the record's "
