@@ -42,6 +42,28 @@ def test_the_gauge_moves_effects_along_the_symmetries_without_changing_x_B():
     assert moved[c] != pytest.approx(theta[c], rel=1e-3)
 
 
+def test_the_gauge_holds_a_widened_magnitude_to_its_side_not_to_the_librarys_domain():
+    """A slider viscous friction inside the library's domain in a gauge at 0.8 times the reference scale reads 1.25
+    times more there, beyond the domain: gauge_fix refuses that representative, unless the loop widened the
+    magnitude's domain (``widened``), where it is applied with the output unchanged."""
+    from toggle_id.discovery.gauge import _scale, gauge_fix
+
+    ref = extend(ASSIGNED)[0]
+    theta = ref.copy()
+    _scale(theta, 0.8, 1.0)
+    theta[ALL_INDEX["c_B"]] = 9000.0
+    rec = Record.from_sweep("simulation", 1.0, name="gauge")
+    rec.x_B = np.zeros(rec.n)  # outputs only; never fitted
+    model = D.Model(rec, PRECISE)
+    free = (*PARAM_NAMES, "c_B")
+    _, info = gauge_fix(model, theta, free, ref)
+    assert not info["applied"] and "feasible domain" in info["note"]
+    moved, info = gauge_fix(model, theta, free, ref, widened=("c_B",))
+    assert info["applied"], info
+    assert info["mechanical_scale"] == pytest.approx(1.25, rel=1e-9)
+    assert moved[ALL_INDEX["c_B"]] == pytest.approx(11250.0, rel=1e-9)
+
+
 def test_broyden_update_meets_the_secant_condition_and_changes_the_jacobian_least_in_scaled_coordinates():
     """discover.jacobian_reuse's update (model.broyden), against its definition: the updated Jacobian maps the step
     onto the residual's change; it differs from the old one by a rank-one term whose row space is the scaled step,

@@ -455,6 +455,8 @@ def test_a_magnitude_outside_the_library_at_the_reference_scale_is_said():
     th[ALL_INDEX["c_B"]] = 2.5e4
     added = [{"name": "viscous_friction_slider"}]
     fit = Fit(th, ("c_B",), 1.0)
-    (line,) = beyond_the_library(added, fit, {})
-    assert "c_B = 2.5e+04" in line and "[0, 1e+04]" in line
-    assert beyond_the_library(added, fit, {"c_B": (0.0, 3e4)}) == []
+    (line,) = beyond_the_library(added, fit, {}, True)
+    assert "c_B reads 2.5e+04 N·s/m at the reference scale" in line and "[0, 1e+04]" in line
+    (line,) = beyond_the_library(added, fit, {}, False)
+    assert "in the loop's gauge" in line
+    assert beyond_the_library(added, fit, {"c_B": (0.0, 3e4)}, True) == []

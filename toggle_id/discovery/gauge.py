@@ -120,7 +120,8 @@ def domains_in_gauge(c_m: float, c_e: float, given: Mapping[str, Sequence[float]
 
 
 def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: np.ndarray,
-              tol_m: float = 2e-8, broken: Collection[str] = ()) -> tuple[np.ndarray, dict]:
+              tol_m: float = 2e-8, broken: Collection[str] = (), widened: Collection[str] = ()
+              ) -> tuple[np.ndarray, dict]:
     """Move ``theta`` along the exact symmetries of x_B(t) to the point closest (in log space) to ``reference``.
 
     The symmetries (see :data:`MECHANICAL`, :data:`ELECTRICAL`, and m_C + J_m·Z² of docs/model.md §3) leave the output
@@ -128,7 +129,9 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
     and the magnitudes of force-type effects, which scale with the mechanism — comparable with the reference. A
     symmetry is used only if all its parameters are free, the move stays within the feasible domains, and the
     output is verified unchanged (``tol_m``); symmetries in ``broken`` (broken by an effect of the model) are
-    not used. Returns (theta, {"mechanical_scale", "current_scale", ...}).
+    not used; effect parameters in ``widened`` (whose domain the loop widened where the fit pressed against it) are
+    held to the side of "off" they are on, not to the library's domain. Returns (theta, {"mechanical_scale",
+    "current_scale", ...}).
     """
     from ..plant import GEOMETRY as G
 
@@ -150,6 +153,9 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
         f = fr[int(np.argmin(cost))]
         out[ALL_INDEX["m_C"]], out[ALL_INDEX["J_m"]] = f * total, (1 - f) * total / Z2
     lo, hi = stage_bounds(list(ALL_NAMES))
+    for nm in widened:
+        i = ALL_INDEX[nm]
+        lo[i], hi[i] = (min(lo[i], out[i]), max(hi[i], out[i])) if out[i] * theta[i] > 0 else (lo[i], hi[i])
     if np.any(out < lo) or np.any(out > hi):
         info["note"] = "the symmetric representative nearest the reference leaves the feasible domain; not applied"
         return theta.copy(), info

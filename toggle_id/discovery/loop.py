@@ -143,10 +143,11 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         baseline.theta, gauge_before = gauge_fix(model, baseline.theta, baseline.free + held, ref)
         if current is not baseline:
             current.theta, gauge_after = gauge_fix(model, current.theta, tuple(set(current.free) | set(held)), ref,
-                                                   broken=broken)
+                                                   broken=broken, widened=plant.widened)
         else:
             gauge_after = gauge_before
-    beyond = beyond_the_library(added, current, domains) if plant.widened else []
+    beyond = beyond_the_library([a for a in added if EFFECTS_BY_NAME[a["name"]].magnitude.name in plant.widened],
+                                current, domains, gauge_after.get("applied", False))
     r_final = model.residuals(current.theta[None, :])[0]
     noise_after = fit_noise(r_final, settings.noise_max_order)
     uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ()), noise_after) \
@@ -195,9 +196,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     if repeats := periodic_text(diag_after):
         conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
     if beyond:
-        conclusion += (" " + "; ".join(beyond) + " — its domain in the loop's gauge was widened where the fit pressed "
-                       "against it (discover.edge_widen): a value the library does not expect of this machine; "
-                       "check the effect's physics, or fix one mechanical parameter (e.g. fixed.K_t) to pin the "
+        conclusion += (" " + "; ".join(beyond) + " (its domain in the loop's gauge was widened where the fit pressed "
+                       "against it, discover.edge_widen). A force-type magnitude is fixed only relative to the "
+                       "mechanism's scale, which the record pins only as well as its weakest parameters: compare it "
+                       "with what the machine can have, or fix one mechanical parameter (e.g. fixed.K_t) to pin the "
                        "scale.")
     if edge:
         conclusion += (" " + "; ".join(edge) + " — the record asks for more than the feasible domain allows, and the "
@@ -287,18 +289,21 @@ def at_the_edge(model: Model, added: Sequence[dict], current: Fit) -> list[str]:
     return out
 
 
-def beyond_the_library(added: Sequence[dict], current: Fit, domains: Mapping[str, Sequence[float]]) -> list[str]:
-    """A sentence for each added effect whose magnitude, as ``current`` (the report's representative, at the
-    reference scale) states it, lies outside its domain there: the one a user gave (``domains``), else the
-    library's."""
+def beyond_the_library(added: Sequence[dict], current: Fit, domains: Mapping[str, Sequence[float]],
+                       at_reference: bool) -> list[str]:
+    """A sentence for each added effect whose magnitude, as ``current`` states it (the report's representative: at
+    the reference scale when ``at_reference``, else in the loop's gauge), lies outside its domain at the reference
+    scale: the one a user gave (``domains``), else the library's."""
     out = []
     for a in added:
         mag = EFFECTS_BY_NAME[a["name"]].magnitude
         lo, hi = domains.get(mag.name) or (mag.lower, mag.upper)
         value = float(current.theta[ALL_INDEX[mag.name]])
         if not lo <= value <= hi:
-            out.append(f"{a['name']}'s {mag.name} = {value:.4g} {mag.unit} at the reference scale lies outside "
-                       f"its domain there [{lo:.4g}, {hi:.4g}]")
+            out.append(f"{a['name']}'s {mag.name} reads {value:.4g} {mag.unit} "
+                       + ("at the reference scale" if at_reference else "in the loop's gauge (the reference scale "
+                          "could not be applied)")
+                       + f", outside the library's domain at the reference scale [{lo:.4g}, {hi:.4g}]")
     return out
 
 
