@@ -370,11 +370,12 @@ def test_the_other_starts_are_polished_in_their_screened_order_until_one_reaches
 # ---------------------------------------------------------------------------------------------- the gauge's edge
 def _edge_case(monkeypatch, truth: float, *, name: str = "c_B", given: dict | None = None,
                settings: D.DiscoverSettings | None = None, start: float = 1e4):
-    """TogglePlant._widened_at_edge on a stand-in model whose fits end at ``truth`` clipped into the domain of
-    ``name`` in the loop's gauge (its error grows with the distance from ``truth``); the fit starts at ``start``."""
+    """forward.widened_at_edge on a stand-in model whose fits end at ``truth`` clipped into the domain of ``name`` in
+    the loop's gauge (its error grows with the distance from ``truth``); the fit starts at ``start``. Returns the
+    model, the fit and the domains widened, and the domains each polish kept to."""
     from types import SimpleNamespace
 
-    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery import forward as FW
     from toggle_id.discovery.model import Fit
     from toggle_id.stages import stage_bounds
 
@@ -393,14 +394,14 @@ def _edge_case(monkeypatch, truth: float, *, name: str = "c_B", given: dict | No
         calls.append(domain(name))
         return Fit(out, fr, 1.0 + abs(out[ALL_INDEX[name]] - truth) / abs(truth))
 
-    monkeypatch.setattr(TP, "fit_free", fake_fit)
-    plant = TP.TogglePlant(model, None, (settings or D.DiscoverSettings()).validate(), extend(ASSIGNED)[0], [],
-                           ("J_m",), (), [], None, lambda m: None, None, domains=given)
-    plant.model.gauge_bounds = plant.gauge_bounds = {name: (0.0, 1e4)} if name == "c_B" else {}
+    monkeypatch.setattr(FW, "fit_free", fake_fit)
+    model.gauge_bounds = {name: (0.0, 1e4)} if name == "c_B" else {}
     th = extend(ASSIGNED)[0]
     th[ALL_INDEX[name]] = start if name == "c_B" else 1.99e-3
     fit = Fit(th, ("J_m", name), 1.0 + abs(th[ALL_INDEX[name]] - truth) / abs(truth))
-    return plant, plant._widened_at_edge({"c_B": "viscous_friction_slider", "b_l": "backlash"}[name], fit), calls
+    out, widened = FW.widened_at_edge(model, {"c_B": "viscous_friction_slider", "b_l": "backlash"}[name], fit,
+                                      (settings or D.DiscoverSettings()).validate(), lambda m: None, given or {})
+    return model, out, widened, calls
 
 
 def test_a_scale_type_magnitude_pressing_on_its_domain_in_the_gauge_gets_a_wider_domain(monkeypatch):
@@ -408,14 +409,15 @@ def test_a_scale_type_magnitude_pressing_on_its_domain_in_the_gauge_gets_a_wider
     the baseline's scale, which the fits then move; probe q4): the room from "off" grows edge_widen times and the fit
     is polished again while it presses on the edge and gains, at most edge_widenings times; the widened domain holds
     for the plant's later fits and is recorded."""
-    plant, out, calls = _edge_case(monkeypatch, 2.5e4)
+    model, out, widened, calls = _edge_case(monkeypatch, 2.5e4)
     assert calls == [(0.0, 3e4)]  # once: inside the widened domain, it no longer presses
     assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(2.5e4)
-    assert plant.widened == {"c_B": (0.0, 3e4)} and plant.model.gauge_bounds["c_B"] == (0.0, 3e4)
-    plant, out, calls = _edge_case(monkeypatch, 1e6)
+    assert widened == {"c_B": (0.0, 3e4)} and model.gauge_bounds["c_B"] == (0.0, 3e4)
+    model, out, widened, calls = _edge_case(monkeypatch, 1e6)
     assert calls == [(0.0, 3e4), (0.0, 9e4)]  # at most twice
-    assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(9e4) and plant.widened == {"c_B": (0.0, 9e4)}
-    plant, out, calls = _edge_case(monkeypatch, 2.5e4, settings=D.DiscoverSettings(edge_widen=2.0, edge_widenings=1))
+    assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(9e4) and widened == {"c_B": (0.0, 9e4)}
+    model, out, widened, calls = _edge_case(monkeypatch, 2.5e4,
+                                            settings=D.DiscoverSettings(edge_widen=2.0, edge_widenings=1))
     assert calls == [(0.0, 2e4)] and out.theta[ALL_INDEX["c_B"]] == pytest.approx(2e4)
 
 
@@ -426,15 +428,15 @@ def test_a_domain_is_left_as_it_is_where_the_fit_does_not_press_or_the_domain_is
     kw = {"inside": dict(truth=5e3, start=5e3), "given": dict(truth=2.5e4, given={"c_B": (0.0, 1e4)}),
           "absolute": dict(truth=5e-3, name="b_l"), "off": dict(truth=2.5e4, settings=D.DiscoverSettings(
               edge_widenings=0))}[case]
-    plant, out, calls = _edge_case(monkeypatch, **kw)
-    assert calls == [] and plant.widened == {}
+    model, out, widened, calls = _edge_case(monkeypatch, **kw)
+    assert calls == [] and widened == {}
 
 
 def test_a_wider_domain_that_does_not_lower_the_error_is_taken_back(monkeypatch):
     """At the edge but not pressing on it (the error least at the edge itself): polished once in the wider domain,
     no gain, the domain as it was."""
-    plant, out, calls = _edge_case(monkeypatch, 1e4)
-    assert calls == [(0.0, 3e4)] and plant.widened == {} and plant.model.gauge_bounds["c_B"] == (0.0, 1e4)
+    model, out, widened, calls = _edge_case(monkeypatch, 1e4)
+    assert calls == [(0.0, 3e4)] and widened == {} and model.gauge_bounds["c_B"] == (0.0, 1e4)
     assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(1e4)
 
 

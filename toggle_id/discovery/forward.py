@@ -4,13 +4,13 @@ scouts' order with their guards, the second look of the catch-all when nothing i
 effect to add with the rivals the record cannot tell apart from it; then the chosen refit polished in full."""
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 
 import numpy as np
 from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
-from .gauge import freed_with
+from .gauge import freed_with, scale_type
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
 from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_null, refit_candidate,
@@ -294,3 +294,43 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
             if weaker.sse < current.sse:
                 current = weaker
     return current
+
+
+def widened_at_edge(model: Model, name: str, fit: Fit, settings: DiscoverSettings, say: Callable[[str], None],
+                    given: Collection[str] = ()) -> tuple[Fit, dict[str, tuple[float, float]]]:
+    """``fit`` polished again with the domain of effect ``name``'s magnitude widened on the side it presses against,
+    while the polish ends at that edge (:func:`at_bound`) and lowers the error: the room from "off" to the bound
+    grows ``settings.edge_widen`` times, at most ``settings.edge_widenings`` times; a wider domain that gains nothing
+    is taken back. Only for a magnitude whose domain the gauge moved (:func:`.gauge.scale_type`: a force, torque or
+    current-type magnitude, which x_B fixes only relative to the mechanism's or the current's scale), not one a user
+    gave (``given``) or the record narrows: the library's domain holds at the reference scale, and the fits move
+    the scale as they go, so a box in the loop's gauge can pin such a magnitude short of a value inside the
+    library's domain there (docs/discovery.md, probe q4). The widened domain stays in ``model.gauge_bounds`` for the
+    later fits. Returns the fit and the domains widened ({name: (low, high)}, in the loop's gauge)."""
+    effect = EFFECTS_BY_NAME[name]
+    mag = effect.magnitude
+    k = mag.name
+    widened: dict[str, tuple[float, float]] = {}
+    if (settings.edge_widenings <= 0 or not scale_type(k) or k in given or k in model.bounds
+            or k not in model.gauge_bounds):
+        return fit, widened
+    n = model.n
+    for _ in range(settings.edge_widenings):
+        lo, hi = model.domain(k)
+        value = float(fit.theta[ALL_INDEX[k]])
+        if not at_bound(effect, value, (lo, hi)):
+            break
+        wide = (lo, mag.off + settings.edge_widen * (hi - mag.off)) if value >= mag.off else \
+            (mag.off + settings.edge_widen * (lo - mag.off), hi)
+        model.gauge_bounds = {**model.gauge_bounds, k: wide}
+        again = fit_free(model, fit.theta, fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                         rounds=settings.rounds)
+        say(f"  {k} at the edge of its domain [{lo:.4g}, {hi:.4g}] in the loop's gauge: widened to "
+            f"[{wide[0]:.4g}, {wide[1]:.4g}], {again.rmse(n) * 1e6:.4g} µm at {again.theta[ALL_INDEX[k]]:.4g} "
+            f"(from {fit.rmse(n) * 1e6:.4g} µm)")
+        if not again.sse < fit.sse:  # not pressing after all: the domain as it was
+            model.gauge_bounds = {**model.gauge_bounds, k: (lo, hi)}
+            break
+        widened[k] = wide
+        fit = again
+    return fit, widened

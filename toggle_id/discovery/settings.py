@@ -114,7 +114,7 @@ class DiscoverSettings:
       mechanism's or the current's scale, still ends at the edge of its domain in the loop's gauge, the room from
       "off" to that edge grows ``edge_widen`` (> 1) times and the fit is polished again, while it ends at the edge and
       gains, at most ``edge_widenings`` times (0: off); the report says where the value it states at the reference
-      scale lies outside the library's domain (:meth:`.toggle_plant.TogglePlant._widened_at_edge`).
+      scale lies outside the library's domain (:func:`.forward.widened_at_edge`).
       other_starts_above: an accepted refit that converged above this many times the record's own noise (read off
       its third differences, :func:`toggle_id.fast.difference_noise`) is polished again from the baseline's other
       starts (the job's reference values, the nominal fit as given), each moved into the baseline's gauge

@@ -13,11 +13,11 @@ from ..fast import difference_noise
 from ..residuals import glitch_text, plant_states
 from .catchall import accepted_beside, beside_generic, catch_all, reading_needed, removal_verdict
 from .engine import Step
-from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_gauge_of, scale_type
+from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_gauge_of
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .periodic import turns, whole_count
-from .forward import _iteration, _polish_with_effect, at_bound
+from .forward import _iteration, _polish_with_effect, widened_at_edge
 from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
@@ -54,7 +54,7 @@ class TogglePlant:
         self.catch_report: dict | None = None
         self._looked: tuple[Fit, dict] | None = None  # the catch-all's report-only fits of a model (second look)
         self._structure: tuple[Fit, tuple] | None = None  # the structure test of the latest model asked about
-        #: the magnitudes whose domain in the loop's gauge was widened at its edge (:meth:`_widened_at_edge`)
+        #: the magnitudes whose domain in the loop's gauge was widened at its edge (:func:`.forward.widened_at_edge`)
         self.widened: dict[str, tuple[float, float]] = {}
         #: the noise model the loop's fits minimise under (white: least squares; ``prediction_error``: the AR model
         #: of the current model's residual less its structure, :func:`.residual.fitting_noise`)
@@ -173,7 +173,9 @@ class TogglePlant:
             # polish can whiten the effect away again
             self.model.noise = self.fit_noise = chosen.fit.noise
         after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say)
-        after = self._widened_at_edge(chosen.name, after)
+        after, wide = widened_at_edge(self.model, chosen.name, after, self.s, self.say, self.domains)
+        self.gauge_bounds = self.model.gauge_bounds
+        self.widened.update(wide)
         if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
             after = self._under(after)
         item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
@@ -181,43 +183,6 @@ class TogglePlant:
                 "evidence": chosen.evidence, "indistinguishable_from": step["rivals"]}
         self.say(f"added {chosen.name} {chosen.params}; rms {after.rmse(n) * 1e6:.4g} µm")
         return Step(base, item, after)
-
-    def _widened_at_edge(self, name: str, fit: Fit) -> Fit:
-        """``fit`` polished again with the domain of effect ``name``'s magnitude widened on the side it presses
-        against, while the polish ends at that edge (:func:`.forward.at_bound`) and lowers the error: the room from
-        "off" to the bound grows ``edge_widen`` times, at most ``edge_widenings`` times. Only for a magnitude whose
-        domain the gauge moved (:func:`.gauge.scale_type`: a force, torque or current-type magnitude, which x_B fixes
-        only relative to the mechanism's or the current's scale) and a user did not give: the library's domain holds
-        at the reference scale, and the fits move the scale as they go, so a box in the loop's gauge pins such a
-        magnitude short of a value inside the library's domain there (docs/discovery.md, probe q4). Whether the
-        value the report states at the reference scale lies inside the library's domain is said after the loop
-        (:func:`.loop.beyond_the_library`). The widened domain holds for the rest of this route's fits."""
-        effect = EFFECTS_BY_NAME[name]
-        mag = effect.magnitude
-        k = mag.name
-        if (self.s.edge_widenings <= 0 or not scale_type(k) or k in self.domains or k in self.model.bounds
-                or k not in self.gauge_bounds):
-            return fit
-        n = self.model.n
-        for _ in range(self.s.edge_widenings):
-            lo, hi = self.model.domain(k)
-            value = float(fit.theta[ALL_INDEX[k]])
-            if not at_bound(effect, value, (lo, hi)):
-                break
-            wide = (lo, mag.off + self.s.edge_widen * (hi - mag.off)) if value >= mag.off else \
-                (mag.off + self.s.edge_widen * (lo - mag.off), hi)
-            self.model.gauge_bounds = self.gauge_bounds = {**self.gauge_bounds, k: wide}
-            again = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step,
-                             rounds=self.s.rounds)
-            self.say(f"  {k} at the edge of its domain [{lo:.4g}, {hi:.4g}] in the loop's gauge: widened to "
-                     f"[{wide[0]:.4g}, {wide[1]:.4g}], {again.rmse(n) * 1e6:.4g} µm at "
-                     f"{again.theta[ALL_INDEX[k]]:.4g} (from {fit.rmse(n) * 1e6:.4g} µm)")
-            if not again.sse < fit.sse:  # not pressing after all: the domain as it was
-                self.model.gauge_bounds = self.gauge_bounds = {**self.gauge_bounds, k: (lo, hi)}
-                break
-            self.widened[k] = wide
-            fit = again
-        return fit
 
     def without(self, current: Fit, a: dict | None, added: Sequence[dict], rival: dict | None = None) -> Fit:
         self._fitting()
