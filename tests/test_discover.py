@@ -18,6 +18,7 @@ import pytest
 
 from toggle_id import discovery as D
 from toggle_id.effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME
+from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED, PARAM_NAMES
 from toggle_id.record import Record
 from toggle_id.simulate import PRECISE, simulate
@@ -199,6 +200,23 @@ def test_a_second_route_runs_only_when_structure_is_left_and_the_better_route_is
     made.clear()
     quiet = D.discover(rec, nominal=truth, settings=settings, alternatives=[("truth", second)])
     assert made == [] and len(quiet.to_dict()["routes"]) == 1 and not quiet.unexplained
+
+
+def test_the_loop_starts_no_route_once_its_time_budget_is_spent_and_says_so():
+    # the first route of the case above, on a budget it spends at once: the route from the truth is never made,
+    # the report lists it as skipped for the budget and the conclusion says a route was left untried
+    rec, truth, start = make_record({})
+    far = start * np.exp(0.4 * np.random.default_rng(3).standard_normal(len(start)))
+    settings = D.DiscoverSettings(candidates=(), max_seconds=1e-3, **{**FAST, "baseline_nfev": 4, "rounds": 1})
+    made = []
+    res = D.discover(rec, nominal=far, settings=settings, label="far",
+                     alternatives=[("truth", lambda: made.append("truth") or truth)])
+    routes = res.to_dict()["routes"]
+    assert made == [] and [r["label"] for r in routes] == ["far", "truth"] and routes[0]["chosen"]
+    assert "time budget (discover.max_seconds = 0.001 s)" in routes[1]["skipped"]
+    assert "time budget (discover.max_seconds = 0.001 s) was spent before the route from the truth" in res.conclusion
+    with pytest.raises(ConfigError, match="max_seconds"):
+        D.DiscoverSettings(max_seconds=0).validate()
 
 
 def test_an_alternative_route_far_above_the_first_is_skipped_before_its_loop():

@@ -140,3 +140,28 @@ def test_an_alternative_far_above_the_lowest_baseline_is_skipped_and_a_near_equa
     assert routes[1].outcome is None and routes[2].skipped is None and routes[2].outcome is not None
     # off (0): every alternative runs, as before the limit
     assert all(r.outcome is not None for r in _more(3.045, [fit("fast", 28.97)], [], max_ratio=0.0))
+
+
+def test_no_route_is_started_after_the_deadline_and_its_nominal_fit_is_never_made():
+    """discover.max_seconds: past the deadline every route left is listed as skipped with the budget's text, its
+    nominal fit never made; before it, they run as ever."""
+    import time
+
+    made: list[str] = []
+
+    def fit(label: str, rms_um: float):
+        return label, lambda: made.append(label) or rms_um
+
+    plant = _Plant(8.05)
+    plant.baseline()
+    routes = [Route("two_stage", plant, _stub_loop(plant))]
+    more_routes(routes, [fit("fast", 9.1)], [fit("seed1", 1.0)], _Plant, _stub_loop, N, 1e-3, lambda msg: None,
+                deadline=time.perf_counter() - 1.0, budget_text="out of time")
+    assert made == [] and [(r.label, r.skipped, r.outcome) for r in routes[1:]] == [
+        ("fast", "out of time", None), ("seed1", "out of time", None)]
+    assert _choose(routes, {id(routes[0].outcome.final): NOISE}) == (0, [])
+    assert routes[1].to_dict(N, False) == {"label": "fast", "chosen": False, "skipped": "out of time"}
+    routes = routes[:1]
+    more_routes(routes, [fit("fast", 9.1)], [], _Plant, _stub_loop, N, 1e-3, lambda msg: None,
+                deadline=time.perf_counter() + 3600.0, budget_text="out of time")
+    assert made == ["fast"] and routes[1].outcome is not None

@@ -115,11 +115,14 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                         ambiguity_alpha=settings.ambiguity_alpha, explain_fraction=settings.explain_fraction,
                         noise_max_order=settings.noise_max_order, encompassing=settings.encompassing)
 
+    out_of_time = OUT_OF_TIME.format(settings.max_seconds) if settings.max_seconds is not None else ""
     first = plant_from(theta, [_with(_nominal_theta(st), fixed) for st in starts])
     routes = [Route(label, first, loop(first), nominal)]
     if settings.routes == "always" or (settings.routes == "unexplained" and routes[0].structure_left):
         more_routes(routes, alternatives, restarts, lambda th: plant_from(_with(_nominal_theta(th), fixed), []),
-                    loop, n, settings.route_rtol, say, max_ratio=settings.route_max_ratio)
+                    loop, n, settings.route_rtol, say, max_ratio=settings.route_max_ratio,
+                    deadline=None if settings.max_seconds is None else t_start + settings.max_seconds,
+                    budget_text=out_of_time)
     pick, compared = choose(routes, judge.residual, n, settings.noise_max_order, settings.ambiguity_alpha)
     route_report = [r.to_dict(n, i == pick) for i, r in enumerate(routes)]
     if len(routes) > 1:
@@ -232,6 +235,12 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         conclusion += " " + "; ".join(f"{g['count']} sample(s) of {g['record']} jump away from their neighbours as no "
                                       "mechanism can (glitches of the measurement): left out of every fit and test"
                                       for g in left_out) + " (times in the report)."
+    unrun = [r.label for r in routes if out_of_time and r.skipped == out_of_time]
+    if unrun:
+        conclusion += (f" The loop's time budget (discover.max_seconds = {settings.max_seconds:g} s) was spent before "
+                       f"the route{'s' if len(unrun) > 1 else ''} from the {', '.join(unrun)} nominal "
+                       f"fit{'s' if len(unrun) > 1 else ''}: from another nominal basin the loop may explain more "
+                       "(raise or drop the budget to try).")
     if pick != 0:
         conclusion += (f" The loop from the {routes[0].label} nominal fit left structure; from the "
                        f"{routes[pick].label} nominal fit it reached a better model (routes in the report)."
@@ -258,6 +267,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                            nominal=nominal.to_dict() if isinstance(nominal, IdentificationResult) else None,
                            conclusion=conclusion, unexplained=unexplained, seconds=time.perf_counter() - t_start,
                            n_simulations=model.n_sims, refits=all_refits, extra=extra)
+
+
+#: why a route was not run: the loop's time budget (``discover.max_seconds``) was spent
+OUT_OF_TIME = "the loop's time budget (discover.max_seconds = {:g} s) was spent before it could start"
 
 
 def compensating_refits(refits: Sequence[Refit], compensating: Sequence[dict], added: Sequence[dict]) -> list[dict]:

@@ -24,6 +24,7 @@ lower than every route's so far — a better optimum of the same problem, not ju
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -105,7 +106,8 @@ def _from_other_start(base: Fit) -> str:
 
 def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], restarts: Sequence[tuple[str, Any]],
                 make_plant: Callable[[Any], Any], loop: Callable[[Any], Outcome], n: int, rtol: float,
-                say: Callable[[str], None], max_ratio: float = 0.0) -> None:
+                say: Callable[[str], None], max_ratio: float = 0.0, deadline: float | None = None,
+                budget_text: str = "") -> None:
     """Append to ``routes`` (the first one run) the routes of the other nominal fits.
 
     ``alternatives`` (other methods' fits): a route each, unless its baseline lies in the basin of one already
@@ -114,12 +116,18 @@ def more_routes(routes: list[Route], alternatives: Sequence[tuple[str, Any]], re
     so far, and only while every route has left structure — a search for a better nominal optimum, which is worth
     a loop only where the record is not explained yet. Each entry is
     a (label, fit) pair, the fit a nominal fit or a callable that makes it (made only when needed);
-    ``make_plant(fit)`` gives the plant whose ``baseline()`` polishes it, ``loop(plant)`` runs the loop."""
+    ``make_plant(fit)`` gives the plant whose ``baseline()`` polishes it, ``loop(plant)`` runs the loop.
+    ``deadline`` (a :func:`time.perf_counter` value; None: none): no route is started after it — each one left is
+    listed as skipped with ``budget_text``, its nominal fit never made."""
     for kind, entries in (("alternative", alternatives), ("restart", restarts)):
         for label, fit in entries:
             ran = [r for r in routes if r.outcome is not None]
             if kind == "restart" and not all(r.structure_left for r in ran):
                 break
+            if deadline is not None and time.perf_counter() > deadline:
+                routes.append(Route(label, None, skipped=budget_text))
+                say(f"route {label} skipped: {budget_text}")
+                continue
             say(f"route {label}: the loop again from the {label} nominal fit"
                 + (" (structure is left after the first route)" if routes[0].structure_left else ""))
             nominal = fit() if callable(fit) else fit

@@ -129,6 +129,10 @@ class DiscoverSettings:
       effect's refit from there can stop in a valley far from its optimum (a drive limit at 162 µm: 14.08 µm from
       the baseline's start, 1.40 µm from the reference values; docs/discovery.md, *A large threshold effect*). At 5
       no white-noise record of the adversarial set reaches it (their nominal fits end within 3.5 σ). 0: off.
+    - max_seconds: the loop's time budget (null: none): after it no further route is started (the first always
+      runs to its end, and a route under way finishes); the report lists the routes left as skipped and the
+      conclusion says so. A record with structure left runs the loop again from other nominal fits, which on a
+      large effect with the slow backlash kernel took over an hour (docs/discovery.md, the 0.2-mm lash probe).
     - routes: when the loop runs again from the further nominal fits it is given (:mod:`.routes`): ``unexplained``
       (when structure is left after the first run: before saying so, try another nominal basin), ``always`` or
       ``never``; route_rtol: a route whose baseline RMS agrees with an earlier route's to this (relative) lies in
@@ -224,6 +228,7 @@ class DiscoverSettings:
     routes: str = "unexplained"
     route_rtol: float = 1e-3
     route_max_ratio: float = 1.5
+    max_seconds: float | None = None
     glitch_k: float = 8.0
     robust_structure: bool = True
     prediction_error: bool = True
@@ -338,6 +343,10 @@ class DiscoverSettings:
                               f"noise), got {self.other_starts_above!r}")
         if self.routes not in ("unexplained", "always", "never"):
             raise ConfigError(f"discover.routes must be 'unexplained', 'always' or 'never', got {self.routes!r}")
+        if self.max_seconds is not None and (isinstance(self.max_seconds, bool) or not isinstance(
+                self.max_seconds, (int, float)) or not 0 < float(self.max_seconds) < float("inf")):
+            raise ConfigError(f"discover.max_seconds must be a positive number of seconds or null (no budget), got "
+                              f"{self.max_seconds!r}")
         if not (isinstance(self.route_max_ratio, (int, float)) and not isinstance(self.route_max_ratio, bool)
                 and (self.route_max_ratio == 0 or self.route_max_ratio > 1)):
             raise ConfigError(f"discover.route_max_ratio must be a number above 1 (0: off), got "
