@@ -20,13 +20,12 @@ from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symm
 from .model import Fit, Model, _with, parameter_uncertainty
 from .refit import Refit
 from .toggle_plant import TogglePlant, cogging_domain
-from .report import DiscoveryResult, _conclusion
+from .report import DiscoveryResult, _conclusion, conclusion_notes
 from .settings import DiscoverSettings
 from .engine import run_loop
 from .forward import at_bound
 from .routes import Route, choose, more_routes, route_line
-from .residual import (convergence_of, level_varies, line_text, noise_lines, periodic_text, predicted_left,
-                       prediction_report, residual_report)
+from .residual import predicted_left, prediction_report, residual_report
 from .noise import fit_noise
 from .validation import Judge
 
@@ -191,62 +190,10 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous, catch_report)
-    drift = diag_after.get("drift") or {}
-    if drift.get("drifts"):
-        conclusion += (f" The residual drifts by {drift['drift_m'] * 1e6:.3g} µm over the record (a linear trend "
-                       f"against time, z {drift['z']:.1f}, under the AR model of the detrended residual; report-only): "
-                       "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
-    if repeats := periodic_text(diag_after):
-        conclusion += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
-    if beyond:
-        conclusion += (" " + "; ".join(beyond) + " (its domain in the loop's gauge was widened where the fit pressed "
-                       "against it, discover.edge_widen). A force-type magnitude is fixed only relative to the "
-                       "mechanism's scale, which the record pins only as well as its weakest parameters: compare it "
-                       "with what the machine can have, or fix one mechanical parameter (e.g. fixed.K_t) to pin the "
-                       "scale.")
-    if edge:
-        conclusion += (" " + "; ".join(edge) + " — the record asks for more than the feasible domain allows, and the "
-                       "error left may be that: widen it and run again.")
-    conv = convergence_of(diag_after)
-    if conv and not conv["converged"]:
-        conclusion += (" The final fit had not converged — its own parameters still explain "
-                       f"{100 * conv['share']:.3g} % of its residual — so what is left is partly the fit's: raise "
-                       "discover.baseline_nfev, discover.refit_nfev or discover.rounds.")
-    lines = noise_lines(diag_after)
-    if lines and not unexplained:
-        conclusion += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +
-                       " that the states and the input do not explain (report-only): a disturbance at a fixed "
-                       "frequency — mains interference on the sensor (50/60 Hz), a resonance of its mounting?")
-    loud = level_varies(diag_after)
-    if loud and not unexplained:
-        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests, the "
-                       "structure test and the intervals allow for it): an encoder or a mounting that is noisier "
-                       "in motion?")
-    elif loud and settings.robust_structure:
-        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only): the structure test allowed "
-                       "for it, so the structure left is more than louder noise there.")
-    elif loud:
-        conclusion += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only): louder noise there — an "
-                       "encoder or a mounting that is noisier in motion? — or the structure left itself; "
-                       "discover.robust_structure=true (the default) tests the structure allowing for it.")
-    glitches = judge.glitches or []
-    left_out = [g for g in glitches if g["count"]]
-    if left_out:
-        conclusion += " " + "; ".join(f"{g['count']} sample(s) of {g['record']} jump away from their neighbours as no "
-                                      "mechanism can (glitches of the measurement): left out of every fit and test"
-                                      for g in left_out) + " (times in the report)."
     unrun = [r.label for r in routes if out_of_time and r.skipped == out_of_time]
-    if unrun:
-        conclusion += (f" The loop's time budget (discover.max_seconds = {settings.max_seconds:g} s) was spent before "
-                       f"the route{'s' if len(unrun) > 1 else ''} from the {', '.join(unrun)} nominal "
-                       f"fit{'s' if len(unrun) > 1 else ''}: from another nominal basin the loop may explain more "
-                       "(raise or drop the budget to try).")
-    if pick != 0:
-        conclusion += (f" The loop from the {routes[0].label} nominal fit left structure; from the "
-                       f"{routes[pick].label} nominal fit it reached a better model (routes in the report)."
-                       if routes[0].structure_left else
-                       f" Of the loop's routes from several nominal fits, the one from the {routes[pick].label} "
-                       f"nominal fit is reported (routes in the report).")
+    conclusion += conclusion_notes(diag_after, unexplained, settings, beyond, edge, judge.glitches or [], unrun,
+                                   [r.label for r in routes], pick, routes[0].structure_left)
+    glitches = judge.glitches or []
     extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after},
              "identifiability_after": uncertainty,
              "compensating": compensating, "rejected": rejected, "backward_elimination": eliminated,

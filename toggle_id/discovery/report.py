@@ -98,6 +98,73 @@ def separation_text(name: str, rival: dict) -> str:
             f"{sep['needed_rms_m'] * 1e6:.3g} µm RMS would name it with probability {sep['target_power']:.2g}")
 
 
+def conclusion_notes(after: dict, unexplained: bool, s: DiscoverSettings, beyond: list[str], edge: list[str],
+                     glitches: list[dict], unrun: list[str], labels: list[str], pick: int,
+                     first_left: bool) -> str:
+    """The sentences that follow the conclusion proper, in order: what the final residual shows beyond the structure
+    test (a drift, a period; report-only), magnitudes outside the library's domain at the reference scale
+    (``beyond``, :func:`.loop.beyond_the_library`) or at their domain's edge (``edge``), a fit that had not
+    converged, lines and a level that varies in the noise, the glitches left out, the routes the time budget left
+    untried (``unrun``), and which route is reported (``labels`` of the routes, ``pick`` the reported one's index,
+    ``first_left`` whether the first left structure)."""
+    out = ""
+    drift = after.get("drift") or {}
+    if drift.get("drifts"):
+        out += (f" The residual drifts by {drift['drift_m'] * 1e6:.3g} µm over the record (a linear trend "
+                f"against time, z {drift['z']:.1f}, under the AR model of the detrended residual; report-only): "
+                "no effect of the library is a drift — a sensor drift or a slow thermal effect?")
+    if repeats := periodic_text(after):
+        out += f" {repeats[0].upper()}{repeats[1:]} (the final residual; report-only)."
+    if beyond:
+        out += (" " + "; ".join(beyond) + " (its domain in the loop's gauge was widened where the fit pressed "
+                "against it, discover.edge_widen). A force-type magnitude is fixed only relative to the "
+                "mechanism's scale, which the record pins only as well as its weakest parameters: compare it "
+                "with what the machine can have, or fix one mechanical parameter (e.g. fixed.K_t) to pin the "
+                "scale.")
+    if edge:
+        out += (" " + "; ".join(edge) + " — the record asks for more than the feasible domain allows, and the "
+                "error left may be that: widen it and run again.")
+    conv = convergence_of(after)
+    if conv and not conv["converged"]:
+        out += (" The final fit had not converged — its own parameters still explain "
+                f"{100 * conv['share']:.3g} % of its residual — so what is left is partly the fit's: raise "
+                "discover.baseline_nfev, discover.refit_nfev or discover.rounds.")
+    lines = noise_lines(after)
+    if lines and not unexplained:
+        out += (" The noise carries " + ", ".join(f"a line at {line_text(ln)}" for ln in lines[:3]) +
+                " that the states and the input do not explain (report-only): a disturbance at a fixed "
+                "frequency — mains interference on the sensor (50/60 Hz), a resonance of its mounting?")
+    loud = level_varies(after)
+    if loud and not unexplained:
+        out += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only — the F-tests, the "
+                "structure test and the intervals allow for it): an encoder or a mounting that is noisier "
+                "in motion?")
+    elif loud and s.robust_structure:
+        out += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only): the structure test allowed "
+                "for it, so the structure left is more than louder noise there.")
+    elif loud:
+        out += (f" {loud[0].upper()}{loud[1:]} (the final residual; report-only): louder noise there — an "
+                "encoder or a mounting that is noisier in motion? — or the structure left itself; "
+                "discover.robust_structure=true (the default) tests the structure allowing for it.")
+    left_out = [g for g in glitches if g["count"]]
+    if left_out:
+        out += " " + "; ".join(f"{g['count']} sample(s) of {g['record']} jump away from their neighbours as no "
+                               "mechanism can (glitches of the measurement): left out of every fit and test"
+                               for g in left_out) + " (times in the report)."
+    if unrun:
+        out += (f" The loop's time budget (discover.max_seconds = {s.max_seconds:g} s) was spent before "
+                f"the route{'s' if len(unrun) > 1 else ''} from the {', '.join(unrun)} nominal "
+                f"fit{'s' if len(unrun) > 1 else ''}: from another nominal basin the loop may explain more "
+                "(raise or drop the budget to try).")
+    if pick != 0:
+        out += (f" The loop from the {labels[0]} nominal fit left structure; from the "
+                f"{labels[pick]} nominal fit it reached a better model (routes in the report)."
+                if first_left else
+                f" Of the loop's routes from several nominal fits, the one from the {labels[pick]} "
+                f"nominal fit is reported (routes in the report).")
+    return out
+
+
 def _conclusion(added: list[dict], before: dict, after: dict, unexplained: bool, s: DiscoverSettings,
                 compensating: list[dict] = (), predicted: dict | None = None, ambiguous: list[dict] = (),
                 catch: dict | None = None) -> str:
