@@ -409,15 +409,15 @@ def test_a_scale_type_magnitude_pressing_on_its_domain_in_the_gauge_gets_a_wider
     the baseline's scale, which the fits then move; probe q4): the room from "off" grows edge_widen times and the fit
     is polished again while it presses on the edge and gains, at most edge_widenings times; the widened domain holds
     for the plant's later fits and is recorded."""
-    model, out, widened, calls = _edge_case(monkeypatch, 2.5e4)
+    three = D.DiscoverSettings(edge_widen=3.0, edge_widenings=2)
+    model, out, widened, calls = _edge_case(monkeypatch, 2.5e4, settings=three)
     assert calls == [(0.0, 3e4)]  # once: inside the widened domain, it no longer presses
     assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(2.5e4)
     assert widened == {"c_B": (0.0, 3e4)} and model.gauge_bounds["c_B"] == (0.0, 3e4)
-    model, out, widened, calls = _edge_case(monkeypatch, 1e6)
+    model, out, widened, calls = _edge_case(monkeypatch, 1e6, settings=three)
     assert calls == [(0.0, 3e4), (0.0, 9e4)]  # at most twice
     assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(9e4) and widened == {"c_B": (0.0, 9e4)}
-    model, out, widened, calls = _edge_case(monkeypatch, 2.5e4,
-                                            settings=D.DiscoverSettings(edge_widen=2.0, edge_widenings=1))
+    model, out, widened, calls = _edge_case(monkeypatch, 2.5e4)  # the defaults: twice the room, once
     assert calls == [(0.0, 2e4)] and out.theta[ALL_INDEX["c_B"]] == pytest.approx(2e4)
 
 
@@ -436,7 +436,7 @@ def test_a_wider_domain_that_does_not_lower_the_error_is_taken_back(monkeypatch)
     """At the edge but not pressing on it (the error least at the edge itself): polished once in the wider domain,
     no gain, the domain as it was."""
     model, out, widened, calls = _edge_case(monkeypatch, 1e4)
-    assert calls == [(0.0, 3e4)] and widened == {} and model.gauge_bounds["c_B"] == (0.0, 1e4)
+    assert calls == [(0.0, 2e4)] and widened == {} and model.gauge_bounds["c_B"] == (0.0, 1e4)
     assert out.theta[ALL_INDEX["c_B"]] == pytest.approx(1e4)
 
 
