@@ -153,9 +153,8 @@ def gauge_fix(model: Model, theta: np.ndarray, free: Sequence[str], reference: n
         f = fr[int(np.argmin(cost))]
         out[ALL_INDEX["m_C"]], out[ALL_INDEX["J_m"]] = f * total, (1 - f) * total / Z2
     lo, hi = stage_bounds(list(ALL_NAMES))
-    for nm in widened:
-        i = ALL_INDEX[nm]
-        lo[i], hi[i] = (min(lo[i], out[i]), max(hi[i], out[i])) if out[i] * theta[i] > 0 else (lo[i], hi[i])
+    for nm in widened:  # the scales are positive: a magnitude stays on its side of "off" (0) along them
+        lo[ALL_INDEX[nm]], hi[ALL_INDEX[nm]] = -np.inf, np.inf
     if np.any(out < lo) or np.any(out > hi):
         info["note"] = "the symmetric representative nearest the reference leaves the feasible domain; not applied"
         return theta.copy(), info

@@ -190,7 +190,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
                              ambiguous, catch_report)
-    unrun = [r.label for r in routes if out_of_time and r.skipped == out_of_time]
+    unrun = [r.label for r in routes if r.skipped and r.skipped == out_of_time]
     conclusion += conclusion_notes(diag_after, unexplained, settings, beyond, edge, judge.glitches or [], unrun,
                                    [r.label for r in routes], pick, routes[0].structure_left)
     glitches = judge.glitches or []
