@@ -11,6 +11,7 @@ from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from .gauge import freed_with, scale_type
+from .landscape import profile, profiled_names
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
 from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_null, refit_candidate,
@@ -334,3 +335,34 @@ def widened_at_edge(model: Model, name: str, fit: Fit, settings: DiscoverSetting
         widened[k] = wide
         fit = again
     return fit, widened
+
+
+def rescreened(model: Model, name: str, fit: Fit, settings: DiscoverSettings, say: Callable[[str], None],
+               noise_m: float) -> tuple[Fit, list[dict]]:
+    """``fit`` polished again from the lowest point of a fine profile of the added effect ``name``'s parameters
+    (:func:`.landscape.profile`, the others held), where the fit ends above ``NEAR_NOISE`` times ``noise_m`` (the
+    record's own noise) and a profile point lies below it by more than the profile's prominence; kept where the
+    polish ends lower. A converged fit on a smooth cost is the lowest point of its own profiles, so this does
+    nothing there; on a rough one (a lash, a large Stribeck friction: the cost a needle at the truth, with local
+    minima beside it) the polish of the forward step stops in whichever minimum its start fell into
+    (docs/discovery.md, item 11). Returns the fit and the profiles' reports (each with the polish's outcome)."""
+    n = model.n
+    if settings.rescreen_points <= 0 or not noise_m > 0.0 or fit.rmse(n) <= NEAR_NOISE * noise_m:
+        return fit, []
+    reports = []
+    for nm in profiled_names([name]):
+        prof = profile(model, fit.theta, nm, settings.rescreen_span, settings.rescreen_points,
+                       settings.rescreen_prominence * noise_m)
+        rep = prof.to_dict()
+        reports.append(rep)
+        if not prof.below_fit():
+            continue
+        value, low = prof.lowest
+        again = fit_free(model, _with(fit.theta, {nm: value}), fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                         rounds=settings.rounds)
+        rep["polished_rmse_m"] = again.rmse(n)
+        say(f"  {nm}'s profile around {prof.value:.4g} ({prof.minima} local minima) reads {low * 1e6:.4g} µm at "
+            f"{value:.4g}, below the fit's {fit.rmse(n) * 1e6:.4g} µm: polished from there, {again.rmse(n) * 1e6:.4g} µm")
+        if again.sse < fit.sse:
+            fit = again
+    return fit, reports

@@ -11,6 +11,7 @@ from .. import params as P
 from ..effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME, Effect
 from ..errors import ConfigError
 from ..polish import one_blas_thread
+from ..fast import difference_noise
 from ..identify import IdentificationResult
 from ..plant import GEOMETRY
 from ..record import Record
@@ -18,12 +19,13 @@ from ..simulate import PRECISE, extend
 from ..stages import stage_bounds
 from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symmetries
 from .model import Fit, Model, _with, parameter_uncertainty
-from .refit import Refit
+from .refit import NEAR_NOISE, Refit
 from .toggle_plant import TogglePlant, cogging_domain
 from .report import DiscoveryResult, _conclusion, conclusion_notes
 from .settings import DiscoverSettings
 from .engine import run_loop
 from .forward import at_bound
+from .landscape import Profile, profiles, rough_text
 from .routes import Route, choose, more_routes, route_line
 from .residual import predicted_left, prediction_report, residual_report
 from .noise import fit_noise
@@ -139,6 +141,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     compensating += compensating_refits(all_refits, compensating, added)
 
     edge = at_the_edge(model, added, current)  # in the loop's gauge, before the report's representatives
+    rough = rough_profiles(model, added, current, settings, diag_after.get("verdict", {}).get("structure_left", False))
     gauge_before = gauge_after = {"applied": False}
     if settings.gauge:
         broken = {sym for a in added for sym in EFFECTS_BY_NAME[a["name"]].breaks}
@@ -192,7 +195,8 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                              ambiguous, catch_report)
     unrun = [r.label for r in routes if r.skipped and r.skipped == out_of_time]
     conclusion += conclusion_notes(diag_after, unexplained, settings, beyond, edge, judge.glitches or [], unrun,
-                                   [r.label for r in routes], pick, routes[0].structure_left)
+                                   [r.label for r in routes], pick, routes[0].structure_left,
+                                   rough_text(rough, difference_noise([record])))
     glitches = judge.glitches or []
     extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after},
              "identifiability_after": uncertainty,
@@ -205,7 +209,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              "validation_prediction": predicted,
              "routes": route_report, "route_comparisons": compared, "glitches": glitches,
              # the domains in the chosen route's gauge widened where an added effect pressed against them
-             "domains_widened": {k: list(v) for k, v in plant.widened.items()}}
+             "domains_widened": {k: list(v) for k, v in plant.widened.items()},
+             # the error profiled along the final model's effect parameters (where the fit is off the noise)
+             "landscape": [p.to_dict() for p in rough]}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
     return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,
@@ -234,6 +240,20 @@ def compensating_refits(refits: Sequence[Refit], compensating: Sequence[dict], a
     return [{"name": rf.name, "iteration": rf.iteration, "params": rf.params, "reason": rf.reason,
              "evidence": rf.evidence} for rf in latest.values()
             if rf.iteration > complete and rf.lowers_error and not rf.accepted and rf.name not in listed]
+
+
+def rough_profiles(model: Model, added: Sequence[dict], current: Fit, settings: DiscoverSettings,
+                   structure_left: bool) -> list[Profile]:
+    """The error profiled along the parameters of the final model's effects (:func:`.landscape.profiles`, in the
+    loop's gauge), where structure is left or the fit ends above 1.5 times the record's own noise: a rough cost
+    there says the error left may be the search's (none when ``discover.rescreen_points`` is 0)."""
+    noise_m = difference_noise([model.record])
+    names = [a["name"] for a in added]
+    if not (names and settings.rescreen_points and noise_m > 0.0
+            and (structure_left or current.rmse(model.n) > NEAR_NOISE * noise_m)):
+        return []
+    return profiles(model, current.theta, names, settings.rescreen_span, settings.rescreen_points,
+                    settings.rescreen_prominence * noise_m)
 
 
 def at_the_edge(model: Model, added: Sequence[dict], current: Fit) -> list[str]:

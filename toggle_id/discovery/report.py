@@ -100,10 +100,11 @@ def separation_text(name: str, rival: dict) -> str:
 
 def conclusion_notes(after: dict, unexplained: bool, s: DiscoverSettings, beyond: list[str], edge: list[str],
                      glitches: list[dict], unrun: list[str], labels: list[str], pick: int,
-                     first_left: bool) -> str:
+                     first_left: bool, rough: str = "") -> str:
     """The sentences that follow the conclusion proper, in order: what the final residual shows beyond the structure
     test (a drift, a period; report-only), magnitudes outside the library's domain at the reference scale
-    (``beyond``, :func:`.loop.beyond_the_library`) or at their domain's edge (``edge``), a fit that had not
+    (``beyond``, :func:`.loop.beyond_the_library`) or at their domain's edge (``edge``), a cost rough along the
+    named effects' parameters (``rough``, :func:`.landscape.rough_text`), a fit that had not
     converged, lines and a level that varies in the noise, the glitches left out, the routes the time budget left
     untried (``unrun``), and which route is reported (``labels`` of the routes, ``pick`` the reported one's index,
     ``first_left`` whether the first left structure)."""
@@ -124,6 +125,7 @@ def conclusion_notes(after: dict, unexplained: bool, s: DiscoverSettings, beyond
     if edge:
         out += (" " + "; ".join(edge) + " — the record asks for more than the feasible domain allows, and the "
                 "error left may be that: widen it and run again.")
+    out += rough
     conv = convergence_of(after)
     if conv and not conv["converged"]:
         out += (" The final fit had not converged — its own parameters still explain "
@@ -313,6 +315,12 @@ def write_figures(run_dir: Path, record: Record, res: DiscoveryResult, settings:
         from .catchall import figure as catch_figure
 
         out.append(figures.save(catch_figure(catch), run_dir / "catch_all.png"))
+    if res.extra.get("landscape"):
+        from ..fast import difference_noise
+        from .landscape import figure as landscape_figure
+
+        out.append(figures.save(landscape_figure(res.extra["landscape"], difference_noise([record])),
+                                run_dir / "landscape.png"))
     if np.all(np.isfinite(res.residual_before)) and np.all(np.isfinite(res.residual_after)):
         names = ", ".join(a["name"] for a in res.effects_added) or "no effect added"
         fig = R.comparison_figure(record.t, {"before (nominal)": res.residual_before, f"after ({names})":

@@ -119,6 +119,12 @@ class DiscoverSettings:
       machine 15–40 % off the reference (probe q4: the fit's c_B at the reference scale 1.165·10⁴ N·s/m, the
       truth's 8331), and a wider allowance lets a stand-in wander (rec22's third route: a compensating load force
       pressed on its domain in a gauge at 0.17 times the reference).
+      rescreen_points, rescreen_span, rescreen_prominence: when the accepted effect's final polish ends above 1.5
+      times the record's own noise, the error is profiled along each of its parameters (a phase and a count
+      aside) on ``rescreen_points`` values within ``rescreen_span`` of its value, the others held; where a point
+      lies below the fit by more than ``rescreen_prominence`` times the noise, the fit is polished again from
+      there and kept where it ends lower (:func:`.forward.rescreened`; 0 points: off). The report profiles the
+      final model's effects the same way and says where the cost is rough (:mod:`.landscape`).
       other_starts_above: an accepted refit that converged above this many times the record's own noise (read off
       its third differences, :func:`toggle_id.fast.difference_noise`) is polished again from the baseline's other
       starts (the job's reference values, the nominal fit as given), each moved into the baseline's gauge
@@ -228,6 +234,9 @@ class DiscoverSettings:
     reanchor_rtol: float = 0.1
     edge_widen: float = 2.0
     edge_widenings: int = 1
+    rescreen_points: int = 61
+    rescreen_span: float = 0.25
+    rescreen_prominence: float = 0.1
     other_starts_above: float = 5.0
     routes: str = "unexplained"
     route_rtol: float = 1e-3
@@ -341,6 +350,14 @@ class DiscoverSettings:
                 or self.edge_widenings < 0:
             raise ConfigError(f"discover.edge_widenings must be a whole number ≥ 0 (0: off), got "
                               f"{self.edge_widenings!r}")
+        if isinstance(self.rescreen_points, bool) or not isinstance(self.rescreen_points, int) \
+                or not (self.rescreen_points == 0 or self.rescreen_points >= 3):
+            raise ConfigError(f"discover.rescreen_points must be 0 (off) or a whole number ≥ 3, got "
+                              f"{self.rescreen_points!r}")
+        for key in ("rescreen_span", "rescreen_prominence"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"discover.{key} must be a positive number, got {v!r}")
         if isinstance(self.other_starts_above, bool) or not isinstance(self.other_starts_above, (int, float)) \
                 or not (self.other_starts_above == 0 or self.other_starts_above >= 1):
             raise ConfigError("discover.other_starts_above must be 0 (off) or a number >= 1 (times the record's "

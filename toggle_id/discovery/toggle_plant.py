@@ -17,7 +17,7 @@ from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_ga
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .periodic import turns, whole_count
-from .forward import _iteration, _polish_with_effect, widened_at_edge
+from .forward import _iteration, _polish_with_effect, rescreened, widened_at_edge
 from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
@@ -176,11 +176,15 @@ class TogglePlant:
         after, wide = widened_at_edge(self.model, chosen.name, after, self.s, self.say, self.domains)
         self.gauge_bounds = self.model.gauge_bounds
         self.widened.update(wide)
+        after, screened = rescreened(self.model, chosen.name, after, self.s, self.say,
+                                     difference_noise([self.model.record]))
         if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
             after = self._under(after)
         item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
                 "delta_bic": chosen.delta_bic, "rmse_after_m": after.rmse(n), "params_at_acceptance": chosen.params,
                 "evidence": chosen.evidence, "indistinguishable_from": step["rivals"]}
+        if screened:
+            item["rescreened"] = screened
         self.say(f"added {chosen.name} {chosen.params}; rms {after.rmse(n) * 1e6:.4g} µm")
         return Step(base, item, after)
 
