@@ -146,3 +146,24 @@ def test_the_plants_cost_along_a_viscous_friction_at_the_truth_is_smooth():
     assert p.rmse_m < 1e-9 and np.nanmax(p.rmse) > 10 * p.prominence_m  # the valley's walls are in view
     fig = L.figure([p.to_dict()], NOISE)
     assert len(fig.axes) == 1
+
+
+def test_a_profile_leaves_the_models_state_as_it_was():
+    """A profile is a look, not a fit: rows that fall back to the stiff integrator do not send the later fits'
+    simulations of that effect set to it (Model.stiff unchanged), so the profile cannot change the loop's path."""
+    from dataclasses import replace
+
+    from toggle_id.discovery.model import Model
+    from toggle_id.record import Record
+    from toggle_id.simulate import FAST, PRECISE, simulate
+
+    rec = Record.from_sweep("simulation", duration=0.5)
+    th = theta_at("tau_c", 1.0)
+    rec = Record(rec.t, rec.v_in, simulate(th[None], rec, PRECISE).x_B[0], sweep=rec.sweep, x_B0=rec.x_B0,
+                 name="coulomb")
+    model = Model(rec, replace(PRECISE, max_steps=300, fallback=FAST), parallel=False)
+    model.outputs(np.repeat(th[None], 2, axis=0))
+    assert model.stiff  # the same batch marks the effect set stiff when fitted ...
+    model.stiff = set()
+    L.profile(model, th, "tau_c", 0.25, 5, 0.1 * NOISE)
+    assert model.stiff == set()  # ... but not when profiled

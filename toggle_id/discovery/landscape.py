@@ -84,13 +84,17 @@ def grid(value: float, domain: tuple[float, float], span: float, points: int) ->
 
 
 def profile(model: Model, theta: np.ndarray, name: str, span: float, points: int, prominence_m: float) -> Profile:
-    """The raw RMS of ``model`` along parameter ``name`` around ``theta`` (:func:`grid`), one batch."""
+    """The raw RMS of ``model`` along parameter ``name`` around ``theta`` (:func:`grid`), one batch; the model's
+    state (:attr:`~.model.Model.stiff`) as it was, so a profile never changes the fits that follow it."""
     i = ALL_INDEX[name]
     value = float(theta[i])
     values = grid(value, model.domain(name), span, points)
     thetas = np.repeat(np.asarray(theta, float)[None, :], len(values), axis=0)
     thetas[:, i] = values
+    stiff = set(getattr(model, "stiff", ()))
     r = model.residuals(thetas)
+    if hasattr(model, "stiff"):  # a look, not a fit: the effect sets the later fits send to the fallback stay
+        model.stiff = stiff
     rmse = np.sqrt(np.mean(r * r, axis=1))
     rmse[~np.isfinite(rmse)] = np.nan
     at = float(rmse[np.searchsorted(values, value)])
