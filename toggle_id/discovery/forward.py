@@ -10,6 +10,7 @@ import numpy as np
 from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
+from ..fast import difference_noise
 from .gauge import freed_with, scale_type
 from .landscape import profile, profiled_names
 from .model import Fit, Model, _with, fit_free
@@ -338,16 +339,21 @@ def widened_at_edge(model: Model, name: str, fit: Fit, settings: DiscoverSetting
 
 
 def rescreened(model: Model, name: str, fit: Fit, settings: DiscoverSettings, say: Callable[[str], None],
-               noise_m: float) -> tuple[Fit, list[dict]]:
+               noise_m: float | None = None) -> tuple[Fit, list[dict]]:
     """``fit`` polished again from the lowest point of a fine profile of the added effect ``name``'s parameters
     (:func:`.landscape.profile`, the others held), where the fit ends above ``NEAR_NOISE`` times ``noise_m`` (the
     record's own noise) and a profile point lies below it by more than the profile's prominence; kept where the
     polish ends lower. A converged fit on a smooth cost is the lowest point of its own profiles, so this does
     nothing there; on a rough one (a lash, a large Stribeck friction: the cost a needle at the truth, with local
     minima beside it) the polish of the forward step stops in whichever minimum its start fell into
-    (docs/discovery.md, item 11). Returns the fit and the profiles' reports (each with the polish's outcome)."""
+    (docs/discovery.md, item 11). ``noise_m`` None: read off the model's record (:func:`toggle_id.fast.difference_noise`).
+    Returns the fit and the profiles' reports (each with the polish's outcome)."""
     n = model.n
-    if settings.rescreen_points <= 0 or not noise_m > 0.0 or fit.rmse(n) <= NEAR_NOISE * noise_m:
+    if settings.rescreen_points <= 0:
+        return fit, []
+    if noise_m is None:
+        noise_m = difference_noise([model.record])
+    if not noise_m > 0.0 or fit.rmse(n) <= NEAR_NOISE * noise_m:
         return fit, []
     reports = []
     for nm in profiled_names([name]):

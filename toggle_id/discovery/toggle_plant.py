@@ -176,8 +176,7 @@ class TogglePlant:
         after, wide = widened_at_edge(self.model, chosen.name, after, self.s, self.say, self.domains)
         self.gauge_bounds = self.model.gauge_bounds
         self.widened.update(wide)
-        after, screened = rescreened(self.model, chosen.name, after, self.s, self.say,
-                                     difference_noise([self.model.record]))
+        after, screened = rescreened(self.model, chosen.name, after, self.s, self.say)
         if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
             after = self._under(after)
         item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
