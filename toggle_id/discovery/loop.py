@@ -141,7 +141,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     compensating += compensating_refits(all_refits, compensating, added)
 
     edge = at_the_edge(model, added, current)  # in the loop's gauge, before the report's representatives
-    rough = rough_profiles(model, added, current, settings, diag_after.get("verdict", {}).get("structure_left", False))
+    record_noise = difference_noise([record])  # the record's own noise, read off its third differences
+    rough = rough_profiles(model, added, current, settings, diag_after.get("verdict", {}).get("structure_left", False),
+                           record_noise)
     gauge_before = gauge_after = {"applied": False}
     if settings.gauge:
         broken = {sym for a in added for sym in EFFECTS_BY_NAME[a["name"]].breaks}
@@ -196,7 +198,7 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     unrun = [r.label for r in routes if r.skipped and r.skipped == out_of_time]
     conclusion += conclusion_notes(diag_after, unexplained, settings, beyond, edge, judge.glitches or [], unrun,
                                    [r.label for r in routes], pick, routes[0].structure_left,
-                                   rough_text(rough, difference_noise([record])))
+                                   rough_text(rough, record_noise))
     glitches = judge.glitches or []
     extra = {"ambiguous": ambiguous, "symmetry_gauge": {"before": gauge_before, "after": gauge_after},
              "identifiability_after": uncertainty,
@@ -243,11 +245,10 @@ def compensating_refits(refits: Sequence[Refit], compensating: Sequence[dict], a
 
 
 def rough_profiles(model: Model, added: Sequence[dict], current: Fit, settings: DiscoverSettings,
-                   structure_left: bool) -> list[Profile]:
+                   structure_left: bool, noise_m: float) -> list[Profile]:
     """The error profiled along the parameters of the final model's effects (:func:`.landscape.profiles`, in the
-    loop's gauge), where structure is left or the fit ends above 1.5 times the record's own noise: a rough cost
-    there says the error left may be the search's (none when ``discover.rescreen_points`` is 0)."""
-    noise_m = difference_noise([model.record])
+    loop's gauge), where structure is left or the fit ends above 1.5 times the record's own noise ``noise_m``: a rough
+    cost there says the error left may be the search's (none when ``discover.rescreen_points`` is 0)."""
     names = [a["name"] for a in added]
     if not (names and settings.rescreen_points and noise_m > 0.0
             and (structure_left or current.rmse(model.n) > NEAR_NOISE * noise_m)):
