@@ -25,7 +25,7 @@ def stand_in(error_of, name="b_l", domain=(0.0, 5e-3)):
         thetas = np.atleast_2d(thetas)
         return np.repeat(np.array([error_of(v) for v in thetas[:, ALL_INDEX[name]]])[:, None], N, axis=1)
 
-    return SimpleNamespace(n=N, residuals=residuals, domain=lambda k: domain, record=None)
+    return SimpleNamespace(n=N, residuals=residuals, domain=lambda k: domain, record=None, stiff=set())
 
 
 def theta_at(name, value):

@@ -113,6 +113,8 @@ EFFECTS: tuple[Effect, ...] = (
 )
 
 EFFECTS_BY_NAME: dict[str, Effect] = {e.name: e for e in EFFECTS}
+#: every parameter of the library's effects by name (the generic terms' aside)
+EFFECT_PARAMS: dict[str, EffectParam] = {p.name: p for e in EFFECTS for p in e.params}
 
 
 def _generic_params(prefix: str, lo: int, w0: int, unit: str, n: int = K.N_GEN, weight: str = "N",

@@ -346,8 +346,9 @@ def rescreened(model: Model, name: str, fit: Fit, settings: DiscoverSettings, sa
     polish ends lower. A converged fit on a smooth cost is the lowest point of its own profiles, so this does
     nothing there; on a rough one (a lash, a large Stribeck friction: the cost a needle at the truth, with local
     minima beside it) the polish of the forward step stops in whichever minimum its start fell into
-    (docs/discovery.md, item 11). ``noise_m`` None: read off the model's record (:func:`toggle_id.fast.difference_noise`).
-    Returns the fit and the profiles' reports (each with the polish's outcome)."""
+    (docs/discovery.md, item 11). ``noise_m`` None: read off the model's record
+    (:func:`toggle_id.fast.difference_noise`). Returns the fit and the profiles' reports (each with the polish's
+    outcome)."""
     n = model.n
     if settings.rescreen_points <= 0:
         return fit, []
@@ -368,7 +369,8 @@ def rescreened(model: Model, name: str, fit: Fit, settings: DiscoverSettings, sa
                          rounds=settings.rounds)
         rep["polished_rmse_m"] = again.rmse(n)
         say(f"  {nm}'s profile around {prof.value:.4g} ({prof.minima} local minima) reads {low * 1e6:.4g} µm at "
-            f"{value:.4g}, below the fit's {fit.rmse(n) * 1e6:.4g} µm: polished from there, {again.rmse(n) * 1e6:.4g} µm")
+            f"{value:.4g}, below the fit's {fit.rmse(n) * 1e6:.4g} µm: polished from there, "
+            f"{again.rmse(n) * 1e6:.4g} µm")
         if again.sse < fit.sse:
             fit = again
     return fit, reports

@@ -7,7 +7,7 @@ from collections.abc import Collection, Mapping, Sequence
 import numpy as np
 
 from .. import params as P
-from ..effects import ALL_INDEX, ALL_NAMES, EFFECTS, Effect, effect_bounds
+from ..effects import ALL_INDEX, ALL_NAMES, EFFECT_PARAMS, Effect, effect_bounds
 from ..identify import stage_bounds
 from .model import Model
 
@@ -40,7 +40,7 @@ def freed_with(base_free: Sequence[str], effect: Effect, held: Collection[str]) 
 
 
 #: The unit of every effect parameter (the current and mechanism scales follow from it).
-_UNITS = {p.name: p.unit for e in EFFECTS for p in e.params}
+_UNITS = {name: p.unit for name, p in EFFECT_PARAMS.items()}
 
 
 def _force_like(name: str) -> bool:

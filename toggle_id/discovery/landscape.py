@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import find_peaks
 
-from ..effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME
+from ..effects import ALL_INDEX, EFFECT_PARAMS, EFFECTS_BY_NAME
 from .model import Model
 
 
@@ -69,11 +69,6 @@ def profiled_names(effect_names: Sequence[str]) -> list[str]:
     return out
 
 
-def unit_of(name: str) -> str:
-    """The unit of effect parameter ``name``."""
-    return next(p.unit for e in EFFECTS for p in e.params if p.name == name)
-
-
 def grid(value: float, domain: tuple[float, float], span: float, points: int) -> np.ndarray:
     """``points`` values within ``span`` (relative) of ``value``, clipped to ``domain``, ``value`` among them; a
     value at zero is profiled over the first ``span`` of its domain's width."""
@@ -91,10 +86,9 @@ def profile(model: Model, theta: np.ndarray, name: str, span: float, points: int
     values = grid(value, model.domain(name), span, points)
     thetas = np.repeat(np.asarray(theta, float)[None, :], len(values), axis=0)
     thetas[:, i] = values
-    stiff = set(getattr(model, "stiff", ()))
+    stiff = set(model.stiff)
     r = model.residuals(thetas)
-    if hasattr(model, "stiff"):  # a look, not a fit: the effect sets the later fits send to the fallback stay
-        model.stiff = stiff
+    model.stiff = stiff  # a look, not a fit: the effect sets the later fits send to the fallback stay as they were
     rmse = np.sqrt(np.mean(r * r, axis=1))
     rmse[~np.isfinite(rmse)] = np.nan
     at = float(rmse[np.searchsorted(values, value)])
@@ -111,7 +105,6 @@ def count_minima(rmse: np.ndarray, prominence_m: float) -> int:
     return minima + int(y[1] - y[0] > prominence_m) + int(y[-2] - y[-1] > prominence_m)
 
 
-
 def profiles(model: Model, theta: np.ndarray, effect_names: Sequence[str], span: float, points: int,
              prominence_m: float) -> list[Profile]:
     """:func:`profile` of every parameter :func:`profiled_names` picks from ``effect_names``."""
@@ -123,20 +116,21 @@ def rough_text(found: Sequence[Profile], noise_m: float) -> str:
     (empty when none does)."""
     parts = []
     for p in found:
+        unit = EFFECT_PARAMS[p.name].unit
         bits = []
         if p.rough:
             bits.append(f"{p.minima} local minima")
         if p.below_fit():
             lo_v, lo_r = p.lowest
-            bits.append(f"{1e6 * lo_r:.4g} µm at {lo_v:.4g} {unit_of(p.name)}, below the fit's {1e6 * p.rmse_m:.4g} µm")
+            bits.append(f"{1e6 * lo_r:.4g} µm at {lo_v:.4g} {unit}, below the fit's {1e6 * p.rmse_m:.4g} µm")
         if bits:
-            parts.append(f"{p.name} around {p.value:.4g} {unit_of(p.name)}: " + ", ".join(bits))
+            parts.append(f"{p.name} around {p.value:.4g} {unit}: " + ", ".join(bits))
     if not parts:
         return ""
     return (" Profiled along the named effects' parameters, the others held, the error has more than one minimum "
-            "or a point below the fit (" + "; ".join(parts) + "): the fit may not be at the optimum of its own model, so the error left may be "
-            f"the search's rather than physics the model lacks (the record's noise {1e6 * noise_m:.3g} µm; "
-            "profiles in the report).")
+            "or a point below the fit (" + "; ".join(parts) + "): the fit may not be at the optimum of its own model, "
+            "so the error left may be the search's rather than physics the model lacks (the record's noise "
+            f"{1e6 * noise_m:.3g} µm; profiles in the report).")
 
 
 def figure(reports: Sequence[dict], noise_m: float, title: str | None = None):
@@ -154,7 +148,7 @@ def figure(reports: Sequence[dict], noise_m: float, title: str | None = None):
                     label="lowest point")
         if noise_m > 0:
             ax.axhline(noise_m * 1e6, color="0.6", lw=0.8, ls="--", label="the record's noise")
-        ax.set_xlabel(f"{rep['name']} ({unit_of(rep['name'])})")
+        ax.set_xlabel(f"{rep['name']} ({EFFECT_PARAMS[rep['name']].unit})")
         ax.set_ylabel("rms error (µm)")
         ax.set_title(f"{rep['minima']} local minima", fontsize=9)
         ax.grid(alpha=0.3)
