@@ -1,12 +1,14 @@
 """A count a machine has whole (a motor's cogging repeats a whole number of times per revolution): once its effect
-is accepted, the count is held at the whole number it lies near (forward.whole_counted), and the starts the loop
-builds from the nominal fit with the effects so far carry it (forward.effects_on)."""
+is accepted near a whole count, the count is held there (forward.whole_counts, the polish's ``hold``), and the
+starts the loop builds from the nominal fit with the effects so far carry it (forward.effects_on)."""
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from toggle_id.discovery.forward import COUNTS, effects_on, whole_counted
+from toggle_id.discovery import forward as FW
 from toggle_id.discovery.model import Model, fit_free
 from toggle_id.discovery.settings import DiscoverSettings
 from toggle_id.effects import ALL_INDEX, EFFECTS_BY_NAME
@@ -15,16 +17,30 @@ from toggle_id.record import Record
 from toggle_id.simulate import PRECISE, extend, simulate
 
 COGGING = EFFECTS_BY_NAME["cogging_torque"].names  # a_cog, n_cog, phi_cog
+TOL = DiscoverSettings().cogging_whole_tol
 
 
 def test_the_effects_so_far_carry_a_held_count():
     nominal = ("K_t", "R_s")
     # the count held (not free): still the cogging's, so a start from the nominal fit with the effects carries it
-    assert set(effects_on(nominal + ("a_cog", "phi_cog"), nominal)) == set(COGGING)
-    assert effects_on(nominal + COGGING, nominal) == list(COGGING)
-    assert effects_on(nominal + ("c_B",), nominal) == ["c_B"]  # an effect of one parameter: itself
-    assert effects_on(nominal, nominal) == []
-    assert set(COUNTS) <= set(COGGING)
+    assert set(FW.effects_on(nominal + ("a_cog", "phi_cog"), nominal)) == set(COGGING)
+    assert FW.effects_on(nominal + COGGING, nominal) == list(COGGING)
+    assert FW.effects_on(nominal + ("c_B",), nominal) == ["c_B"]  # an effect of one parameter: itself
+    assert FW.effects_on(nominal, nominal) == []
+    assert set(FW.COUNTS) <= set(COGGING)
+
+
+@pytest.mark.parametrize("n_cog, free, expected", [
+    (6.035, COGGING, {"n_cog": 6}),
+    (5.95, COGGING, {"n_cog": 6}),
+    (4.56, COGGING, {}),  # no whole count: left free, judged at the end (toggle_plant.implausible)
+    (6.035, ("a_cog", "phi_cog"), {}),  # held already
+])
+def test_a_count_near_a_whole_number_is_held_there(n_cog, free, expected):
+    theta = extend(ASSIGNED)[0]
+    theta[ALL_INDEX["n_cog"]] = n_cog
+    assert FW.whole_counts("cogging_torque", theta, free, TOL) == expected
+    assert FW.whole_counts("viscous_friction_slider", theta, ("c_B",), TOL) == {}  # no count at all
 
 
 @pytest.fixture(scope="module")
@@ -39,38 +55,21 @@ def cogging_record():
     return th, rec
 
 
-def test_a_count_near_a_whole_number_is_held_there(cogging_record):
+def test_the_polish_holds_the_count_where_the_step_put_it(cogging_record):
+    """The real plant: a refit of the cogging at n_cog 6.04, polished with the count held — the count stays at 6, is
+    no longer free, and the rest is polished back to the truth; the log says so."""
     truth, rec = cogging_record
     model = Model(rec, parallel=False)
+    s = DiscoverSettings()
     start = truth.copy()
     start[ALL_INDEX["n_cog"]] = 6.04
-    s = DiscoverSettings()
-    loose = fit_free(model, start, COGGING, 5, s.fd_rel_step)  # a short polish: the count still off the whole
+    refit = fit_free(model, start, ("a_cog", "phi_cog"), 1, s.fd_rel_step)
+    refit.free = COGGING
+    hold = FW.whole_counts("cogging_torque", refit.theta, refit.free, TOL)
     said: list[str] = []
-    held, report = whole_counted(model, "cogging_torque", loose, s, said.append)
-    assert "n_cog" not in held.free and set(held.free) == {"a_cog", "phi_cog"}
-    assert held.theta[ALL_INDEX["n_cog"]] == 6.0
-    assert report["n_cog"]["held_at"] == 6 and report["n_cog"]["fitted"] == pytest.approx(loose.theta[ALL_INDEX["n_cog"]])
-    assert report["n_cog"]["rmse_held_m"] == pytest.approx(held.rmse(model.n))
-    assert held.rmse(model.n) < 1e-8  # held at the truth's count, the rest polished back to it
-    assert len(said) == 1 and "held at 6" in said[0]
-
-
-def whole_count_of(fit):
-    from toggle_id.discovery.periodic import whole_count
-    return whole_count(fit.theta[ALL_INDEX["n_cog"]], DiscoverSettings().cogging_whole_tol)
-
-
-def test_a_count_far_from_a_whole_number_stays_free(cogging_record):
-    truth, rec = cogging_record
-    model = Model(rec, parallel=False)
-    start = truth.copy()
-    start[ALL_INDEX["n_cog"]] = 6.4
-    s = DiscoverSettings()
-    fit = fit_free(model, start, COGGING, 1, s.fd_rel_step)
-    assert whole_count_of(fit) is None
-    same, report = whole_counted(model, "cogging_torque", fit, s, lambda _: None)
-    assert same is fit and report == {}  # judged at the end (toggle_plant.implausible), not held
-    # an effect without a count: nothing to hold
-    same, report = whole_counted(model, "viscous_friction_slider", fit, s, lambda _: None)
-    assert same is fit and report == {}
+    out = FW._polish_with_effect(model, SimpleNamespace(name="cogging_torque", fit=refit), truth, (), s, said.append,
+                                 hold=hold)
+    assert hold == {"n_cog": 6} and "n_cog" not in out.free and set(out.free) == {"a_cog", "phi_cog"}
+    assert out.theta[ALL_INDEX["n_cog"]] == 6.0
+    assert out.rmse(model.n) < 1e-8 < refit.rmse(model.n)
+    assert any("n_cog 6.04 held at 6" in line for line in said)

@@ -155,7 +155,7 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
         return Fit(start, tuple(free), 4.0, noise=m.noise)
 
     monkeypatch.setattr(TP, "fit_free", fake_fit_free)
-    monkeypatch.setattr(TP, "_polish_with_effect", lambda m, chosen, *a: Fit(theta, ("mu", "x_off"), 3.0,
+    monkeypatch.setattr(TP, "_polish_with_effect", lambda m, chosen, *a, **k: Fit(theta, ("mu", "x_off"), 3.0,
                                                                               noise=m.noise))
     # the stand-in model has no record to read its noise off: the profile of the added effect (forward.rescreened,
     # tests/test_landscape.py) is not this test's
@@ -224,7 +224,7 @@ def test_an_effect_found_under_its_own_noise_model_is_polished_under_it(monkeypa
     monkeypatch.setattr(TP, "fit_free", lambda m, start, free, *a, **k: Fit(start, tuple(free), 2.0, noise=m.noise))
     under = []
 
-    def polish_with_effect(m, chosen, *a):
+    def polish_with_effect(m, chosen, *a, **k):
         under.append(m.noise)
         return Fit(theta, ("mu", "tau_d"), 3.0, noise=m.noise)
 

@@ -4,7 +4,7 @@ scouts' order with their guards, the second look of the catch-all when nothing i
 effect to add with the rivals the record cannot tell apart from it; then the chosen refit polished in full."""
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 
 import numpy as np
 from scipy import stats
@@ -253,9 +253,11 @@ def moved_effects(start: np.ndarray, end: np.ndarray, names: Sequence[str], rtol
 
 
 def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: Sequence[str],
-                        settings: DiscoverSettings, say: Callable[[str], None]) -> Fit:
+                        settings: DiscoverSettings, say: Callable[[str], None],
+                        hold: Mapping[str, float] | None = None) -> Fit:
     """The accepted refit polished in full, also from the nominal fit as given with the effects' values (the
-    polished baseline may sit in another valley); the better of the two.
+    polished baseline may sit in another valley); the better of the two. ``hold``: parameters of the refit held at
+    these values from here on (a count at its whole number, :func:`whole_counts`).
 
     Where the effect's magnitude then sits at the edge of its feasible domain (:func:`at_bound`), the polish also
     starts from the nominal fit as given with the magnitude at ``settings.weaker_starts`` of its distance from
@@ -272,17 +274,22 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
     b_l = 0.326 mm the polish stalled (`xtol`) at 9.3 µm with b_l = 0.51 mm and the record was called unexplained;
     from the nominal fit as given at 0.51 mm it reaches 0.967 µm at b_l = 0.5002 mm."""
     n = model.n
+    hold = dict(hold or {})
     effect_names = effects_on(chosen.fit.free, free)
+    names = tuple(nm for nm in chosen.fit.free if nm not in hold)
 
     def polish(theta: np.ndarray) -> Fit:
-        return fit_free(model, theta, chosen.fit.free, settings.baseline_nfev, settings.fd_rel_step,
-                        rounds=settings.rounds)
+        return fit_free(model, theta, names, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
 
     def as_given_with(theta: np.ndarray) -> np.ndarray:
         """The nominal fit as given with the effects' values of ``theta``."""
         return _with(anchor, {nm: theta[ALL_INDEX[nm]] for nm in effect_names})
 
-    current = polish(chosen.fit.theta)
+    current = polish(_with(chosen.fit.theta, hold))
+    if hold:
+        say(f"  {', '.join(f'{nm} {chosen.fit.theta[ALL_INDEX[nm]]:.4g}' for nm in hold)} held at "
+            f"{', '.join(f'{v:g}' for v in hold.values())} (a whole count per revolution): polished "
+            f"{current.rmse(n) * 1e6:.4g} µm (the refit, free: {chosen.fit.rmse(n) * 1e6:.4g} µm)")
     as_given = as_given_with(current.theta)
     alt = polish(as_given)
     if alt.sse < current.sse:
@@ -354,33 +361,22 @@ def widened_at_edge(model: Model, name: str, fit: Fit, settings: DiscoverSetting
 COUNTS = ("n_cog",)
 
 
-def whole_counted(model: Model, name: str, fit: Fit, settings: DiscoverSettings, say: Callable[[str], None]
-                  ) -> tuple[Fit, dict[str, dict]]:
-    """``fit`` polished again with each count of the added effect ``name`` (:data:`COUNTS`) that lies within
-    ``settings.cogging_whole_tol`` of a whole number held at that number, so the later fits (the next effects'
-    refits, backward elimination, the final polish) cannot move it. Left free, beside physics the library lacks,
-    the count drifts to wherever its ripple stands in for that physics: rec38 of the adversarial set (a cogging at
-    n_cog = 6 beside a quadratic drag) accepted the cogging at n_cog 6.035 and ended at 4.56, near the floor of
-    ``cogging_min_periods``, where it was called compensating (no whole count) and the record missed. A count
-    farther from a whole number stays free and is judged by :func:`.toggle_plant.implausible` at the end. The
-    held fit is taken whatever its error: a motor with a fractional count is no machine, and the backward
-    elimination judges the effect again as held. Returns the fit and a report per count held."""
-    n = model.n
-    held: dict[str, dict] = {}
+def whole_counts(name: str, theta: np.ndarray, free: Sequence[str], tol: float) -> dict[str, int]:
+    """The counts of effect ``name`` (:data:`COUNTS`) free in a fit at ``theta`` that lie within ``tol`` of a whole
+    number, each with that number: the accepted refit's, which the forward step holds there from then on
+    (:func:`_polish_with_effect`'s ``hold``), so no later fit (the polish, the next effects' refits, backward
+    elimination, the final polish) can move it. Left free beside physics the library lacks, the count drifts to
+    wherever its ripple stands in for that physics: rec38 of the adversarial set (a cogging at n_cog = 6 beside a
+    quadratic drag) accepted its cogging at n_cog 6.035, the polish and the later fits moved it to 4.56 (near the
+    floor of ``cogging_min_periods``) and the final check called it compensating, no whole count. A count farther
+    from a whole number stays free and is judged by :func:`.toggle_plant.implausible` at the end."""
+    out = {}
     for nm in EFFECTS_BY_NAME[name].names:
-        if nm not in COUNTS or nm not in fit.free:
-            continue
-        value = float(fit.theta[ALL_INDEX[nm]])
-        k = whole_count(value, settings.cogging_whole_tol)
-        if k is None:
-            continue
-        again = fit_free(model, _with(fit.theta, {nm: float(k)}), tuple(p for p in fit.free if p != nm),
-                         settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-        say(f"  {nm} {value:.4g} held at {k} (a whole count per revolution): {again.rmse(n) * 1e6:.4g} µm "
-            f"(free: {fit.rmse(n) * 1e6:.4g} µm)")
-        held[nm] = {"fitted": value, "held_at": k, "rmse_free_m": fit.rmse(n), "rmse_held_m": again.rmse(n)}
-        fit = again
-    return fit, held
+        if nm in COUNTS and nm in free:
+            k = whole_count(float(theta[ALL_INDEX[nm]]), tol)
+            if k is not None:
+                out[nm] = k
+    return out
 
 
 def rescreened(model: Model, name: str, fit: Fit, settings: DiscoverSettings, say: Callable[[str], None],

@@ -368,8 +368,9 @@ def summary_text(res: DiscoveryResult) -> str:
                      (f" (widened ×{hc ** 0.5:.2g} for the noise's varying level)" if se and hc > 2.25 else "") +
                      f"  (F-test p {a['p_value']:.3g}, ΔBIC {a['delta_bic']:.4g})")
         for nm, h in (a.get("held_whole") or {}).items():
-            lines.append(f"  {nm} held at {h['held_at']} (a whole count per revolution; fitted free "
-                         f"{h['fitted']:.4g}): {h['rmse_free_m'] * 1e6:.4g} → {h['rmse_held_m'] * 1e6:.4g} µm")
+            lines.append(f"  {nm} held at {h['held_at']}, a whole count per revolution, from the step that added it "
+                         f"(its refit had {h['fitted']:.4g} at {h['rmse_free_m'] * 1e6:.4g} µm; polished with it "
+                         f"held, {h['rmse_held_m'] * 1e6:.4g} µm)")
         if "per_K_l" in a["magnitude"]:
             lines.append(f"  a force-type magnitude: x_B fixes it only relative to the mechanism's common scale "
                          f"({a['magnitude']['name']}/K_l = {a['magnitude']['per_K_l']:.5g} per N/m; at the "

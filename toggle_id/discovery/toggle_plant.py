@@ -17,7 +17,7 @@ from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_ga
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .periodic import turns, whole_count
-from .forward import _iteration, _polish_with_effect, rescreened, whole_counted, widened_at_edge
+from .forward import _iteration, _polish_with_effect, rescreened, whole_counts, widened_at_edge
 from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
@@ -172,8 +172,8 @@ class TogglePlant:
             # would once the effect is added — under the old one, fitted to a residual the effect dominated, the
             # polish can whiten the effect away again
             self.model.noise = self.fit_noise = chosen.fit.noise
-        after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say)
-        after, whole = whole_counted(self.model, chosen.name, after, self.s, self.say)
+        whole = whole_counts(chosen.name, chosen.fit.theta, chosen.fit.free, self.s.cogging_whole_tol)
+        after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say, hold=whole)
         after, wide = widened_at_edge(self.model, chosen.name, after, self.s, self.say, self.domains)
         self.gauge_bounds = self.model.gauge_bounds
         self.widened.update(wide)
@@ -185,8 +185,9 @@ class TogglePlant:
                 "evidence": chosen.evidence, "indistinguishable_from": step["rivals"]}
         if screened:
             item["rescreened"] = screened
-        if whole:
-            item["held_whole"] = whole
+        if whole:  # counts held at their whole numbers from here on
+            item["held_whole"] = {nm: {"fitted": chosen.params[nm], "held_at": k, "rmse_free_m": chosen.fit.rmse(n),
+                                       "rmse_held_m": after.rmse(n)} for nm, k in whole.items()}
         self.say(f"added {chosen.name} {chosen.params}; rms {after.rmse(n) * 1e6:.4g} µm")
         return Step(base, item, after)
 
