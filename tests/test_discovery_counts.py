@@ -1,14 +1,14 @@
 """A count a machine has whole (a motor's cogging repeats a whole number of times per revolution): once its effect
-is accepted near a whole count, the count is held there (forward.whole_counts, the polish's ``hold``), and the
+is accepted near a whole count, the count is held there (periodic.whole_counts, the polish's ``hold``), and the
 starts the loop builds from the nominal fit with the effects so far carry it (forward.effects_on)."""
 from __future__ import annotations
 
 from types import SimpleNamespace
 
-import numpy as np
 import pytest
 
 from toggle_id.discovery import forward as FW
+from toggle_id.discovery import periodic as P
 from toggle_id.discovery.model import Model, fit_free
 from toggle_id.discovery.settings import DiscoverSettings
 from toggle_id.effects import ALL_INDEX, EFFECTS_BY_NAME
@@ -27,7 +27,7 @@ def test_the_effects_so_far_carry_a_held_count():
     assert FW.effects_on(nominal + COGGING, nominal) == list(COGGING)
     assert FW.effects_on(nominal + ("c_B",), nominal) == ["c_B"]  # an effect of one parameter: itself
     assert FW.effects_on(nominal, nominal) == []
-    assert set(FW.COUNTS) <= set(COGGING)
+    assert set(P.COUNTS) <= set(COGGING)
 
 
 @pytest.mark.parametrize("n_cog, free, expected", [
@@ -39,8 +39,8 @@ def test_the_effects_so_far_carry_a_held_count():
 def test_a_count_near_a_whole_number_is_held_there(n_cog, free, expected):
     theta = extend(ASSIGNED)[0]
     theta[ALL_INDEX["n_cog"]] = n_cog
-    assert FW.whole_counts("cogging_torque", theta, free, TOL) == expected
-    assert FW.whole_counts("viscous_friction_slider", theta, ("c_B",), TOL) == {}  # no count at all
+    assert P.whole_counts("cogging_torque", theta, free, TOL) == expected
+    assert P.whole_counts("viscous_friction_slider", theta, ("c_B",), TOL) == {}  # no count at all
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +65,7 @@ def test_the_polish_holds_the_count_where_the_step_put_it(cogging_record):
     start[ALL_INDEX["n_cog"]] = 6.04
     refit = fit_free(model, start, ("a_cog", "phi_cog"), 1, s.fd_rel_step)
     refit.free = COGGING
-    hold = FW.whole_counts("cogging_torque", refit.theta, refit.free, TOL)
+    hold = P.whole_counts("cogging_torque", refit.theta, refit.free, TOL)
     said: list[str] = []
     out = FW._polish_with_effect(model, SimpleNamespace(name="cogging_torque", fit=refit), truth, (), s, said.append,
                                  hold=hold)

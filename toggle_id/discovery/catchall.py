@@ -42,7 +42,7 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME, GENERIC_FORCE, GENERIC_SENSOR,
 from ..kernels.slots import N_GEN, N_GS
 from .gauge import freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free
-from .periodic import whole_count
+from .periodic import whole_counts
 from .refit import Refit, Scout, from_current, in_sample
 from .settings import DiscoverSettings
 from .validation import Judge
@@ -274,13 +274,12 @@ def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: 
         if not ev.passed:
             continue
         free = freed_with(base.free, eff, held)
-        whole = whole_count(values["n_cog"], settings.cogging_whole_tol) if "n_cog" in values else None
-        if whole is not None:
-            # a motor's count, determined beside the generic terms, is held at its whole value from here on: without
-            # them it drifts to where the ripple stands in for the missing physics (rec38: to the floor of
-            # discover.cogging_min_periods, 4.53, at the same error as at 6.03)
-            values["n_cog"] = float(whole)
-            free = tuple(nm for nm in free if nm != "n_cog")
+        # a motor's count, determined beside the generic terms, is held at its whole value from here on: without
+        # them it drifts to where the ripple stands in for the missing physics (rec38: to the floor of
+        # discover.cogging_min_periods, 4.53, at the same error as at 6.03)
+        whole = whole_counts(eff.name, big.theta, free, settings.cogging_whole_tol)
+        values.update({nm: float(k) for nm, k in whole.items()})
+        free = tuple(nm for nm in free if nm not in whole)
         fit = fit_free(model, _with(base.theta, values), free, settings.baseline_nfev, settings.fd_rel_step,
                        rounds=settings.rounds)
         rf = Refit(eff.name, iteration, fit, {nm: float(fit.theta[ALL_INDEX[nm]]) for nm in eff.names}, base.sse,

@@ -15,7 +15,6 @@ from .gauge import freed_with, scale_type
 from .landscape import profile, profiled_names
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
-from .periodic import whole_count
 from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_null, refit_candidate,
                     scout_candidate, share_of_room)
 from .scoring import assess, score_leaders, worth_refitting
@@ -257,7 +256,7 @@ def _polish_with_effect(model: Model, chosen: Refit, anchor: np.ndarray, free: S
                         hold: Mapping[str, float] | None = None) -> Fit:
     """The accepted refit polished in full, also from the nominal fit as given with the effects' values (the
     polished baseline may sit in another valley); the better of the two. ``hold``: parameters of the refit held at
-    these values from here on (a count at its whole number, :func:`whole_counts`).
+    these values from here on (a count at its whole number, :func:`.periodic.whole_counts`).
 
     Where the effect's magnitude then sits at the edge of its feasible domain (:func:`at_bound`), the polish also
     starts from the nominal fit as given with the magnitude at ``settings.weaker_starts`` of its distance from
@@ -354,29 +353,6 @@ def widened_at_edge(model: Model, name: str, fit: Fit, settings: DiscoverSetting
         widened[k] = wide
         fit = again
     return fit, widened
-
-
-#: The parameters that count repetitions per motor revolution: a machine has them whole (a motor's slots and
-#: poles), so a fitted fraction is the missing physics' or the search's, not the motor's.
-COUNTS = ("n_cog",)
-
-
-def whole_counts(name: str, theta: np.ndarray, free: Sequence[str], tol: float) -> dict[str, int]:
-    """The counts of effect ``name`` (:data:`COUNTS`) free in a fit at ``theta`` that lie within ``tol`` of a whole
-    number, each with that number: the accepted refit's, which the forward step holds there from then on
-    (:func:`_polish_with_effect`'s ``hold``), so no later fit (the polish, the next effects' refits, backward
-    elimination, the final polish) can move it. Left free beside physics the library lacks, the count drifts to
-    wherever its ripple stands in for that physics: rec38 of the adversarial set (a cogging at n_cog = 6 beside a
-    quadratic drag) accepted its cogging at n_cog 6.035, the polish and the later fits moved it to 4.56 (near the
-    floor of ``cogging_min_periods``) and the final check called it compensating, no whole count. A count farther
-    from a whole number stays free and is judged by :func:`.toggle_plant.implausible` at the end."""
-    out = {}
-    for nm in EFFECTS_BY_NAME[name].names:
-        if nm in COUNTS and nm in free:
-            k = whole_count(float(theta[ALL_INDEX[nm]]), tol)
-            if k is not None:
-                out[nm] = k
-    return out
 
 
 def rescreened(model: Model, name: str, fit: Fit, settings: DiscoverSettings, say: Callable[[str], None],

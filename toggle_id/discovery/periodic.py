@@ -26,10 +26,11 @@ verdict does not use it.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from ..effects import ALL_INDEX, EFFECTS_BY_NAME
 from .noise import NoiseModel, fit_noise
 from .stats import structure_test
 
@@ -46,6 +47,30 @@ def whole_count(count: float, tol: float) -> int | None:
     motor-side cause (a cogging, an encoder's eccentricity, a screw's lead error) repeats a whole number of times."""
     k = round(float(count))
     return int(k) if abs(float(count) - k) <= tol else None
+
+
+#: The parameters that count repetitions per motor revolution: a machine has them whole (a motor's slots and
+#: poles), so a fitted fraction is the missing physics' or the search's, not the motor's.
+COUNTS = ("n_cog",)
+
+
+def whole_counts(name: str, theta: np.ndarray, free: Sequence[str], tol: float) -> dict[str, int]:
+    """The counts of effect ``name`` (:data:`COUNTS`) free in a fit at ``theta`` that lie within ``tol`` of a whole
+    number, each with that number. The forward step holds an accepted refit's there from then on
+    (:func:`.forward._polish_with_effect`'s ``hold``), as the catch-all does an effect's beside its generic terms
+    (:func:`.catchall.beside_generic`), so no later fit (the polish, the next effects' refits, backward elimination,
+    the final polish) can move it. Left free beside physics the library lacks, the count drifts to wherever its
+    ripple stands in for that physics: rec38 of the adversarial set (a cogging at n_cog = 6 beside a quadratic drag)
+    accepted its cogging at n_cog 6.035, the polish and the later fits moved it to 4.56 (near the floor of
+    ``cogging_min_periods``) and the final check called it compensating, no whole count. A count farther from a
+    whole number stays free and is judged by :func:`.toggle_plant.implausible` at the end."""
+    out = {}
+    for nm in EFFECTS_BY_NAME[name].names:
+        if nm in COUNTS and nm in free:
+            k = whole_count(float(theta[ALL_INDEX[nm]]), tol)
+            if k is not None:
+                out[nm] = k
+    return out
 
 
 def turns(angle: np.ndarray) -> float:

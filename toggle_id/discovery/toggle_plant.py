@@ -16,8 +16,8 @@ from .engine import Step
 from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_gauge_of
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
-from .periodic import turns, whole_count
-from .forward import _iteration, _polish_with_effect, rescreened, whole_counts, widened_at_edge
+from .periodic import turns, whole_count, whole_counts
+from .forward import _iteration, _polish_with_effect, rescreened, widened_at_edge
 from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
