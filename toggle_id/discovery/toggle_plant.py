@@ -188,7 +188,9 @@ class TogglePlant:
         if whole:  # counts held at their whole numbers from here on
             item["held_whole"] = {nm: {"fitted": chosen.params[nm], "held_at": k, "rmse_free_m": chosen.fit.rmse(n),
                                        "rmse_held_m": after.rmse(n)} for nm, k in whole.items()}
-        self.say(f"added {chosen.name} {chosen.params}; rms {after.rmse(n) * 1e6:.4g} µm")
+        self.say(f"added {chosen.name} "
+                 + ", ".join(f"{nm} {after.theta[ALL_INDEX[nm]]:.4g}" for nm in EFFECTS_BY_NAME[chosen.name].names)
+                 + f"; rms {after.rmse(n) * 1e6:.4g} µm")
         return Step(base, item, after)
 
     def without(self, current: Fit, a: dict | None, added: Sequence[dict], rival: dict | None = None) -> Fit:
