@@ -286,19 +286,23 @@ def test_the_second_look_asks_the_catch_all_once_per_model_what_kind_of_term_is_
 
 
 @pytest.mark.parametrize("n_cog, without, with_it, turns, expected", [
-    (6.04, (True, 6.03), (False, 6.0), 2.34, True),   # rec37: its range of 14.7 rad holds 14 periods at n = 6
-    (6.04, (True, 6.03), (True, 6.02), 2.34, False),  # still there with it: it did not take it
-    (6.04, (False, 6.03), (False, 6.0), 2.34, False),  # not significant without it
-    (1.0, (True, 1.05), (False, 1.0), 2.34, False),   # rec01-like: a low count over 2 periods, a localised error
-    (6.04, (True, 3.4), (False, 3.4), 2.34, False),   # another count
-    (6.3, (True, 6.3), (False, 6.3), 2.34, False),    # no whole count: no motor's cogging
-    (6.04, (True, 6.03), (False, 6.0), 1.5, False),   # a range of 9 periods only
+    (6.04, (True, 6.03), (False, 6.0), 2.34, "ripple"),  # rec37: its range of 14.7 rad holds 14 periods at n = 6
+    (6.04, (True, 6.03), (True, 6.02), 2.34, None),      # still there with it: it did not take it
+    # not significant without it, where the missing physics' misfit may hide it (rec38): judged beside the generic
+    # terms, by the catch-all check
+    (6.04, (False, 6.03), (False, 6.0), 2.34, "beside"),
+    (1.0, (True, 1.05), (False, 1.0), 2.34, None),   # rec01-like: a low count over 2 periods, a localised error
+    (6.04, (True, 3.4), (False, 3.4), 2.34, "beside"),  # another count: not its ripple; beside the generic terms
+    (6.3, (True, 6.3), (False, 6.3), 2.34, None),    # no whole count: no motor's cogging
+    (6.04, (True, 6.03), (False, 6.0), 1.5, None),   # a range of 9 periods only
 ])
 def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_periods(n_cog, without, with_it, turns,
                                                                                      expected):
     """TogglePlant.own_signature: a cogging torque that removed little of the structure energy explains when the
     residual of the model without it repeats at its whole count per revolution, significantly, over at least
-    signature_min_periods (10) periods of the motor angle's range, and the residual with it does not."""
+    signature_min_periods (10) periods of the motor angle's range, and the residual with it does not; where the
+    residual without it repeats at no such count, it goes to the catch-all check marked to show its ripple there
+    (ripple_beside_generic)."""
     from toggle_id.discovery import toggle_plant as TP
 
     th = extend(ASSIGNED)[0].copy()
@@ -312,11 +316,48 @@ def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_p
 
     plant = TP.TogglePlant(_Model(), None, DiscoverSettings(), th, [], (), (), [], None, lambda m: None, None)
     plant.structure = lambda fit: (True, (fam(*(without if fit is reduced else with_it)), None, states))
-    why = plant.own_signature(current, {"name": "cogging_torque", "_reduced": reduced})
-    assert (why is not None) is expected
-    if expected:
+    a = {"name": "cogging_torque", "_reduced": reduced}
+    why = plant.own_signature(current, a)
+    assert (why is not None) is (expected is not None)
+    assert ("ripple_beside_generic" in a) is (expected == "beside")
+    if expected == "ripple":
         assert "over 14 periods" in why and "explains the ripple" in why
+    if expected == "beside":
+        assert a["ripple_beside_generic"] == n_cog and "by the catch-all check" in why
     assert plant.own_signature(current, {"name": "dead_time", "_reduced": reduced}) is None
+
+
+@pytest.mark.parametrize("catch_all_on, beside, kept", [(True, (True, 6.0), True), (True, (False, 6.0), False),
+                                                        (True, (True, 4.6), False), (False, (True, 6.0), False)])
+def test_a_cogging_sent_to_the_catch_all_for_its_ripple_must_show_it_beside_the_generic_terms(monkeypatch, catch_all_on,
+                                                                                           beside, kept):
+    """TogglePlant.explains: a cogging marked ripple_beside_generic that the catch-all check keeps stays added only
+    where the residual of the fit with the generic terms and without it repeats at its count; without the catch-all
+    check there is no such residual, and it is compensating. Another effect the catch-all keeps is untouched."""
+    from toggle_id.discovery import toggle_plant as TP
+
+    th = extend(ASSIGNED)[0].copy()
+    current, small = Fit(th, (), 1.0), Fit(th.copy(), (), 1.5)
+    states = {"motor_angle": np.linspace(0.0, 2 * np.pi * 2.34, 50)}
+    cog = {"name": "cogging_torque", "ripple_beside_generic": 6.0, "own_signature": "its ripple"}
+    other = {"name": "dead_time"}
+
+    def fake_catch_all(model, judge, cur, added, st, without, s, say, store):
+        store["reduced"] = {"cogging_torque": small}
+        return list(added), [], {"supported": True}
+
+    monkeypatch.setattr(TP, "catch_all", fake_catch_all)
+    plant = TP.TogglePlant(_Model(), None, DiscoverSettings(catch_all=catch_all_on), th, [], (), (), [], None,
+                           lambda m: None, None)
+    plant._fitting = lambda: None
+    plant.structure = lambda fit: (True, ({"periodic": {"families": {"motor_angle": {
+        "significant": beside[0], "cycles_per_revolution": beside[1], "repeats": "6 times per motor revolution"}}}},
+        None, states))
+    added, compensating = plant.explains(current, [cog, other], ({}, None, states), [cog, other])
+    assert [a["name"] for a in added] == (["cogging_torque", "dead_time"] if kept else ["dead_time"])
+    assert [c["name"] for c in compensating] == ([] if kept else ["cogging_torque"])
+    if not kept:
+        assert "no ripple of its own" in compensating[0]["reason"]
 
 
 def test_an_effect_accepted_beside_the_generic_terms_is_judged_there_not_by_the_structure_energy():
@@ -404,7 +445,7 @@ def test_a_cogging_torque_that_repeats_a_fraction_of_times_per_revolution_is_no_
     """An accepted cogging torque with n_cog off a whole number stands in for something else (rec23 of the
     adversarial set: a scale error of 5-mm pitch took a cogging torque at n_cog 3.29; rec28: a dead band of the drive
     took one at n_cog 1.54, and the noise model the rest)."""
-    from toggle_id.discovery.toggle_plant import implausible
+    from toggle_id.discovery.periodic import implausible
     from toggle_id.simulate import extend
     from toggle_id.params import ASSIGNED
 

@@ -63,7 +63,7 @@ def whole_counts(name: str, theta: np.ndarray, free: Sequence[str], tol: float) 
     ripple stands in for that physics: rec38 of the adversarial set (a cogging at n_cog = 6 beside a quadratic drag)
     accepted its cogging at n_cog 6.035, the polish and the later fits moved it to 4.56 (near the floor of
     ``cogging_min_periods``) and the final check called it compensating, no whole count. A count farther from a
-    whole number stays free and is judged by :func:`.toggle_plant.implausible` at the end."""
+    whole number stays free and is judged by :func:`implausible` at the end."""
     out = {}
     for nm in EFFECTS_BY_NAME[name].names:
         if nm in COUNTS and nm in free:
@@ -71,6 +71,20 @@ def whole_counts(name: str, theta: np.ndarray, free: Sequence[str], tol: float) 
             if k is not None:
                 out[nm] = k
     return out
+
+
+def implausible(name: str, theta: np.ndarray, cogging_whole_tol: float) -> str | None:
+    """Why the fitted values of effect ``name`` in ``theta`` are no machine's (None: nothing against them). A motor's
+    cogging torque repeats a whole number of times per revolution (the least common multiple of its slots and
+    poles): an n_cog farther than ``cogging_whole_tol`` from a whole number stands in for something else that repeats
+    with a position — a scale's pitch along the stroke, a screw's lead error."""
+    if name == "cogging_torque":
+        n = float(theta[ALL_INDEX["n_cog"]])
+        if whole_count(n, cogging_whole_tol) is None:
+            return (f"lowers the error, but repeats {n:.3g} times per motor revolution, and a motor's cogging repeats "
+                    "a whole number of times (its slots and poles): it stands in for something outside the library "
+                    "that repeats with a position")
+    return None
 
 
 def turns(angle: np.ndarray) -> float:

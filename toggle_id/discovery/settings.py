@@ -80,7 +80,7 @@ class DiscoverSettings:
       cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
       compensating, whether structure is left or not: a motor's cogging repeats a whole number of times per
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
-      position (:func:`.toggle_plant.implausible`). signature_min_periods: a cogging torque that removed little of the
+      position (:func:`.periodic.implausible`). signature_min_periods: a cogging torque that removed little of the
       structure energy (which position bins cannot see) still explains when the residual without it repeats at its
       whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and with
       it does not (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library lacks;

@@ -16,7 +16,7 @@ from .engine import Step
 from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_gauge_of
 from .model import Fit, Model, _off_values, _with, fit_free, revived
 from .noise import WHITE, fit_noise
-from .periodic import turns, whole_count, whole_counts
+from .periodic import implausible, turns, whole_count, whole_counts
 from .forward import _iteration, _polish_with_effect, rescreened, widened_at_edge
 from .refit import Refit
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
@@ -229,7 +229,11 @@ class TogglePlant:
         ``cogging_whole_tol``), significantly after the periodic look's scan (:func:`.periodic.periodic`), over at
         least ``signature_min_periods`` periods of the motor angle's range (rec37: 14.7 rad, 14 periods at n_cog = 6) —
         a localised error fits a low count over a few periods only (rec01: 1.11 per revolution, 2.6 periods) — and the
-        residual with it repeats at no such count.
+        residual with it repeats at no such count. Where the residual without it repeats at no such count, it may
+        still hold the ripple under the missing physics' misfit (rec38: a quadratic drag's 3 µm beside a cogging at
+        6 per revolution): the cogging goes on marked ``ripple_beside_generic`` to the catch-all check, which keeps
+        it only where it is still needed beside the generic terms and the residual of their fit without it repeats
+        at its count (:meth:`explains`).
 
         An effect accepted beside the generic terms (``discover.beside_generic``: its evidence holds
         ``beside_generic``) explains in the same way: the structure energy of the models without those terms is the
@@ -245,26 +249,37 @@ class TogglePlant:
         if a["name"] != "cogging_torque" or reduced is None or not np.all(np.isfinite(reduced.theta)):
             return None
         n = float(current.theta[ALL_INDEX["n_cog"]])
-        tol = self.s.cogging_whole_tol
-        if whole_count(n, tol) is None:
+        if whole_count(n, self.s.cogging_whole_tol) is None:
             return None
-
-        def ripple(fit: Fit) -> tuple[dict, float]:
-            diag, _, states = self.structure(fit)[1]
-            fam = ((diag.get("periodic") or {}).get("families") or {}).get("motor_angle") or {}
-            revs = turns(states["motor_angle"]) if states and "motor_angle" in states else 0.0
-            at_n = bool(fam.get("significant")) and abs(float(fam.get("cycles_per_revolution") or 0.0) - n) <= tol
-            return (fam if at_n else {}), revs * n
-
         # the final model first: the engine has just looked at it, so its report is still at hand
-        if ripple(current)[0]:
+        if self._ripple(current, n)[0]:
             return None
-        without, periods = ripple(reduced)
-        if not without or periods < self.s.signature_min_periods:
+        without, periods = self._ripple(reduced, n)
+        if periods < self.s.signature_min_periods:
             return None
+        if not without:
+            # the residual without it holds the missing physics' misfit too, which can hide the ripple from the
+            # periodic look (rec38: a quadratic drag's 3 µm beside a 6-per-revolution cogging); the catch-all check
+            # takes that physics with its generic terms, and there the residual without it must repeat at its count
+            a["ripple_beside_generic"] = n
+            return (f"removed little of the structure energy, whose position bins cannot see a ripple; without it the "
+                    f"residual repeats at no count near n_cog = {n:.3g}, but it holds what the library lacks too: "
+                    "judged beside a generic slider force and reading error that take that, by the catch-all check, "
+                    "where the residual without it must repeat at its count")
         return (f"removed little of the structure energy, whose position bins cannot see a ripple, but without it the "
                 f"residual repeats {without['repeats']} over {periods:.0f} periods of its range, and with it at no "
                 f"count near n_cog = {n:.3g}: it explains the ripple, beside something the library lacks")
+
+    def _ripple(self, fit: Fit, n: float) -> tuple[dict, float]:
+        """The periodic look's motor-angle family of ``fit``'s residual where it repeats significantly (after the
+        scan) within ``cogging_whole_tol`` of ``n`` times per revolution (else {}), and the periods of that count the
+        record's motor-angle range holds."""
+        diag, _, states = self.structure(fit)[1]
+        fam = ((diag.get("periodic") or {}).get("families") or {}).get("motor_angle") or {}
+        revs = turns(states["motor_angle"]) if states and "motor_angle" in states else 0.0
+        at_n = bool(fam.get("significant")) and \
+            abs(float(fam.get("cycles_per_revolution") or 0.0) - n) <= self.s.cogging_whole_tol
+        return (fam if at_n else {}), revs * n
 
     def structure(self, fit: Fit) -> tuple[bool, tuple]:
         if self._structure is None or self._structure[0] is not fit:
@@ -311,15 +326,29 @@ class TogglePlant:
             return [], doubted
         self._fitting()
         states = details[2]
-        if not (self.s.catch_all and states):
-            return added, doubted
+        store: dict = {"reduced": {}}
+        if self.s.catch_all and states:
+            def without(fit: Fit, a: dict) -> Fit:
+                return _without(self.model, fit, a["name"], everyone, self.held, self.s)
 
-        def without(fit: Fit, a: dict) -> Fit:
-            return _without(self.model, fit, a["name"], everyone, self.held, self.s)
-
-        added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
-                                                   self.say)
-        return added, doubted + more
+            added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without,
+                                                       self.s, self.say, store)
+            doubted += more
+        # a cogging sent here for its ripple (own_signature) is kept only where the residual without it, beside the
+        # generic terms, repeats at its count (without the catch-all check, there is no such residual: not kept)
+        for a in [a for a in added if a.get("ripple_beside_generic")]:
+            n = a["ripple_beside_generic"]
+            fam = self._ripple(store["reduced"][a["name"]], n)[0] if a["name"] in store["reduced"] else {}
+            if fam:
+                self.say(f"  without {a['name']}, beside the generic terms, the residual repeats {fam['repeats']}: "
+                         "its ripple")
+                continue
+            added.remove(a)
+            doubted.append(dict(a, reason=f"lowers the error, but without it, beside a generic slider force and "
+                                          f"reading error that take what the library lacks, the residual repeats at "
+                                          f"no count near n_cog = {n:.3g}: no ripple of its own"))
+            self.say(f"  {a['name']}: {doubted[-1]['reason']}")
+        return added, doubted
 
     def missing_kinds(self, fit: Fit) -> set[str]:
         """The kinds of effect (:attr:`~toggle_id.effects.Effect.acts_on`) that a generic term of the catch-all check
@@ -390,20 +419,6 @@ class TogglePlant:
 
     def validation_structure_energy(self, fit: Fit) -> float:
         return residual_structure_energy(self.referee.validation, fit.theta, self.s)
-
-
-def implausible(name: str, theta: np.ndarray, cogging_whole_tol: float) -> str | None:
-    """Why the fitted values of effect ``name`` in ``theta`` are no machine's (None: nothing against them). A motor's
-    cogging torque repeats a whole number of times per revolution (the least common multiple of its slots and
-    poles): an n_cog farther than ``cogging_whole_tol`` from a whole number stands in for something else that repeats
-    with a position — a scale's pitch along the stroke, a screw's lead error."""
-    if name == "cogging_torque":
-        n = float(theta[ALL_INDEX["n_cog"]])
-        if whole_count(n, cogging_whole_tol) is None:
-            return (f"lowers the error, but repeats {n:.3g} times per motor revolution, and a motor's cogging repeats "
-                    "a whole number of times (its slots and poles): it stands in for something outside the library "
-                    "that repeats with a position")
-    return None
 
 
 def cogging_floor(record, periods: float) -> float:
