@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from toggle_id.discovery import forward as FW
@@ -73,3 +74,20 @@ def test_the_polish_holds_the_count_where_the_step_put_it(cogging_record):
     assert out.theta[ALL_INDEX["n_cog"]] == 6.0
     assert out.rmse(model.n) < 1e-8 < refit.rmse(model.n)
     assert any("n_cog 6.04 held at 6" in line for line in said)
+
+
+def test_the_report_says_where_a_count_was_held():
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.report import DiscoveryResult, summary_text
+
+    th = extend(ASSIGNED)[0]
+    added = {"name": "cogging_torque", "std_errors": {"a_cog": 1e-4}, "p_value": 1e-9, "delta_bic": -40.0,
+             "magnitude": {"name": "a_cog", "value": 0.0057, "unit": "N·m"},
+             "held_whole": {"n_cog": {"fitted": 6.035, "held_at": 6, "rmse_free_m": 2.972e-6,
+                                      "rmse_held_m": 2.952e-6}}}
+    res = DiscoveryResult("rec", 100, Fit(th, (), 1e-10), Fit(th, (), 5e-11), [added], [], [], {}, {},
+                          np.zeros(100), np.zeros(100), None, "", False, 1.0, 10)
+    text = summary_text(res)
+    assert "added cogging_torque: a_cog = 0.0057 N·m" in text
+    assert ("n_cog held at 6, a whole count per revolution, from the step that added it (its refit had 6.035 at "
+            "2.972 µm; polished with it held, 2.952 µm)") in text
