@@ -231,7 +231,7 @@ def at_bound(effect: Effect, value: float, domain: tuple[float, float] | None = 
 def effects_on(fit_free: Sequence[str], free: Sequence[str]) -> list[str]:
     """The parameters a fit with ``fit_free`` free carries beyond the nominal model's ``free``: those free (the
     effects' and the gauge parameters they make determined), and every parameter of an effect one of whose
-    parameters is free — a count held at its whole value (:func:`whole_counted`) is the effect's all the same, and
+    parameters is free — a count held at its whole value (:func:`.periodic.whole_counts`) is the effect's all the same, and
     a start built from the nominal fit with the effects so far must carry it."""
     extra = [nm for nm in fit_free if nm not in free]
     held = [nm for e in EFFECTS if any(p in extra for p in e.names) for nm in e.names if nm not in extra]
