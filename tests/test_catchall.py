@@ -301,8 +301,7 @@ def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_p
     """TogglePlant.own_signature: a cogging torque that removed little of the structure energy explains when the
     residual of the model without it repeats at its whole count per revolution, significantly, over at least
     signature_min_periods (10) periods of the motor angle's range, and the residual with it does not; where the
-    residual without it repeats at no such count, it goes to the catch-all check marked to show its ripple there
-    (ripple_beside_generic)."""
+    residual without it repeats at no such count, it goes on to the catch-all check, marked hidden_ripple."""
     from toggle_id.discovery import toggle_plant as TP
 
     th = extend(ASSIGNED)[0].copy()
@@ -319,45 +318,43 @@ def test_a_cogging_torque_explains_where_its_ripple_shows_without_it_over_many_p
     a = {"name": "cogging_torque", "_reduced": reduced}
     why = plant.own_signature(current, a)
     assert (why is not None) is (expected is not None)
-    assert ("ripple_beside_generic" in a) is (expected == "beside")
+    assert ("hidden_ripple" in a) is (expected == "beside")
     if expected == "ripple":
         assert "over 14 periods" in why and "explains the ripple" in why
     if expected == "beside":
-        assert a["ripple_beside_generic"] == n_cog and "by the catch-all check" in why
+        assert a["hidden_ripple"] == n_cog and "by the catch-all check" in why
     assert plant.own_signature(current, {"name": "dead_time", "_reduced": reduced}) is None
 
 
-@pytest.mark.parametrize("catch_all_on, beside, kept", [(True, (True, 6.0), True), (True, (False, 6.0), False),
-                                                        (True, (True, 4.6), False), (False, (True, 6.0), False)])
-def test_a_cogging_sent_to_the_catch_all_for_its_ripple_must_show_it_beside_the_generic_terms(monkeypatch, catch_all_on,
-                                                                                           beside, kept):
-    """TogglePlant.explains: a cogging marked ripple_beside_generic that the catch-all check keeps stays added only
-    where the residual of the fit with the generic terms and without it repeats at its count; without the catch-all
-    check there is no such residual, and it is compensating. Another effect the catch-all keeps is untouched."""
+@pytest.mark.parametrize("catch_all_on, needed", [(True, True), (True, False), (False, True)])
+def test_a_cogging_whose_ripple_is_hidden_is_judged_beside_the_generic_terms(monkeypatch, catch_all_on, needed):
+    """TogglePlant.explains: a cogging marked hidden_ripple (own_signature) is kept or not by the catch-all check,
+    like any effect it judges; without the catch-all check nothing can judge it beside the generic terms, and it is
+    compensating, while another effect is kept as before."""
     from toggle_id.discovery import toggle_plant as TP
 
     th = extend(ASSIGNED)[0].copy()
-    current, small = Fit(th, (), 1.0), Fit(th.copy(), (), 1.5)
     states = {"motor_angle": np.linspace(0.0, 2 * np.pi * 2.34, 50)}
-    cog = {"name": "cogging_torque", "ripple_beside_generic": 6.0, "own_signature": "its ripple"}
+    cog = {"name": "cogging_torque", "hidden_ripple": 6.0, "own_signature": "its ripple hidden"}
     other = {"name": "dead_time"}
+    judged = []
 
-    def fake_catch_all(model, judge, cur, added, st, without, s, say, store):
-        store["reduced"] = {"cogging_torque": small}
-        return list(added), [], {"supported": True}
+    def fake_catch_all(model, judge, cur, added, st, without, s, say, store=None):
+        judged.extend(a["name"] for a in added)
+        kept = [a for a in added if needed or a["name"] != "cogging_torque"]
+        return kept, [dict(a, reason="a generic force does its work") for a in added if a not in kept], {}
 
     monkeypatch.setattr(TP, "catch_all", fake_catch_all)
     plant = TP.TogglePlant(_Model(), None, DiscoverSettings(catch_all=catch_all_on), th, [], (), (), [], None,
                            lambda m: None, None)
     plant._fitting = lambda: None
-    plant.structure = lambda fit: (True, ({"periodic": {"families": {"motor_angle": {
-        "significant": beside[0], "cycles_per_revolution": beside[1], "repeats": "6 times per motor revolution"}}}},
-        None, states))
-    added, compensating = plant.explains(current, [cog, other], ({}, None, states), [cog, other])
+    added, compensating = plant.explains(Fit(th, (), 1.0), [cog, other], ({}, None, states), [cog, other])
+    kept = catch_all_on and needed
+    assert judged == (["cogging_torque", "dead_time"] if catch_all_on else [])
     assert [a["name"] for a in added] == (["cogging_torque", "dead_time"] if kept else ["dead_time"])
     assert [c["name"] for c in compensating] == ([] if kept else ["cogging_torque"])
-    if not kept:
-        assert "no ripple of its own" in compensating[0]["reason"]
+    if not catch_all_on:
+        assert "discover.catch_all" in compensating[0]["reason"]
 
 
 def test_an_effect_accepted_beside_the_generic_terms_is_judged_there_not_by_the_structure_energy():

@@ -154,8 +154,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
               store: dict | None = None) -> tuple[list[dict], list[dict], dict]:
     """(kept, compensating, report) of the accepted effects ``added`` of the final model ``current`` (structure
     left in its residual; ``states``: its plant states). ``without(fit, a)``: ``fit`` refitted with effect ``a``
-    switched off; ``store``: given, receives the fit with the generic terms (``generic``) and, for each effect, the
-    fit with them and without it (``reduced``: name → fit). See the module docstring."""
+    switched off; ``store``: given, receives the fit with the generic terms (``generic``). See the module
+    docstring."""
     n = model.n
     knots = knots_of(states, model.record.x_B)
 
@@ -191,7 +191,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         generic = fit_free(model, best.theta, free, settings.baseline_nfev, settings.fd_rel_step,
                            rounds=settings.rounds)
     if store is not None:
-        store["generic"], store["reduced"] = generic, reduced
+        store["generic"] = generic
     ev = judge.judge_pair(current, generic)
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)
