@@ -80,11 +80,13 @@ class DiscoverSettings:
       cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
       compensating, whether structure is left or not: a motor's cogging repeats a whole number of times per
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
-      position (:func:`.periodic.implausible`). signature_min_periods: a cogging torque that removed little of the
-      structure energy (which position bins cannot see) still explains when the residual without it repeats at its
-      whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and with
-      it does not (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library lacks;
-      a localised error fits a low count over a few periods only). cogging_min_periods (10 by default): the cogging
+      position (:func:`.periodic.implausible`); one accepted within it is held at that whole number from the step
+      that adds it (:func:`.periodic.whole_counts`). signature_min_periods: a cogging torque that removed little of
+      the structure energy (which position bins cannot see) still explains when the residual without it repeats at
+      its whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and
+      with it does not (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library
+      lacks; a localised error fits a low count over a few periods only); over as many periods with no ripple seen
+      (hidden under what the library lacks), it is judged by the catch-all check. cogging_min_periods (10 by default): the cogging
       torque is probed and fitted only at counts n_cog of which the record's motor-angle range holds at least this
       many periods (:func:`.toggle_plant.cogging_floor`; 0: every count the library allows): over a few periods a
       sinusoid in the angle is a smooth function of the position, and a low count then stands in for a force the
