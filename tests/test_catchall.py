@@ -78,11 +78,13 @@ def test_the_knots_span_the_records_speed_and_position():
 
 def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_sse: dict[str, float],
          margin: float = 1.0, reading_sse: float | None = None, added: tuple[str, ...] = ("constant_load_force",
-                                                                                          "cogging_torque")):
+                                                                                          "cogging_torque"),
+         rivals: dict[str, list[dict]] | None = None, with_rival=None):
     """catch_all on a final model of SSE 10 with a constant load force and a cogging torque accepted; the fit with
     the generic force reaches ``generic_sse``, with the generic reading error beside it ``reading_sse`` (default:
     the same); without effect a, ``without_sse[a]`` with the generic terms and ``alone_sse[a]`` without them. The
-    judge supports a larger model whose SSE is lower by more than ``margin``."""
+    judge supports a larger model whose SSE is lower by more than ``margin``. ``rivals``: an effect's tied rivals;
+    ``with_rival``: passed on."""
     theta = extend(ASSIGNED)[0]
     current = Fit(theta, ("K_t", "F_load", "a_cog"), 10.0)
     fitted = []
@@ -100,7 +102,8 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
         return Fit(out, tuple(free), sse)
 
     monkeypatch.setattr(catchall, "fit_free", fake_fit)
-    added = [{"name": nm} for nm in added]
+    added = [{"name": nm, **({"indistinguishable_from": rivals[nm]} if nm in (rivals or {}) else {})}
+             for nm in added]
     said = []
 
     def without(fit, a):
@@ -113,7 +116,7 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
                    without_sse[a["name"]])
 
     kept, comp, report = catchall.catch_all(_Model(), _Judge(margin), current, added, STATES, without,
-                                            DiscoverSettings(), said.append)
+                                            DiscoverSettings(), said.append, with_rival=with_rival)
     # the force's weights, then the model with them; the reading error's weights from there, then everything
     assert fitted[:4] == [catchall.FORCE_WEIGHTS, current.free + catchall.FORCE_WEIGHTS, catchall.SENSOR_WEIGHTS,
                           current.free + catchall.WEIGHTS]
@@ -133,6 +136,54 @@ def test_an_effect_the_generic_force_makes_unnecessary_is_compensating(monkeypat
     assert report["effects"]["cogging_torque"]["needed"] is True
     assert report["effects"]["cogging_torque"]["kept_fraction"] == pytest.approx(7.0 / 6.0)
     assert any(s.startswith("  without constant_load_force:") and s.endswith("→ not needed") for s in said)
+
+
+@pytest.mark.parametrize("rival_sse, swapped_rmse, resolved", [
+    (8.0, None, False),   # supported (9.0 → 8.0), keeps all of the gain it shares with the cogging (1.0): tied
+    (8.5, 0.1, True),     # supported, but keeps 0.5 of its own gain 11 − 100·0.1² = 10: 5 % < catch_all_keep
+    (8.0, 0.1, False),    # keeps 1.0 of its gain 10: the floor, 10 %
+    (8.95, None, True),   # not supported (margin 0.25): the generic force does its work
+])
+def test_a_tie_of_a_kept_effect_is_judged_beside_the_generic_terms(monkeypatch, rival_sse, swapped_rmse, resolved):
+    """A cogging torque tied with a Stribeck friction, kept beside the generic force (9.0 → 2.0 with it): the
+    rival, switched on in its place there, stays tied when it is needed as the cogging is (the judge's support and
+    catch_all_keep of its own gain, recorded by the tie's fits, or the cogging's without them), and the tie is
+    resolved for the cogging otherwise."""
+    rival = {"name": "stribeck_friction", "params": {"F_s": 4.5, "v_s": 0.018}}
+    if swapped_rmse is not None:  # the final model with the rival in the cogging's place (n = 100)
+        rival["encompassing"] = {"swapped": {"rmse_m": swapped_rmse}}
+    seen = []
+
+    def with_rival(fit, rv):
+        seen.append((fit.sse, rv["name"], dict(rv["params"])))
+        return Fit(fit.theta, fit.free + ("F_s", "v_s"), rival_sse)
+
+    kept, comp, report, said = _run(monkeypatch, 2.0, {"constant_load_force": 2.1, "cogging_torque": 9.0},
+                                    {"constant_load_force": 30.0, "cogging_torque": 10.0 + 1.0},
+                                    margin=0.25, rivals={"cogging_torque": [rival]}, with_rival=with_rival)
+    assert [a["name"] for a in kept] == ["cogging_torque"]
+    assert seen == [(9.0, "stribeck_friction", {"F_s": 4.5, "v_s": 0.018})]  # beside the generic terms, in its place
+    cog = kept[0]
+    case = report["effects"]["cogging_torque"]["rivals"]["stribeck_friction"]
+    assert case["needed"] is (not resolved)
+    gain = 1.0 if swapped_rmse is None else 11.0 - 100 * swapped_rmse ** 2
+    assert case["kept_fraction"] == pytest.approx((9.0 - rival_sse) / gain)
+    if resolved:
+        assert cog["indistinguishable_from"] == []
+        assert [r["name"] for r in cog["ties_resolved"]] == ["stribeck_friction"]
+        assert "stood in for part of what the library lacks" in cog["ties_resolved"][0]["reason"]
+        assert said[-1].endswith("not needed: the tie is resolved for cogging_torque")
+    else:
+        assert [r["name"] for r in cog["indistinguishable_from"]] == ["stribeck_friction"]
+        assert "ties_resolved" not in cog and said[-1].endswith("still needed: the tie stays")
+
+
+def test_without_with_rival_the_ties_stay_as_they_are(monkeypatch):
+    rival = {"name": "stribeck_friction", "params": {"F_s": 4.5, "v_s": 0.018}}
+    kept, _, report, _ = _run(monkeypatch, 2.0, {"constant_load_force": 2.1, "cogging_torque": 9.0},
+                              {"constant_load_force": 30.0, "cogging_torque": 16.0},
+                              rivals={"cogging_torque": [rival]})
+    assert kept[0]["indistinguishable_from"] == [rival] and "rivals" not in report["effects"]["cogging_torque"]
 
 
 def test_the_named_effects_values_beside_the_generic_terms_are_reported(monkeypatch):
@@ -257,7 +308,7 @@ def test_the_second_look_asks_the_catch_all_once_per_model_what_kind_of_term_is_
 
     calls = []
 
-    def fake_catch_all(model, judge, current, added, states, without, settings, say, store=None):
+    def fake_catch_all(model, judge, current, added, states, without, settings, say, store=None, **k):
         calls.append(current)
         store["generic"] = Fit(current.theta, current.free + catchall.FORCE_WEIGHTS, 0.5)
         return [], [], {"supported": supported, "reading_error": {"needed": reading}}
@@ -339,7 +390,8 @@ def test_a_cogging_whose_ripple_is_hidden_is_judged_beside_the_generic_terms(mon
     other = {"name": "dead_time"}
     judged = []
 
-    def fake_catch_all(model, judge, cur, added, st, without, s, say, store=None):
+    def fake_catch_all(model, judge, cur, added, st, without, s, say, store=None, **k):
+        assert callable(k["with_rival"])  # the ties of what it keeps are judged beside the generic terms too
         judged.extend(a["name"] for a in added)
         kept = [a for a in added if needed or a["name"] != "cogging_torque"]
         return kept, [dict(a, reason="a generic force does its work") for a in added if a not in kept], {}

@@ -21,7 +21,9 @@ final model (a least-squares polish converges only so far, and an F-test on thou
 gap) — does nothing the generic force does not do, and is listed as *compensating*, never as added.
 An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
 the generic terms explain nothing more — the missing physics is then neither a force on slider B nor an error of
-the reading, and the check decides nothing. The generic terms are never part of the reported model.
+the reading, and the check decides nothing. The generic terms are never part of the reported model. An effect kept while still tied with a rival
+(:mod:`.ties`) has the rival judged there in its place the same way: one the generic terms make unnecessary stood
+in for part of what the library lacks, and the tie is resolved for the effect (:func:`_ties_beside`).
 
 With nothing accepted and structure left, the same fits run for the report alone: whether what is missing acts
 like a force on the slider or an error of the reading, or — not supported — like neither: then it is no function
@@ -151,10 +153,13 @@ def figure(report: dict, title: str | None = None):
 
 def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
               without: Callable[[Fit, dict], Fit], settings: DiscoverSettings, say: Callable[[str], None],
-              store: dict | None = None) -> tuple[list[dict], list[dict], dict]:
+              store: dict | None = None, with_rival: Callable[[Fit, dict], Fit] | None = None
+              ) -> tuple[list[dict], list[dict], dict]:
     """(kept, compensating, report) of the accepted effects ``added`` of the final model ``current`` (structure
     left in its residual; ``states``: its plant states). ``without(fit, a)``: ``fit`` refitted with effect ``a``
-    switched off; ``store``: given, receives the fit with the generic terms (``generic``). See the module
+    switched off; ``with_rival(fit, rival)``: ``fit`` refitted with a tied rival ({name, params}) switched on,
+    started at its params — given, the ties of a kept effect are judged beside the generic terms too
+    (:func:`_ties_beside`); ``store``: given, receives the fit with the generic terms (``generic``). See the module
     docstring."""
     n = model.n
     knots = knots_of(states, model.record.x_B)
@@ -214,6 +219,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     if not supported:
         return list(added), [], report
     kept, compensating = [], []
+    terms = ("a generic force on slider B (any function of its speed and position)"
+             + (" and error of the position reading (any function of it)" if reading else ""))
     for a in added:
         small = reduced[a["name"]]
         ev_a = judge.judge_pair(small, generic)
@@ -233,6 +240,9 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
             f"explains without the generic force; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
         if needed:
             kept.append(a)
+            if with_rival is not None and a.get("indistinguishable_from"):
+                _ties_beside(a, small, alone, gain, judge, with_rival, settings, n, terms, say,
+                             report["effects"][a["name"]])
         else:
             compensating.append(dict(a, reason=(
                 "lowers the error, but a generic force on slider B (any function of its speed and position)"
@@ -243,6 +253,47 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
                 f"{alone.rmse(n) * 1e6:.4g} → {current.rmse(n) * 1e6:.4g} µm). It stands in for something outside "
                 "the library")))
     return kept, compensating, report
+
+
+def _ties_beside(a: dict, small: Fit, alone: Fit, gain_a: float, judge: Judge,
+                 with_rival: Callable[[Fit, dict], Fit], settings: DiscoverSettings, n: int, terms: str,
+                 say: Callable[[str], None], entry: dict) -> None:
+    """The ties of an effect ``a`` the catch-all check keeps, judged beside the generic terms as ``a`` was.
+
+    ``small``: the fit with the generic terms (``terms``, for the reason) and without ``a``; ``alone``: the final
+    model without ``a`` and without them (``gain_a``: its SSE less the final model's). Each rival is switched on in
+    ``a``'s place there (``with_rival``) and needed as ``a`` is: supported by the judge's checks of
+    :data:`SUPPORT`, and keeping ``catch_all_keep`` of what it explains without the generic terms (its gain over
+    ``alone``, where the tie's fits recorded the final model with the rival in ``a``'s place; ``gain_a``
+    otherwise: the two fit the record equally well). A rival the generic terms make unnecessary while ``a`` stays
+    needed does what a force on slider B or an error of the reading of unknown shape does: it stood in for part of
+    what the library lacks, which also hid the difference between the two (rec38 of the adversarial set: a
+    Stribeck friction tied with the cogging torque beside a quadratic drag). It moves to ``a``'s
+    ``ties_resolved``; a rival still needed stays tied. Edits ``a`` in place; ``entry`` (``a``'s entry in the
+    report) receives each rival's case under ``rivals``."""
+    keep, resolved = [], []
+    for rv in a["indistinguishable_from"]:
+        big = with_rival(small, rv)
+        ev = judge.judge_pair(small, big)
+        swapped = ((rv.get("encompassing") or {}).get("swapped") or rv.get("swapped") or {}).get("rmse_m")
+        gain = alone.sse - n * swapped ** 2 if swapped is not None else gain_a
+        frac = float((small.sse - big.sse) / gain) if gain and gain > 0 else 0.0
+        needed = _supports(ev) and frac >= settings.catch_all_keep
+        case = {"rmse_with_it_m": big.rmse(n), "kept_fraction": frac, "evidence": ev.to_dict(), "needed": needed}
+        entry.setdefault("rivals", {})[rv["name"]] = case
+        say(f"  its rival {rv['name']} in its place beside the generic terms: rms {small.rmse(n) * 1e6:.4g} → "
+            f"{big.rmse(n) * 1e6:.4g} µm (it keeps {frac:.1%} of what it explains without them; {ev.reason}) → "
+            + ("still needed: the tie stays" if needed else f"not needed: the tie is resolved for {a['name']}"))
+        if needed:
+            keep.append(rv)
+        else:
+            resolved.append({**rv, "beside_generic": case, "reason": (
+                f"beside {terms} {rv['name']} in its place is not needed ({small.rmse(n) * 1e6:.4g} → "
+                f"{big.rmse(n) * 1e6:.4g} µm, {frac:.1%} of what it explains without them) and {a['name']} is: "
+                f"{rv['name']} stood in for part of what the library lacks")})
+    a["indistinguishable_from"] = keep
+    if resolved:
+        a["ties_resolved"] = [*a.get("ties_resolved", []), *resolved]
 
 
 def beside_generic(model: Model, judge: Judge, base: Fit, generic: Fit, scouts: Sequence[Scout],

@@ -313,7 +313,8 @@ class TogglePlant:
         prewhitened by a noise model that may hold the error it stands in for (rec28 of the adversarial set) —
         except an effect kept for its own fast signature (:meth:`own_signature`: a ripple over ten periods and more
         of its range, tested under that same noise model), which no slow error stands in for: it goes on to the
-        catch-all check (rec37: its cogging, beside a friction bump that leaves 35 of 5001 samples independent)."""
+        catch-all check (rec37: its cogging, beside a friction bump that leaves 35 of 5001 samples independent).
+        The ties of an effect it keeps are judged there too, each rival in the effect's place (``with_rival``)."""
         slow = (details[0] or {}).get("slow_noise") or {}
         doubted: list[dict] = []
         if slow.get("slow") and added:
@@ -339,8 +340,11 @@ class TogglePlant:
         def without(fit: Fit, a: dict) -> Fit:
             return _without(self.model, fit, a["name"], everyone, self.held, self.s)
 
+        def with_rival(fit: Fit, rival: dict) -> Fit:
+            return _without(self.model, fit, None, everyone, self.held, self.s, rival)
+
         added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
-                                                   self.say)
+                                                   self.say, with_rival=with_rival)
         return added, doubted + more
 
     def missing_kinds(self, fit: Fit) -> set[str]:
