@@ -21,9 +21,10 @@ final model (a least-squares polish converges only so far, and an F-test on thou
 gap) — does nothing the generic force does not do, and is listed as *compensating*, never as added.
 An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
 the generic terms explain nothing more — the missing physics is then neither a force on slider B nor an error of
-the reading, and the check decides nothing. The generic terms are never part of the reported model. An effect kept while still tied with a rival
-(:mod:`.ties`) has the rival judged there in its place the same way: one the generic terms make unnecessary stood
-in for part of what the library lacks, and the tie is resolved for the effect (:func:`_ties_beside`).
+the reading, and the check decides nothing. The generic terms are never part of the reported model. An effect
+kept while still tied with a rival (:mod:`.ties`) has the rival judged there in its place the same way: one the
+generic terms make unnecessary stood in for part of what the library lacks, and the tie is resolved for the effect
+(:func:`_ties_beside`).
 
 With nothing accepted and structure left, the same fits run for the report alone: whether what is missing acts
 like a force on the slider or an error of the reading, or — not supported — like neither: then it is no function
