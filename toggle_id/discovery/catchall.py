@@ -242,7 +242,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         if needed:
             kept.append(a)
             if with_rival is not None and a.get("indistinguishable_from"):
-                _ties_beside(a, small, alone, gain, judge, with_rival, settings, n, terms, say,
+                _ties_beside(a, small, gain, judge, with_rival, settings, n, terms, say,
                              report["effects"][a["name"]])
         else:
             compensating.append(dict(a, reason=(
@@ -256,29 +256,27 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     return kept, compensating, report
 
 
-def _ties_beside(a: dict, small: Fit, alone: Fit, gain_a: float, judge: Judge,
+def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
                  with_rival: Callable[[Fit, dict], Fit], settings: DiscoverSettings, n: int, terms: str,
                  say: Callable[[str], None], entry: dict) -> None:
     """The ties of an effect ``a`` the catch-all check keeps, judged beside the generic terms as ``a`` was.
 
-    ``small``: the fit with the generic terms (``terms``, for the reason) and without ``a``; ``alone``: the final
-    model without ``a`` and without them (``gain_a``: its SSE less the final model's). Each rival is switched on in
-    ``a``'s place there (``with_rival``) and needed as ``a`` is: supported by the judge's checks of
-    :data:`SUPPORT`, and keeping ``catch_all_keep`` of what it explains without the generic terms (its gain over
-    ``alone``, where the tie's fits recorded the final model with the rival in ``a``'s place; ``gain_a``
-    otherwise: the two fit the record equally well). A rival the generic terms make unnecessary while ``a`` stays
-    needed does what a force on slider B or an error of the reading of unknown shape does: it stood in for part of
-    what the library lacks, which also hid the difference between the two (rec38 of the adversarial set: a
-    Stribeck friction tied with the cogging torque beside a quadratic drag). It moves to ``a``'s
-    ``ties_resolved``; a rival still needed stays tied. Edits ``a`` in place; ``entry`` (``a``'s entry in the
-    report) receives each rival's case under ``rivals``."""
+    ``small``: the fit with the generic terms (``terms``, for the reason) and without ``a``; ``gain_a``: what ``a``
+    explains without them (the SSE of the final model without ``a`` less the final model's, both minimised under
+    the same noise model). Each rival is switched on in ``a``'s place there (``with_rival``) and needed as ``a`` is:
+    supported by the judge's checks of :data:`SUPPORT`, and keeping ``catch_all_keep`` of what it explains without
+    the generic terms — ``gain_a``, since the two are tied: the whitened fits the tie compared gain alike (their raw
+    errors may differ: on rec38 3.159 µm with the rival in the cogging's place, 2.922 µm with the cogging). A rival
+    the generic terms make unnecessary while ``a`` stays needed does what a force on slider B or an error of the
+    reading of unknown shape does: it stood in for part of what the library lacks, which also hid the difference
+    between the two (rec38 of the adversarial set: a Stribeck friction tied with the cogging torque beside a
+    quadratic drag). It moves to ``a``'s ``ties_resolved``; a rival still needed stays tied. Edits ``a`` in place;
+    ``entry`` (``a``'s entry in the report) receives each rival's case under ``rivals``."""
     keep, resolved = [], []
     for rv in a["indistinguishable_from"]:
         big = with_rival(small, rv)
         ev = judge.judge_pair(small, big)
-        swapped = ((rv.get("encompassing") or {}).get("swapped") or rv.get("swapped") or {}).get("rmse_m")
-        gain = alone.sse - n * swapped ** 2 if swapped is not None else gain_a
-        frac = float((small.sse - big.sse) / gain) if gain and gain > 0 else 0.0
+        frac = float((small.sse - big.sse) / gain_a) if gain_a > 0 else 0.0
         needed = _supports(ev) and frac >= settings.catch_all_keep
         case = {"rmse_with_it_m": big.rmse(n), "kept_fraction": frac, "evidence": ev.to_dict(), "needed": needed}
         entry.setdefault("rivals", {})[rv["name"]] = case
