@@ -76,7 +76,8 @@ class DiscoverSettings:
       supports no refit and they are supported, every library effect of their kind the scouts left untried (a
       force on the slider, an error of the reading) is refitted first. catch_all_keep: an
       effect is still needed beside them if its removal is significant in sample and costs at least this fraction
-      of the error reduction it brings to the final model.
+      of the error reduction it brings to the final model; a rival tied with a kept effect, switched on in its
+      place there, is needed by the same rule, and the tie is resolved for the effect where it is not.
       cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
       compensating, whether structure is left or not: a motor's cogging repeats a whole number of times per
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
