@@ -73,6 +73,12 @@ def _supports(ev) -> bool:
     return all(ok for check, ok in ev.checks.items() if check in SUPPORT)
 
 
+def _needed(ev, kept_fraction: float, settings: DiscoverSettings) -> bool:
+    """Whether an effect is still needed beside the generic terms: the judge's evidence ``ev`` passes the checks of
+    :data:`SUPPORT`, and it keeps at least ``catch_all_keep`` of what it explains without them."""
+    return _supports(ev) and kept_fraction >= settings.catch_all_keep
+
+
 def knots_of(states: dict, x_measured: np.ndarray) -> dict[str, float]:
     """The knot ranges of the generic terms, each from the smallest to the largest value on the record: the force's
     from a model's plant states (slider B's speed and position), the sensor error's from the measured position
@@ -229,7 +235,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         alone = a.get("_reduced") or without(current, a)
         gain = alone.sse - current.sse
         kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
-        needed = _supports(ev_a) and kept_fraction >= settings.catch_all_keep
+        needed = _needed(ev_a, kept_fraction, settings)
         # its values beside the generic terms: where the final model leaves structure, its own values may stand in
         # for part of what is missing (rec38: a_cog 0.0106 N·m in its final model, 0.0058 when first fitted beside
         # the generic terms; truth 0.0052)
@@ -277,7 +283,7 @@ def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
         big = with_rival(small, rv)
         ev = judge.judge_pair(small, big)
         frac = float((small.sse - big.sse) / gain_a) if gain_a > 0 else 0.0
-        needed = _supports(ev) and frac >= settings.catch_all_keep
+        needed = _needed(ev, frac, settings)
         case = {"rmse_with_it_m": big.rmse(n), "kept_fraction": frac, "evidence": ev.to_dict(), "needed": needed}
         entry.setdefault("rivals", {})[rv["name"]] = case
         say(f"  its rival {rv['name']} in its place beside the generic terms: rms {small.rmse(n) * 1e6:.4g} → "
