@@ -68,6 +68,11 @@ WEIGHTS: tuple[str, ...] = FORCE_WEIGHTS + SENSOR_WEIGHTS
 SUPPORT: tuple[str, ...] = ("f_test", "bic", "validation_record")
 
 
+#: The generic terms, for the reasons the check gives.
+GENERIC_FORCE_TEXT = "a generic force on slider B (any function of its speed and position)"
+GENERIC_READING_TEXT = "error of the position reading (any function of it)"
+
+
 def _supports(ev) -> bool:
     """Whether the judge's evidence ``ev`` passes the checks of :data:`SUPPORT` it ran."""
     return all(ok for check, ok in ev.checks.items() if check in SUPPORT)
@@ -226,8 +231,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     if not supported:
         return list(added), [], report
     kept, compensating = [], []
-    terms = ("a generic force on slider B (any function of its speed and position)"
-             + (" and error of the position reading (any function of it)" if reading else ""))
+    terms = GENERIC_FORCE_TEXT + (f" and {GENERIC_READING_TEXT}" if reading else "")
     for a in added:
         small = reduced[a["name"]]
         ev_a = judge.judge_pair(small, generic)
@@ -252,9 +256,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
                              report["effects"][a["name"]])
         else:
             compensating.append(dict(a, reason=(
-                "lowers the error, but a generic force on slider B (any function of its speed and position)"
-                + (" or error of the position reading (any function of it)" if reading else "") +
-                f" does its work: with them "
+                f"lowers the error, but {GENERIC_FORCE_TEXT}" + (f" or {GENERIC_READING_TEXT}" if reading else "")
+                + " does its work: with them "
                 f"{generic.rmse(n) * 1e6:.4g} µm, and {small.rmse(n) * 1e6:.4g} µm "
                 f"without {a['name']} (it keeps {kept_fraction:.1%} of what it explains in the final model, "
                 f"{alone.rmse(n) * 1e6:.4g} → {current.rmse(n) * 1e6:.4g} µm). It stands in for something outside "

@@ -87,11 +87,11 @@ class DiscoverSettings:
       its whole n_cog over at least this many periods of the motor angle's range, significantly after the scan, and
       with it does not (:meth:`.toggle_plant.TogglePlant.own_signature`: a real ripple beside an effect the library
       lacks; a localised error fits a low count over a few periods only); over as many periods with no ripple seen
-      (hidden under what the library lacks), it is judged by the catch-all check. cogging_min_periods (10 by default): the cogging
-      torque is probed and fitted only at counts n_cog of which the record's motor-angle range holds at least this
-      many periods (:func:`.toggle_plant.cogging_floor`; 0: every count the library allows): over a few periods a
-      sinusoid in the angle is a smooth function of the position, and a low count then stands in for a force the
-      library lacks (rec38 of the adversarial set: n_cog 1.0006, 2.2 periods, beside a quadratic drag). A true
+      (hidden under what the library lacks), it is judged by the catch-all check. cogging_min_periods (10 by default):
+      the cogging torque is probed and fitted only at counts n_cog of which the record's motor-angle range holds at
+      least this many periods (:func:`.toggle_plant.cogging_floor`; 0: every count the library allows): over a few
+      periods a sinusoid in the angle is a smooth function of the position, and a low count then stands in for a force
+      the library lacks (rec38 of the adversarial set: n_cog 1.0006, 2.2 periods, beside a quadratic drag). A true
       ripple of fewer periods is then left to the report's periodic look. beside_generic (on by default): when a
       forward step supports nothing and the catch-all's generic terms are supported, the effects of no kind they
       contain (a cogging torque, a dead time, a backlash, the saturations) are refitted beside them and accepted

@@ -337,14 +337,9 @@ class TogglePlant:
                       for a in added if a.get("hidden_ripple")]
             return [a for a in added if not a.get("hidden_ripple")], doubted + hidden
 
-        def without(fit: Fit, a: dict) -> Fit:
-            return _without(self.model, fit, a["name"], everyone, self.held, self.s)
-
-        def with_rival(fit: Fit, rival: dict) -> Fit:
-            return _without(self.model, fit, None, everyone, self.held, self.s, rival)
-
-        added, more, self.catch_report = catch_all(self.model, self.referee, current, added, states, without, self.s,
-                                                   self.say, with_rival=with_rival)
+        added, more, self.catch_report = catch_all(
+            self.model, self.referee, current, added, states, lambda fit, a: self.without(fit, a, everyone), self.s,
+            self.say, with_rival=lambda fit, rival: self.without(fit, None, everyone, rival))
         return added, doubted + more
 
     def missing_kinds(self, fit: Fit) -> set[str]:
