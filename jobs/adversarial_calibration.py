@@ -107,13 +107,14 @@ def calibrate_param(spec: Spec, param: str, theta: np.ndarray, duration: float =
     return {"value": best[0], "ratio": best[1], "rms_fit_um": best[2] * 1e6, "evaluations": evals}
 
 
-def calibrate(specs: list[Spec], duration: float = DURATION, log=print) -> dict[str, dict]:
-    """Calibrate every magnitude of ``specs``; returns {key: {param: {value, ratio, rms_fit_um, evaluations}}}."""
+def calibrate(specs: list[Spec], duration: float = DURATION, log=print, draw: int = 0) -> dict[str, dict]:
+    """Calibrate every magnitude of ``specs`` (on their ``draw``-th machines, :func:`draw_truth`); returns
+    {key: {param: {value, ratio, rms_fit_um, evaluations}}}."""
     out: dict[str, dict] = {}
     for spec in specs:
         if not spec.calibrate:
             continue
-        theta, _ = draw_truth(spec)
+        theta, _ = draw_truth(spec, draw)
         out[spec.key] = {}
         for param in spec.calibrate:
             out[spec.key][param] = calibrate_param(spec, param, theta, duration, log=log)

@@ -78,11 +78,14 @@ def _valid_truth(theta: np.ndarray, command: str) -> bool:
                        min_exits=2 if command == "cycling" else 0) == "ok"
 
 
-def draw_truth(spec: Spec) -> tuple[np.ndarray, dict]:
-    """The record's 15 physical parameters (seeded by ``spec.seed``) and how they were drawn."""
+def draw_truth(spec: Spec, draw: int = 0) -> tuple[np.ndarray, dict]:
+    """The record's 15 physical parameters (seeded by ``spec.seed``) and how they were drawn; ``draw`` k > 0: the
+    k-th held-out machine of the spec (:data:`DRAW_SEED_STEP`), drawn the same way from another seed."""
     from toggle_id.params import ASSIGNED
 
-    rng = np.random.default_rng([spec.seed, 1])
+    if draw < 0:
+        raise ValueError(f"draw must be >= 0, got {draw}")
+    rng = np.random.default_rng([spec.seed, 1] if draw == 0 else [spec.seed, 1, draw])
     for attempt in range(200):
         s = float(rng.uniform(0.15, 0.40))
         z = np.clip(rng.standard_normal(ASSIGNED.size), -2.5, 2.5)
@@ -205,6 +208,8 @@ SECOND_COMMAND = {"simulation": "cycling", "experiment": "cycling", "cycling": "
 VALIDATION_SEED_OFFSET = 5000
 #: Step of a replicate's noise seed (``--replicates``): the same machine again, with independent noise.
 REPLICATE_SEED_STEP = 100_000
+#: Step of a held-out draw's noise seed (``--draw``): another machine of the same spec, with independent noise.
+DRAW_SEED_STEP = 10_000_000
 
 
 def replicate_count(spec: Spec, replicates: int) -> int:
@@ -214,33 +219,37 @@ def replicate_count(spec: Spec, replicates: int) -> int:
     return replicates + 1 if spec.noise_m > 0 or spec.disturbance else 1
 
 
-def replicate_name(name: str, replicate: int) -> str:
-    """``rec19`` for the record itself, ``rec19_r2`` for its second replicate."""
+def replicate_name(name: str, replicate: int, draw: int = 0) -> str:
+    """``rec19`` for the record itself, ``rec19_r2`` for its second replicate; ``rec19_d1`` (``rec19_d1_r2``) for
+    the spec's first held-out machine (its second replicate)."""
+    name = name if draw == 0 else f"{name}_d{draw}"
     return name if replicate == 0 else f"{name}_r{replicate}"
 
 
 def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration: float = DURATION,
-                validation: bool = False, replicate: int = 0):
+                validation: bool = False, replicate: int = 0, draw: int = 0):
     """(record with noisy x_B, manifest entry) of ``spec`` with its ``calibrated`` {parameter: (value, ratio)}.
 
     ``validation``: the second record of the same machine (truth, effects, noise model) under
     :data:`SECOND_COMMAND` with independent noise, named ``<name>_validation`` — what a user would record to check
     a model on data it was not fitted on. ``replicate`` k > 0: the same record (truth, effects, command, noise
     model) with independent noise, named ``<name>_r<k>`` — one verdict is one draw of the noise; replicates
-    measure how often it comes out so (a false-alarm rate on the noise-only records)."""
+    measure how often it comes out so (a false-alarm rate on the noise-only records). ``draw`` k > 0: the spec's
+    k-th held-out machine (:func:`draw_truth`; ``calibrated`` must then be its own), named ``<name>_d<k>``."""
     from toggle_id.app.records import build_record
     from toggle_id.effects import EFFECTS_BY_NAME
     from toggle_id.params import PARAM_NAMES
     from toggle_id.record import measure
 
     magnitudes = {k: float(v[0]) for k, v in calibrated.items()}
-    theta, draw = draw_truth(spec)
+    theta, drawn = draw_truth(spec, draw)
     effects = effect_values(spec, magnitudes)
     if replicate < 0:
         raise ValueError(f"replicate must be >= 0, got {replicate}")
-    name = replicate_name(NAMES[spec.key], replicate) + ("_validation" if validation else "")
+    name = replicate_name(NAMES[spec.key], replicate, draw) + ("_validation" if validation else "")
     kind = SECOND_COMMAND[spec.command] if validation else spec.command
-    seed = noise_seed(spec) + (VALIDATION_SEED_OFFSET if validation else 0) + REPLICATE_SEED_STEP * replicate
+    seed = (noise_seed(spec) + (VALIDATION_SEED_OFFSET if validation else 0) + REPLICATE_SEED_STEP * replicate
+            + DRAW_SEED_STEP * draw)
     if spec.outside:
         rec = base_record(kind, duration)
         x, i = clean_response(spec, theta, effects, magnitudes, rec)
@@ -268,12 +277,13 @@ def make_record(spec: Spec, calibrated: dict[str, tuple[float, float]], duration
                {"kind": "sweep", "sweep": kind, **SWEEPS[kind].__dict__})
     entry = {
         "name": name, "file": f"{name}.csv", "key": spec.key, "category": spec.category, "replicate": replicate,
+        "draw": draw,
         "effects": list(spec.effects),
         "effect_params": {e: {p.name: effects.get(p.name, p.off) for p in EFFECTS_BY_NAME[e].params}
                           for e in spec.effects},
         "outside": ({k: v for k, v in outside_of(spec, magnitudes).to_dict().items() if k not in spec.effects}
                     if spec.outside else {}),
-        "params": dict(zip(PARAM_NAMES, map(float, theta))), "perturbation": draw,
+        "params": dict(zip(PARAM_NAMES, map(float, theta))), "perturbation": drawn,
         "noise": {"model": "none" if spec.noise_m == 0 else ("ar1" if spec.noise_ar else "white"),
                   "sigma_m": spec.noise_m, "ar": spec.noise_ar, "quantum_m": spec.quantum_m,
                   **({"outlier_fraction": spec.outlier_fraction, "outlier_m": spec.outlier_m}
@@ -318,10 +328,12 @@ def sha256(path: Path) -> str:
 
 
 def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple[float, float]]],
-             duration: float = DURATION, log=print, validation: bool = False, replicates: int = 0) -> dict:
+             duration: float = DURATION, log=print, validation: bool = False, replicates: int = 0,
+             draw: int = 0) -> dict:
     """Write the records of ``specs`` and the manifest (merged with an existing one); return the manifest.
     ``validation``: also each record's second record (:func:`make_record`), named in its entry's ``validation``;
-    ``replicates``: also that many replicates of each record (independent noise, ``<name>_r1`` …)."""
+    ``replicates``: also that many replicates of each record (independent noise, ``<name>_r1`` …); ``draw`` k > 0:
+    the specs' k-th held-out machines instead (``calibrated`` for them)."""
     from toggle_id.checkpoint import atomic_write_json
     from toggle_id.data import write_csv
 
@@ -337,11 +349,12 @@ def generate(out: Path, specs: list[Spec], calibrated: dict[str, dict[str, tuple
                 "the same record")
         for k in range(replicate_count(spec, replicates)):
             t0 = time.perf_counter()
-            rec, entry = make_record(spec, calibrated.get(spec.key, {}), duration, replicate=k)
+            rec, entry = make_record(spec, calibrated.get(spec.key, {}), duration, replicate=k, draw=draw)
             csv = write_csv(rec, out / entry["file"])
             entry["sha256"] = sha256(csv)
             if validation:
-                vrec, ventry = make_record(spec, calibrated.get(spec.key, {}), duration, validation=True, replicate=k)
+                vrec, ventry = make_record(spec, calibrated.get(spec.key, {}), duration, validation=True, replicate=k,
+                                           draw=draw)
                 vcsv = write_csv(vrec, out / ventry["file"])
                 entry["validation"] = {"file": ventry["file"], "command": ventry["command"],
                                        "noise_seed": ventry["noise"]["seed"], "sha256": sha256(vcsv)}

@@ -1,7 +1,7 @@
 """An adversarial set of records on which the discovery loop is judged.
 
 ``python -m jobs.bench_adversarial --out DIR [--only NAME,...] [--duration S] [--calibrate] [--validation]
-[--replicates K] [--run] [--jobs N] [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
+[--replicates K] [--draw K] [--run] [--jobs N] [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
 
 Writes CSV records (docs/model.md §8, via :func:`toggle_id.data.write_csv`) and ``manifest.json`` (the truth of each:
 parameters, effects, noise model, command) into DIR. A record's name (``rec01`` …) says nothing about what is in
@@ -17,6 +17,11 @@ fitted: an effect must predict it better, and structure left in its prediction m
 and noise model with independent noise (none of a record without random noise, the quantised reading alone). A
 verdict is one draw of the noise; the replicates say how often it comes out so — on the noise-only records, how
 often the loop names an effect that is not there.
+
+``--draw K`` (K ≥ 1) writes (and runs) the K-th *held-out* set instead, ``recNN_dK``: each spec on another machine,
+its 15 parameters drawn as the set's are but from another seed, with its own noise, and its magnitudes calibrated
+for that machine to the spec's target (measured once, kept in ``calibration_dK.json``). The set's rules were
+made while looking at the set's records; a held-out draw is data they were not made on.
 
 ``--run`` then runs the discover job on every record (``python -m jobs.run +experiment=discover data=csv
 data.path=… seed=0 progress=false``; MLflow off unless ``--mlflow-uri``; ``--override`` adds Hydra overrides),
@@ -39,6 +44,7 @@ from jobs.adversarial_calibration import calibrate, calibration_table
 from jobs.adversarial_set import ROOT, generate, replicate_count, replicate_name, select
 from jobs.adversarial_specs import CALIBRATED, DURATION, NAMES
 from jobs.adversarial_verdicts import result_row, results_markdown, summarise
+from toggle_id.checkpoint import atomic_write_text
 from toggle_id.simulate import share_cores
 
 
@@ -103,7 +109,7 @@ def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, ti
 
 def run_all(out: Path, manifest: dict, names: list[str], extra: list[str], mlflow_uri: str | None, jobs: int,
             timeout: float, log=print) -> tuple[list[dict], dict]:
-    from toggle_id.checkpoint import atomic_write_json, atomic_write_text
+    from toggle_id.checkpoint import atomic_write_json
 
     entries = [r for r in manifest["records"] if r["name"] in names]
     if jobs <= 1:
@@ -143,6 +149,9 @@ def main(argv: list[str] | None = None) -> int:
                          "to the discover job as validation.path: predicted, never fitted")
     ap.add_argument("--replicates", type=int, default=0,
                     help="also write (and run) K replicates of each record: the same machine, independent noise")
+    ap.add_argument("--draw", type=int, default=0,
+                    help="K > 0: the K-th held-out set instead — each spec on another machine drawn the same way, "
+                         "its magnitudes calibrated for it (kept in OUT/calibration_dK.json), records recNN_dK")
     args = ap.parse_args(argv)
     if not (args.duration > 0):
         ap.error(f"--duration must be positive, got {args.duration}")
@@ -150,19 +159,29 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--jobs must be at least 1, got {args.jobs}")
     if args.replicates < 0:
         ap.error(f"--replicates must be at least 0, got {args.replicates}")
+    if args.draw < 0:
+        ap.error(f"--draw must be at least 0, got {args.draw}")
     out = Path(args.out).expanduser().resolve()
     specs = select(args.only)
-    calibrated = {k: dict(v) for k, v in CALIBRATED.items()}
-    if args.calibrate:
+    calibrated = {k: dict(v) for k, v in CALIBRATED.items()} if args.draw == 0 else {}
+    if args.calibrate or args.draw:
         out.mkdir(parents=True, exist_ok=True)
-        cal = calibrate(specs, args.duration)
-        for key, params in cal.items():
+        path = out / ("calibration.json" if args.draw == 0 else f"calibration_d{args.draw}.json")
+        # a held-out machine's magnitudes are its own: measured once, kept beside its records
+        known = json.loads(path.read_text()) if args.draw and path.exists() else {}
+        todo = [s for s in specs if s.calibrate and (args.calibrate or s.key not in known)]
+        cal = calibrate(todo, args.duration, draw=args.draw) if todo else {}
+        known.update(cal)
+        for key, params in known.items():
             calibrated[key] = {p: (c["value"], c["ratio"]) for p, c in params.items()}
-        (out / "calibration.json").write_text(json.dumps(cal, indent=1))
-        print("CALIBRATED entries (paste into jobs/adversarial_set.py):\n" + calibration_table(cal), flush=True)
-    manifest = generate(out, specs, calibrated, args.duration, validation=args.validation, replicates=args.replicates)
+        atomic_write_text(path, json.dumps(known, indent=1))
+        if cal and args.draw == 0:
+            print("CALIBRATED entries (paste into jobs/adversarial_specs.py):\n" + calibration_table(cal), flush=True)
+    manifest = generate(out, specs, calibrated, args.duration, validation=args.validation, replicates=args.replicates,
+                        draw=args.draw)
     if args.run:
-        names = [replicate_name(NAMES[s.key], k) for s in specs for k in range(replicate_count(s, args.replicates))]
+        names = [replicate_name(NAMES[s.key], k, args.draw) for s in specs
+                 for k in range(replicate_count(s, args.replicates))]
         _, summary = run_all(out, manifest, names, args.override, args.mlflow_uri, args.jobs, args.timeout)
         if summary["errors"]:
             return 1

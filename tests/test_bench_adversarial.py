@@ -128,6 +128,37 @@ def test_replicates_are_the_same_machine_with_independent_noise(tmp_path):
         [SP.NAMES["noise_quantised"]]
 
 
+def test_a_held_out_draw_is_another_machine_calibrated_for_itself(tmp_path, monkeypatch):
+    """--draw K: each spec on another machine drawn the same way (valid, other parameters, other noise), named
+    recNN_dK, with magnitudes calibrated for that machine — measured once and kept in calibration_dK.json."""
+    calls = []
+
+    def fake_calibrate(specs, duration, log=print, draw=0):
+        calls.append(([s.key for s in specs], draw))
+        return {s.key: {p: {"value": 7.5e-4, "ratio": 2.0, "rms_fit_um": 1.7, "evaluations": []}
+                        for p in s.calibrate} for s in specs if s.calibrate}
+
+    monkeypatch.setattr(B, "calibrate", fake_calibrate)
+    args = ["--out", str(tmp_path), "--only", "noise_white,dead_time", "--duration", "0.5"]
+    assert B.main(args) == 0 and calls == []  # the set itself: its own calibration
+    assert B.main([*args, "--draw", "1"]) == 0
+    assert calls == [(["dead_time"], 1)]  # the effect record's new machine calibrated, the noise record needs none
+    assert B.main([*args, "--draw", "1"]) == 0 and len(calls) == 1  # kept: not measured again
+    man = {r["name"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
+    for key in ("noise_white", "dead_time"):
+        name = SP.NAMES[key]
+        own, held = man[name], man[f"{name}_d1"]
+        assert own["draw"] == 0 and held["draw"] == 1
+        assert held["params"] != own["params"] and held["noise"]["seed"] != own["noise"]["seed"]
+        theta = np.array([held["params"][n] for n in PARAM_NAMES])
+        assert S._valid_truth(theta, S.SPECS_BY_KEY[key].command)
+    assert man[f"{SP.NAMES['dead_time']}_d1"]["effect_params"]["dead_time"]["tau_d"] == 7.5e-4
+    assert man[SP.NAMES["dead_time"]]["effect_params"]["dead_time"]["tau_d"] == SP.CALIBRATED["dead_time"]["tau_d"][0]
+    assert json.loads((tmp_path / "calibration_d1.json").read_text())["dead_time"]["tau_d"]["value"] == 7.5e-4
+    with pytest.raises(SystemExit):
+        B.main([*args, "--draw", "-1"])
+
+
 def test_an_outside_record_and_an_effect_record_are_written_with_their_truth(tmp_path):
     B.main(["--out", str(tmp_path), "--only", "torque_saturation_simulation,dead_time", "--duration", "0.5"])
     man = {r["key"]: r for r in json.loads((tmp_path / "manifest.json").read_text())["records"]}
