@@ -52,9 +52,28 @@ class _Record:
 
 
 @dataclass
+class _Noise:
+    a: tuple = ()
+
+
+@dataclass
 class _Model:
+    """What the check and the plant read of a model: its size, record and the state its fits depend on
+    (:func:`catchall.model_state`)."""
+
     n: int = 100
     record: _Record = field(default_factory=_Record)
+    noise: _Noise = field(default_factory=_Noise)
+    settings: str = "precise"
+    jacobian: str = "precise"
+    jacobian_step: float | None = None
+    jacobian_reuse: int = 0
+    derivatives: str = "fd"
+    stiff: set = field(default_factory=set)
+    excluded: np.ndarray | None = None
+
+    def domains(self) -> dict:
+        return {}
 
 
 STATES = {"x_B": np.linspace(0.02, 0.07, 50), "xdot_B": np.sin(np.linspace(0, 6, 50))}
@@ -79,12 +98,13 @@ def test_the_knots_span_the_records_speed_and_position():
 def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_sse: dict[str, float],
          margin: float = 1.0, reading_sse: float | None = None, added: tuple[str, ...] = ("constant_load_force",
                                                                                           "cogging_torque"),
-         rivals: dict[str, list[dict]] | None = None, with_rival=None):
+         rivals: dict[str, list[dict]] | None = None, with_rival=None, looked: bool = False):
     """catch_all on a final model of SSE 10 with a constant load force and a cogging torque accepted; the fit with
     the generic force reaches ``generic_sse``, with the generic reading error beside it ``reading_sse`` (default:
     the same); without effect a, ``without_sse[a]`` with the generic terms and ``alone_sse[a]`` without them. The
     judge supports a larger model whose SSE is lower by more than ``margin``. ``rivals``: an effect's tied rivals;
-    ``with_rival``: passed on."""
+    ``with_rival``: passed on; ``looked``: the check made again with the force and reading-error fits of the first
+    (as the final check takes them from the second look), which must then be all it skips."""
     theta = extend(ASSIGNED)[0]
     current = Fit(theta, ("K_t", "F_load", "a_cog"), 10.0)
     fitted = []
@@ -115,11 +135,22 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
         return Fit(fit.theta, tuple(nm for nm in fit.free if nm not in EFFECTS_BY_NAME[a["name"]].names),
                    without_sse[a["name"]])
 
+    store: dict = {}
     kept, comp, report = catchall.catch_all(_Model(), _Judge(margin), current, added, STATES, without,
-                                            DiscoverSettings(), said.append, with_rival=with_rival)
+                                            DiscoverSettings(), said.append, store, with_rival=with_rival)
     # the force's weights, then the model with them; the reading error's weights from there, then everything
     assert fitted[:4] == [catchall.FORCE_WEIGHTS, current.free + catchall.FORCE_WEIGHTS, catchall.SENSOR_WEIGHTS,
                           current.free + catchall.WEIGHTS]
+    assert store["force"].free == current.free + catchall.FORCE_WEIGHTS
+    assert store["both"].free == current.free + catchall.WEIGHTS
+    if looked:
+        first, n_first = (kept, comp, report, said[1:]), len(fitted)
+        said.clear()
+        again = catchall.catch_all(_Model(), _Judge(margin), current, added, STATES, without, DiscoverSettings(),
+                                   said.append, with_rival=with_rival, looked=(store["force"], store["both"]))
+        assert len(fitted) == 2 * n_first - 4 and fitted[n_first:] == fitted[4:n_first]
+        assert "fitted on this model before" in said[0]
+        assert (*again, said[2:]) == first  # the same verdicts, report and lines
     return kept, comp, report, said
 
 
@@ -136,6 +167,14 @@ def test_an_effect_the_generic_force_makes_unnecessary_is_compensating(monkeypat
     assert report["effects"]["cogging_torque"]["needed"] is True
     assert report["effects"]["cogging_torque"]["kept_fraction"] == pytest.approx(7.0 / 6.0)
     assert any(s.startswith("  without constant_load_force:") and s.endswith("→ not needed") for s in said)
+
+
+@pytest.mark.parametrize("generic_sse, reading_sse", [(2.0, None), (2.0, 0.5)])
+def test_the_final_check_takes_over_the_generic_fits_of_the_second_look(monkeypatch, generic_sse, reading_sse):
+    """Given the force and reading-error fits already made on the model (``looked``), the check skips those four fits
+    and nothing else, and reaches the same verdicts, report and lines."""
+    _run(monkeypatch, generic_sse, {"constant_load_force": 2.1, "cogging_torque": 9.0},
+         {"constant_load_force": 30.0, "cogging_torque": 16.0}, reading_sse=reading_sse, looked=True)
 
 
 @pytest.mark.parametrize("rival_sse, resolved", [
@@ -307,7 +346,8 @@ def test_the_second_look_asks_the_catch_all_once_per_model_what_kind_of_term_is_
 
     def fake_catch_all(model, judge, current, added, states, without, settings, say, store=None, **k):
         calls.append(current)
-        store["generic"] = Fit(current.theta, current.free + catchall.FORCE_WEIGHTS, 0.5)
+        generic = Fit(current.theta, current.free + catchall.FORCE_WEIGHTS, 0.5)
+        store.update(generic=generic, force=generic, both=Fit(current.theta, current.free + catchall.WEIGHTS, 0.4))
         return [], [], {"supported": supported, "reading_error": {"needed": reading}}
 
     monkeypatch.setattr(TP, "catch_all", fake_catch_all)
@@ -331,6 +371,55 @@ def test_the_second_look_asks_the_catch_all_once_per_model_what_kind_of_term_is_
     scout = Scout("cogging_torque", 1.0, None, {})
     assert plant._beside(other, [scout]) == (["refit"] if kinds else [])
     assert seen == ([(other, other.free + catchall.FORCE_WEIGHTS, [scout])] if kinds else [])
+
+
+def test_the_second_looks_generic_fits_are_reused_only_on_the_same_model_in_the_same_state(monkeypatch):
+    """TogglePlant: the final check (:meth:`explains`) is given the second look's force and reading-error fits only
+    when they were made on the same fit (values, free names, noise model) with the model in the state it is in now —
+    not after an effect set was marked stiff or the noise model changed, nor when the state changed during them."""
+    from toggle_id.discovery import toggle_plant as TP
+
+    model = _Model()
+    force, both = Fit(extend(ASSIGNED)[0], ("a",), 1.0), Fit(extend(ASSIGNED)[0], ("b",), 0.5)
+    grow = []
+
+    def fake_catch_all(model_, judge, current, added, states, without, settings, say, store=None, looked=None, **k):
+        if store is not None:
+            store.update(generic=both, force=force, both=both)
+            model.stiff.update(grow)
+        fake_catch_all.looked = looked
+        return list(added), [], {"supported": True, "reading_error": {"needed": True}}
+
+    monkeypatch.setattr(TP, "catch_all", fake_catch_all)
+    plant = TP.TogglePlant(model, None, DiscoverSettings(), extend(ASSIGNED)[0], [], (), (), [], None,
+                           lambda s: None, None)
+    fit = Fit(extend(ASSIGNED)[0], ("K_t",), 1.0)
+    details = ({}, None, STATES)
+    plant._structure = fit, (True, details)
+    added = [{"name": "constant_load_force"}]
+
+    def final(current):
+        plant.explains(current, list(added), details, added)
+        return fake_catch_all.looked
+
+    assert plant.missing_kinds(fit) == {"slider", "reading"}
+    assert final(fit) == (force, both)
+    same_values = Fit(fit.theta.copy(), ("K_t",), 2.0)  # the same start and free names: the same fits
+    assert final(same_values) == (force, both)
+    assert final(Fit(fit.theta, ("K_t", "B_m"), 1.0)) is None  # other free names
+    moved = fit.theta.copy()
+    moved[0] *= 1 + 1e-12
+    assert final(Fit(moved, ("K_t",), 1.0)) is None
+    model.stiff.add(b"set")  # an effect set marked stiff since: the fits would run on another integrator
+    assert final(fit) is None
+    model.stiff.clear()
+    model.noise = _Noise((0.5,))  # another noise model to minimise under
+    plant.fit_noise = model.noise
+    assert final(fit) is None
+    # a set marked stiff during the second look's own fits: the later ones of the same fits would differ
+    plant._looked, grow[:] = None, [b"other"]
+    assert plant.missing_kinds(fit) == {"slider", "reading"} and plant._looked[3] is None
+    assert final(fit) is None
 
 
 @pytest.mark.parametrize("n_cog, without, with_it, turns, expected", [

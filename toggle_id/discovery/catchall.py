@@ -84,6 +84,22 @@ def _needed(ev, kept_fraction: float, settings: DiscoverSettings) -> bool:
     return _supports(ev) and kept_fraction >= settings.catch_all_keep
 
 
+def model_state(model: Model) -> tuple:
+    """What a fit of ``model`` depends on besides its start and free names: the noise model it minimises under, the
+    domains, the integrators, the effect sets sent straight to the stiff fallback and the samples left out. Two fits
+    from the same start in the same state are the same fit, bit for bit."""
+    m = model
+    return (m.noise.a, tuple(sorted(m.domains().items())), m.settings, m.jacobian, m.jacobian_step,
+            m.jacobian_reuse, m.derivatives, frozenset(m.stiff), None if m.excluded is None else m.excluded.tobytes())
+
+
+def reusable(seen: Fit, fit: Fit, state: tuple, model: Model) -> bool:
+    """Whether fits made on ``seen`` with the model in ``state`` (:func:`model_state`) are what the same fits on
+    ``fit`` would give now: the same values, free names and noise model, and the model in that state still."""
+    return (seen.theta.tobytes() == fit.theta.tobytes() and tuple(seen.free) == tuple(fit.free)
+            and seen.minimised_under == fit.minimised_under and model_state(model) == state)
+
+
 def knots_of(states: dict, x_measured: np.ndarray) -> dict[str, float]:
     """The knot ranges of the generic terms, each from the smallest to the largest value on the record: the force's
     from a model's plant states (slider B's speed and position), the sensor error's from the measured position
@@ -165,14 +181,16 @@ def figure(report: dict, title: str | None = None):
 
 def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], states: dict,
               without: Callable[[Fit, dict], Fit], settings: DiscoverSettings, say: Callable[[str], None],
-              store: dict | None = None, with_rival: Callable[[Fit, dict], Fit] | None = None
-              ) -> tuple[list[dict], list[dict], dict]:
+              store: dict | None = None, with_rival: Callable[[Fit, dict], Fit] | None = None,
+              looked: tuple[Fit, Fit] | None = None) -> tuple[list[dict], list[dict], dict]:
     """(kept, compensating, report) of the accepted effects ``added`` of the final model ``current`` (structure
     left in its residual; ``states``: its plant states). ``without(fit, a)``: ``fit`` refitted with effect ``a``
     switched off; ``with_rival(fit, rival)``: ``fit`` refitted with a tied rival ({name, params}) switched on,
     started at its params — given, the ties of a kept effect are judged beside the generic terms too
-    (:func:`_ties_beside`); ``store``: given, receives the fit with the generic terms (``generic``). See the module
-    docstring."""
+    (:func:`_ties_beside`); ``store``: given, receives the fit with the generic terms (``generic``) and the two fits
+    they start from (``force``, the generic force alone; ``both``, the reading error beside it); ``looked``: those two
+    fits made before on ``current`` with the model in the same state (the caller checks the state), used instead of
+    fitting them again when their knots are this record's. See the module docstring."""
     n = model.n
     knots = knots_of(states, model.record.x_B)
 
@@ -185,8 +203,12 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     # the force first, then the reading error beside it (nested: from the force's fit). The reading error is kept
     # only if the judge finds it needed beyond the force: it contains a constant, so a true sensor offset would
     # otherwise always be "done" by it, whatever else it finds to do
-    force = generic_fit(_with(current.theta, knots), FORCE_WEIGHTS, FORCE_WEIGHTS)
-    both = generic_fit(force.theta, SENSOR_WEIGHTS, WEIGHTS)
+    if looked is not None and all(looked[0].theta[ALL_INDEX[k]] == v for k, v in knots.items()):
+        force, both = looked
+        say("catch-all: the generic terms fitted on this model before (its second look), the model as it was then")
+    else:
+        force = generic_fit(_with(current.theta, knots), FORCE_WEIGHTS, FORCE_WEIGHTS)
+        both = generic_fit(force.theta, SENSOR_WEIGHTS, WEIGHTS)
     ev_reading = judge.judge_pair(force, both)
     reading = _supports(ev_reading)
     weights, generic = (WEIGHTS, both) if reading else (FORCE_WEIGHTS, force)
@@ -208,7 +230,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         generic = fit_free(model, best.theta, free, settings.baseline_nfev, settings.fd_rel_step,
                            rounds=settings.rounds)
     if store is not None:
-        store["generic"] = generic
+        store.update(generic=generic, force=force, both=both)
     ev = judge.judge_pair(current, generic)
     # supported in sample, and by the validation record when there is one; not by the time-block cross-validation
     # (see SUPPORT)

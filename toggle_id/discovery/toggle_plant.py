@@ -11,7 +11,8 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
 from ..fast import difference_noise
 from ..residuals import glitch_text, plant_states
-from .catchall import accepted_beside, beside_generic, catch_all, reading_needed, removal_verdict
+from .catchall import (accepted_beside, beside_generic, catch_all, model_state, reading_needed, removal_verdict,
+                       reusable)
 from .engine import Step
 from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_gauge_of
 from .model import Fit, Model, _off_values, _with, fit_free, revived
@@ -52,7 +53,10 @@ class TogglePlant:
         self.iterations: list[dict] = []
         self.all_refits: list[Refit] = []
         self.catch_report: dict | None = None
-        self._looked: tuple[Fit, dict] | None = None  # the catch-all's report-only fits of a model (second look)
+        #: the catch-all's report-only fits of a model (second look): the model, its report, the fit with the generic
+        #: terms, and — when the model's state (:func:`.catchall.model_state`) stayed as it was through them — that
+        #: state and the two fits the final check can take over (:func:`.catchall.catch_all`'s ``looked``)
+        self._looked: tuple[Fit, dict, Fit | None, tuple | None] | None = None
         self._structure: tuple[Fit, tuple] | None = None  # the structure test of the latest model asked about
         #: the magnitudes whose domain in the loop's gauge was widened at its edge (:func:`.forward.widened_at_edge`)
         self.widened: dict[str, tuple[float, float]] = {}
@@ -339,8 +343,17 @@ class TogglePlant:
 
         added, more, self.catch_report = catch_all(
             self.model, self.referee, current, added, states, lambda fit, a: self.without(fit, a, everyone), self.s,
-            self.say, with_rival=lambda fit, rival: self.without(fit, None, everyone, rival))
+            self.say, with_rival=lambda fit, rival: self.without(fit, None, everyone, rival),
+            looked=self._looked_pair(current))
         return added, doubted + more
+
+    def _looked_pair(self, fit: Fit) -> tuple[Fit, Fit] | None:
+        """The generic force and reading-error fits of the second look (:meth:`_catch_all_alone`) when they were made
+        on ``fit`` itself with the model in the state it is in now (:func:`.catchall.reusable`)."""
+        if self._looked is None or self._looked[3] is None:
+            return None
+        state, force, both = self._looked[3]
+        return (force, both) if reusable(self._looked[0], fit, state, self.model) else None
 
     def missing_kinds(self, fit: Fit) -> set[str]:
         """The kinds of effect (:attr:`~toggle_id.effects.Effect.acts_on`) that a generic term of the catch-all check
@@ -367,8 +380,11 @@ class TogglePlant:
         self._fitting()
         if self._looked is None or self._looked[0] is not fit:
             store: dict = {}
+            before = model_state(self.model)
             report = catch_all(self.model, self.referee, fit, [], states, lambda f, a: f, self.s, self.say, store)[2]
-            self._looked = fit, report, store.get("generic")
+            # a set marked stiff during the fits would send the same fits to another integrator next time
+            kept = (before, store["force"], store["both"]) if model_state(self.model) == before else None
+            self._looked = fit, report, store.get("generic"), kept
         return self._looked[1]
 
     def _beside(self, base: Fit, scouts: list) -> list[Refit]:
