@@ -88,9 +88,9 @@ def model_state(model: Model) -> tuple:
     """What a fit of ``model`` depends on besides its start and free names: the noise model it minimises under, the
     domains, the integrators, the effect sets sent straight to the stiff fallback and the samples left out. Two fits
     from the same start in the same state are the same fit, bit for bit."""
-    m = model
-    return (m.noise.a, tuple(sorted(m.domains().items())), m.settings, m.jacobian, m.jacobian_step,
-            m.jacobian_reuse, m.derivatives, frozenset(m.stiff), None if m.excluded is None else m.excluded.tobytes())
+    excluded = None if model.excluded is None else model.excluded.tobytes()
+    return (model.noise.a, tuple(sorted(model.domains().items())), model.settings, model.jacobian,
+            model.jacobian_step, model.jacobian_reuse, model.derivatives, frozenset(model.stiff), excluded)
 
 
 def reusable(seen: Fit, fit: Fit, state: tuple, model: Model) -> bool:

@@ -53,10 +53,10 @@ class TogglePlant:
         self.iterations: list[dict] = []
         self.all_refits: list[Refit] = []
         self.catch_report: dict | None = None
-        #: the catch-all's report-only fits of a model (second look): the model, its report, the fit with the generic
-        #: terms, and — when the model's state (:func:`.catchall.model_state`) stayed as it was through them — that
-        #: state and the two fits the final check can take over (:func:`.catchall.catch_all`'s ``looked``)
-        self._looked: tuple[Fit, dict, Fit | None, tuple | None] | None = None
+        #: the catch-all's report-only fits of a model (second look): the model, its report, its fits (the ``store`` of
+        #: :func:`.catchall.catch_all`) and the model's state (:func:`.catchall.model_state`) they were made in — None
+        #: when it changed while they ran, and the final check cannot take them over
+        self._looked: tuple[Fit, dict, dict, tuple | None] | None = None
         self._structure: tuple[Fit, tuple] | None = None  # the structure test of the latest model asked about
         #: the magnitudes whose domain in the loop's gauge was widened at its edge (:func:`.forward.widened_at_edge`)
         self.widened: dict[str, tuple[float, float]] = {}
@@ -352,8 +352,8 @@ class TogglePlant:
         on ``fit`` itself with the model in the state it is in now (:func:`.catchall.reusable`)."""
         if self._looked is None or self._looked[3] is None:
             return None
-        state, force, both = self._looked[3]
-        return (force, both) if reusable(self._looked[0], fit, state, self.model) else None
+        seen, _, fits, state = self._looked
+        return (fits["force"], fits["both"]) if reusable(seen, fit, state, self.model) else None
 
     def missing_kinds(self, fit: Fit) -> set[str]:
         """The kinds of effect (:attr:`~toggle_id.effects.Effect.acts_on`) that a generic term of the catch-all check
@@ -383,19 +383,18 @@ class TogglePlant:
             before = model_state(self.model)
             report = catch_all(self.model, self.referee, fit, [], states, lambda f, a: f, self.s, self.say, store)[2]
             # a set marked stiff during the fits would send the same fits to another integrator next time
-            kept = (before, store["force"], store["both"]) if model_state(self.model) == before else None
-            self._looked = fit, report, store.get("generic"), kept
+            self._looked = fit, report, store, before if model_state(self.model) == before else None
         return self._looked[1]
 
     def _beside(self, base: Fit, scouts: list) -> list[Refit]:
         """The forward step's third look (``discover.beside_generic``): with nothing supported and the catch-all's
         generic terms supported on ``base``, the effects of ``scouts`` refitted beside them
         (:func:`.catchall.beside_generic`)."""
-        if not (scouts and self.missing_kinds(base)) or self._looked is None or self._looked[2] is None:
+        if not (scouts and self.missing_kinds(base)) or self._looked is None or "generic" not in self._looked[2]:
             return []
         self.say("  nothing supported, and the generic terms explain what is left: refitting "
                  + ", ".join(sc.name for sc in scouts) + " beside them")
-        return beside_generic(self.model, self.referee, base, self._looked[2], scouts, self.s, self.held,
+        return beside_generic(self.model, self.referee, base, self._looked[2]["generic"], scouts, self.s, self.held,
                               len(self.iterations) + 1, self.say)
 
     def demote(self, current: Fit, demoted: Sequence[dict], added: Sequence[dict]) -> Fit:
