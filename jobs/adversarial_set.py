@@ -34,6 +34,7 @@ from jobs.adversarial_specs import (
     BUMP_AT,
     BUMP_WIDTH,
     COMBINED_RATIO,
+    COMPLIANCE_ZETA,
     DURATION,
     KEYS_BY_NAME,
     NAMES,
@@ -114,7 +115,9 @@ _OUTSIDE_TERMS = {"bump": ("F_b", lambda m: {"bump": (m, BUMP_AT, BUMP_WIDTH)}),
                   "pin_friction": ("pin_mu", lambda m: {"pin_mu": m}),
                   "scale_factor": ("e_s", lambda m: {"scale_factor": m}),
                   "deadband": ("v_db", lambda m: {"deadband": m}),
-                  "kt_drift": ("d_kt", lambda m: {"kt_drift": (m, DURATION)})}
+                  "kt_drift": ("d_kt", lambda m: {"kt_drift": (m, DURATION)}),
+                  "compliance": ("c_k", lambda m: {"compliance": (1.0 / m, COMPLIANCE_ZETA)}),
+                  "hc_damping": ("l_hc", lambda m: {"hc_damping": m})}
 
 
 def outside_of(spec: Spec, magnitudes: dict[str, float]):

@@ -70,6 +70,8 @@ DURATION = 5.0
 BUMP_AT, BUMP_WIDTH = 0.045, 0.004
 #: Periodic error of the linear scale: pitch (m) and phase (rad); its amplitude a_s is calibrated.
 SCALE_PITCH, SCALE_PHASE = 0.005, 0.3
+#: Damping ratio of the compliant transmission (a timing belt's order); its compliance 1/k_s (m/N) is calibrated.
+COMPLIANCE_ZETA = 0.1
 #: Parameters the nominal refit holds, one per exact symmetry of x_B (as the discovery loop does).
 HELD = ("K_l", "K_i", "m_C")
 
@@ -78,8 +80,8 @@ HELD = ("K_l", "K_i", "m_C")
 class Spec:
     """One record of the set. ``key`` is for the manifest only; ``fixed`` holds effect parameters that only shape
     an effect (not calibrated); ``calibrate`` names the magnitudes calibrated (one per effect); ``outside`` is
-    ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction``, ``scale_factor``, ``deadband`` or
-    ``kt_drift`` (tests/outside_plant.py); ``disturbance`` one of :data:`DISTURBANCES`, added to the reading after
+    ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction``, ``scale_factor``, ``deadband``,
+    ``kt_drift``, ``compliance`` or ``hc_damping`` (tests/outside_plant.py); ``disturbance`` one of :data:`DISTURBANCES`, added to the reading after
     the measurement model (which is then usually off, ``noise_m=0``); ``targets`` overrides ``target`` for single
     magnitudes (a mixed record's outside effect at 3σ beside a library effect at 2σ)."""
 
@@ -187,6 +189,12 @@ SPECS: tuple[Spec, ...] = (
          target=3.0),
     Spec("backlash_simulation", "library", "simulation", 916, ("backlash",), calibrate=("b_l",)),
     Spec("noise_walk_cycling", "noise", "cycling", 917, noise_m=0.0, disturbance="walk"),
+    Spec("outside_compliance_simulation", "outside", "simulation", 918, calibrate=("c_k",), outside="compliance",
+         target=3.0),
+    Spec("outside_compliance_cycling", "outside", "cycling", 919, calibrate=("c_k",), outside="compliance",
+         target=3.0),
+    Spec("outside_penetration_damping_cycling", "outside", "cycling", 920, calibrate=("l_hc",),
+         outside="hc_damping", target=3.0),
 )
 #: The first set (20 records, 2026-11-23); records added later take the next names, so a name never changes.
 FIRST_SET = 20
@@ -247,6 +255,10 @@ CALIBRATED: dict[str, dict[str, tuple[float, float]]] = {
     "outside_kt_drift_cycling": {"d_kt": (0.006, 3.020)},  # refit RMS 2.85 um; set by hand (5 %: 23.8 um, 10 %:
     # 47.4 um: about linear in d)
     "backlash_simulation": {"b_l": (2.0955998409136644e-05, 1.962)},  # refit RMS 1.69 um
+    # k_s = 2.0e6 N/m: the sweep's slow motion hardly excites the resonance (1e-9 m/N: 0.034 um)
+    "outside_compliance_simulation": {"c_k": (4.96555e-07, 2.986)},  # refit RMS 2.81 um
+    "outside_compliance_cycling": {"c_k": (2.80384e-08, 2.882)},  # refit RMS 2.7 um (k_s = 3.6e7 N/m)
+    "outside_penetration_damping_cycling": {"l_hc": (6.35266e+06, 2.971)},  # refit RMS 2.8 um
 }
 
 #: sqrt(RMS_fit² + σ²)/σ of the pair records with both effects on (each calibrated alone), measured.

@@ -29,7 +29,15 @@ with physics outside the discovery library (``toggle_id/effects.py``):
   input's offset compensation (the library's drive effects are a delay and a saturation at large commands);
 * **drifting torque constant** (``kt_drift = (d, T)``: dimensionless, s): K_t(t) = K_t·(1 − d·t/T), the torque
   constant falling by the fraction d over T seconds — a motor warming up during the record (its magnets lose
-  about 0.1 % of their flux per kelvin); every parameter of the library is constant in time.
+  about 0.1 % of their flux per kelvin); every parameter of the library is constant in time;
+* **compliant transmission** (``compliance = (k_s, ζ)``: N/m, dimensionless): the rotor drives the nut through
+  a spring k_s and a damper c_s = 2ζ·√(k_s·J_m·Z²) (a timing belt or a screw's torsion, in the nut's coordinate)
+  instead of rigidly — two bodies with a resonance: the rotor (J_m·Z², the motor's force, its damping B_m and the
+  back-EMF at its own speed) and the linkage (M(q) without the rotor), states (q, q̇, i_q, x_r, ẋ_r). The
+  library's backlash is a rigid dead band; nothing in it is elastic;
+* **contact damping that grows with the penetration** (``hc_damping = λ``, N·s/m²): the clamp's force
+  K_l·z + D·ż + λ·z·ż in contact (z = x_B − x_B^L ≥ 0) — Hunt and Crossley's form, where the damping vanishes
+  at first touch instead of jumping to D (the library's contact terms are a constant damper and a cubic spring).
 
 Two terms of the library are here too, written from docs/model.md §7, so that a record can hold a library
 effect and one outside the library at once (the adversarial set's *mixed* records) and as independent references of
@@ -88,8 +96,9 @@ def _kin(q, lib):
     return x_B, x_C, dx_B, dx_C, d2, d5, s1, c1, sp, cp, sin5
 
 
-def _mass(q, p, lib=math):
-    """M(q) of docs/model.md §3 (kg·m²); with ``lib=cmath`` it accepts a complex q (complex-step derivative)."""
+def _mass(q, p, lib=math, rotor=True):
+    """M(q) of docs/model.md §3 (kg·m²); with ``lib=cmath`` it accepts a complex q (complex-step derivative);
+    without the ``rotor`` (J_m·Z²·x_C'²) it is the linkage's alone."""
     _, _, dx_B, dx_C, d2, d5, s1, c1, sp, cp, _ = _kin(q, lib)
     g3x, g3y = 0.5 * (-R1 * s1 + dx_B), 0.5 * R1 * c1
     g5x, g5y = 0.5 * (-R4 * sp + dx_C), 0.5 * R4 * cp
@@ -97,12 +106,12 @@ def _mass(q, p, lib=math):
             + p["m_3"] * (g3x * g3x + g3y * g3y + R3 ** 2 / 12.0 * d2 * d2)
             + p["m_5"] * (g5x * g5x + g5y * g5y + R5 ** 2 / 12.0 * d5 * d5)
             + p["m_B"] * dx_B * dx_B
-            + (p["m_C"] + p["J_m"] * Z * Z) * dx_C * dx_C)
+            + (p["m_C"] + (p["J_m"] * Z * Z if rotor else 0.0)) * dx_C * dx_C)
 
 
-def _dmass(q, p, h=1e-20):
+def _dmass(q, p, h=1e-20, rotor=True):
     """M'(q) by the complex-step derivative (exact to rounding)."""
-    return _mass(complex(q, h), p, cmath).imag / h
+    return _mass(complex(q, h), p, cmath, rotor).imag / h
 
 
 def x_B_of_q(q):
@@ -113,7 +122,7 @@ def x_B_of_q(q):
 class Outside:
     """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
     A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless), ``deadband`` V,
-    ``kt_drift = (d, T s)``; and the library's ``cogging = (a_cog N·m, n_cog 1/rev, φ_cog rad)`` and ``tau_c``
+    ``kt_drift = (d, T s)``, ``compliance = (k_s N/m, ζ)``, ``hc_damping`` N·s/m²; and the library's ``cogging = (a_cog N·m, n_cog 1/rev, φ_cog rad)`` and ``tau_c``
     N·m."""
 
     bump: tuple[float, float, float] | None = None
@@ -126,6 +135,8 @@ class Outside:
     cogging: tuple[float, float, float] | None = None
     tau_c: float | None = None
     kt_drift: tuple[float, float] | None = None
+    compliance: tuple[float, float] | None = None
+    hc_damping: float | None = None
 
     def to_dict(self) -> dict:
         out: dict = {}
@@ -149,6 +160,10 @@ class Outside:
             out["coulomb_friction_motor"] = {"tau_c": float(self.tau_c)}
         if self.kt_drift is not None:
             out["drifting_torque_constant"] = dict(zip(("d", "T"), map(float, self.kt_drift)))
+        if self.compliance is not None:
+            out["compliant_transmission"] = dict(zip(("k_s", "zeta"), map(float, self.compliance)))
+        if self.hc_damping is not None:
+            out["penetration_damping"] = {"lambda": float(self.hc_damping)}
         return out
 
     def drive(self, v: float) -> float:
@@ -179,6 +194,33 @@ class Plant:
             return k_t
         return k_t / math.sqrt(1.0 + (i_q / self.out.i_sat) ** 2)
 
+    def motor_force(self, t: float, i_q: float, v_rot: float, x_rot: float) -> float:
+        """The motor's force on the nut's coordinate (N) at the rotor's speed and position there."""
+        p = self.p
+        F = Z * self.torque_constant(i_q, t) * i_q - Z * Z * p["B_m"] * v_rot
+        if self.out.cogging is not None:
+            a_cog, n_cog, phi_cog = self.out.cogging
+            F += Z * a_cog * math.sin(n_cog * Z * x_rot + phi_cog)
+        if self.out.tau_c is not None:
+            F -= Z * self.out.tau_c * math.tanh(v_rot / EPS)
+        return F
+
+    def slider_force(self, x_B: float, vB: float, contact: int) -> float:
+        """The forces on slider B (N): friction, the outside terms on it and the clamp's spring–damper."""
+        p = self.p
+        F_f = -p["mu"] * p["m_B"] * G * math.tanh(vB / EPS)
+        if self.out.bump is not None:
+            F_b, x_c, width = self.out.bump
+            F_f -= F_b * math.exp(-((x_B - x_c) / width) ** 2) * math.tanh(vB / EPS)
+        if self.out.drag is not None:
+            F_f -= self.out.drag * vB * abs(vB)
+        F_i = p["K_l"] * (x_B - X_B_L) + p["D"] * vB if contact else 0.0
+        if self.out.hc_damping is not None and contact:
+            F_i += self.out.hc_damping * (x_B - X_B_L) * vB
+        if self.out.pin_mu is not None and contact:
+            F_f -= self.out.pin_mu * abs(F_i) * math.tanh(vB / EPS)
+        return F_f - F_i
+
     def rhs(self, t: float, y, contact: int):
         p = self.p
         q, w, i_q = float(y[0]), float(y[1]), float(y[2])
@@ -189,24 +231,19 @@ class Plant:
         if x_B <= 0.0:
             raise OutOfRange(f"x_B = {x_B:.6g} m at t = {t:.6g} s")
         vB, vC = dx_B * w, dx_C * w
-        F_C = Z * self.torque_constant(i_q, t) * i_q - Z * Z * p["B_m"] * vC
-        if self.out.cogging is not None:
-            a_cog, n_cog, phi_cog = self.out.cogging
-            F_C += Z * a_cog * math.sin(n_cog * Z * x_C + phi_cog)
-        if self.out.tau_c is not None:
-            F_C -= Z * self.out.tau_c * math.tanh(vC / EPS)
-        F_f = -p["mu"] * p["m_B"] * G * math.tanh(vB / EPS)
-        if self.out.bump is not None:
-            F_b, x_c, width = self.out.bump
-            F_f -= F_b * math.exp(-((x_B - x_c) / width) ** 2) * math.tanh(vB / EPS)
-        if self.out.drag is not None:
-            F_f -= self.out.drag * vB * abs(vB)
-        F_i = p["K_l"] * (x_B - X_B_L) + p["D"] * vB if contact else 0.0
-        if self.out.pin_mu is not None and contact:
-            F_f -= self.out.pin_mu * abs(F_i) * math.tanh(vB / EPS)
-        Q = F_C * dx_C + (F_f - F_i) * dx_B
+        drive = p["K_i"] * self.out.drive(self.v_in(t))
+        if self.out.compliance is not None:  # two bodies: the rotor (x_r, v_r) and the linkage without it
+            x_r, v_r = float(y[3]), float(y[4])
+            k_s, zeta = self.out.compliance
+            m_r = p["J_m"] * Z * Z
+            F_s = k_s * (x_r - x_C) + 2.0 * zeta * math.sqrt(k_s * m_r) * (v_r - vC)  # on the nut, forwards
+            Q = F_s * dx_C + self.slider_force(x_B, vB, contact) * dx_B
+            wdot = (Q - 0.5 * _dmass(q, p, rotor=False) * w * w) / _mass(q, p, rotor=False)
+            idot = (drive - p["R_s"] * i_q - POLES * p["lambda_d"] * Z * v_r) / p["L_q"]
+            return [w, wdot, idot, v_r, (self.motor_force(t, i_q, v_r, x_r) - F_s) / m_r]
+        Q = self.motor_force(t, i_q, vC, x_C) * dx_C + self.slider_force(x_B, vB, contact) * dx_B
         wdot = (Q - 0.5 * _dmass(q, p) * w * w) / _mass(q, p)
-        idot = (p["K_i"] * self.out.drive(self.v_in(t)) - p["R_s"] * i_q - POLES * p["lambda_d"] * Z * vC) / p["L_q"]
+        idot = (drive - p["R_s"] * i_q - POLES * p["lambda_d"] * Z * vC) / p["L_q"]
         return [w, wdot, idot]
 
     def run(self, t_out: np.ndarray, rtol: float = 1e-11, atol=(1e-13, 1e-10, 1e-8), max_step: float = 1e-3,
@@ -215,6 +252,12 @@ class Plant:
         (out of the assembly range, or the integrator gives up) leaves NaN from there on and ``status != 0``."""
         q_L = math.acos(X_B_L / (R1 + R3))  # contact iff q ≤ q_L
         y = np.array([math.acos(x_B0 / (R1 + R3)), 0.0, 0.0])
+        if self.out.compliance is not None:  # the rotor at rest where the rigid coupling would put it
+            y = np.array([y[0], 0.0, 0.0, _kin(y[0], math)[1], 0.0])
+            atol = tuple(atol) + (1e-13, 1e-10)
+            # steps well inside DOP853's stability bound at the resonance (twice the rotor's own frequency), so
+            # that no trial stage is thrown out of the assembly range
+            max_step = min(max_step, 0.5 / math.sqrt(self.out.compliance[0] / (self.p["J_m"] * Z * Z)))
         t, contact = float(t_out[0]), int(x_B0 >= X_B_L)
         x = np.full(t_out.shape, np.nan)
         i = np.full(t_out.shape, np.nan)

@@ -23,7 +23,7 @@ from toggle_id.simulate import PRECISE, extend, simulate
 def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects():
     cats = [s.category for s in SP.SPECS]
     assert len(SP.SPECS) >= 18
-    assert cats.count("library") == 21 and cats.count("pair") == 5 and cats.count("outside") == 11
+    assert cats.count("library") == 21 and cats.count("pair") == 5 and cats.count("outside") == 14
     # a library effect and one outside it at once, on a sweep and on the cycling command
     mixed = [s for s in SP.SPECS if s.category == "mixed"]
     assert {(s.command, s.outside) for s in mixed} == {("simulation", "bump"), ("cycling", "drag")}
@@ -52,8 +52,8 @@ def test_the_set_covers_the_library_the_pairs_the_noise_and_the_outside_effects(
     assert sorted(s.disturbance for s in SP.SPECS if s.disturbance) == sorted(S.DISTURBANCES)
     assert all(s.category == "noise" and s.noise_m == 0 for s in SP.SPECS if s.disturbance)
     assert SP.effective_sigma(1e-6, 0.0, 0.01, 10e-6) == pytest.approx(np.sqrt(2) * 1e-6)
-    assert {s.outside for s in SP.SPECS if s.category == "outside"} == {"bump", "drag", "scale", "pin_friction",
-                                                                        "scale_factor", "deadband", "kt_drift"}
+    assert {s.outside for s in SP.SPECS if s.category == "outside"} == {
+        "bump", "drag", "scale", "pin_friction", "scale_factor", "deadband", "kt_drift", "compliance", "hc_damping"}
     # threshold effects on the paper's sweep too, not only on the cycling command
     assert {s.command for s in SP.SPECS if s.category == "library" and s.effects[0] in ("voltage_saturation",
                                                                                           "backlash")} >= {

@@ -93,6 +93,18 @@ def test_pin_friction_acts_only_under_the_clamping_load():
     assert np.max(np.abs(x - x0)[first:]) > 2e-6  # in the clamp and after it
 
 
+def test_penetration_damping_acts_only_in_the_clamp():
+    rec = Record.from_cycling(duration=2.0)
+    x0, _, info0 = simulate_outside(ASSIGNED, rec)
+    x, _, info = simulate_outside(ASSIGNED, rec, Outside(hc_damping=1e7))
+    assert info0["status"] == info["status"] == 0 and info["contacts"] >= 1
+    first = np.argmax(x0 >= 0.056)
+    assert np.max(np.abs(x - x0)[:first]) < 1e-12  # free motion: no contact, no damping
+    assert np.max(np.abs(x - x0)[first:]) > 2e-6  # in the clamp and after it
+    off, _, _ = simulate_outside(ASSIGNED, rec, Outside(hc_damping=0.0))
+    assert np.max(np.abs(off - x0)) < 1e-12
+
+
 def test_the_drive_dead_band_ignores_small_commands_and_shifts_the_rest_towards_zero():
     band = Outside(deadband=2e-3)
     assert [band.drive(v) for v in (5e-3, -5e-3, 1.5e-3, -1.5e-3, 0.0)] == pytest.approx([3e-3, -3e-3, 0, 0, 0])
@@ -179,3 +191,19 @@ def test_the_librarys_cogging_and_coulomb_torques_are_the_independent_plants(eff
     assert np.max(np.abs(x - x0)) > 5e-6
     assert np.max(np.abs(x - sim.x_B[0])) < 2e-8
     assert np.max(np.abs(i - sim.i_q[0])) < 1e-6 * np.ptp(i)
+
+
+def test_a_compliant_transmission_is_felt_and_tends_to_the_rigid_coupling_as_it_stiffens():
+    """The rotor drives the nut through a spring: x_B moves by 10 µm at k_s = 1e8 N/m on 0.3 s of the sweep, and the
+    difference to the rigid plant falls as 1/k_s (a tenfold stiffer spring: a tenth); the rigid path is untouched."""
+    rec = Record.from_sweep("simulation", 0.3)
+    x0, i0, _ = simulate_outside(ASSIGNED, rec)
+    dev = {}
+    for k_s in (1e8, 1e9):
+        x, i, info = simulate_outside(ASSIGNED, rec, Outside(compliance=(k_s, 0.1)))
+        assert info["status"] == 0 and np.all(np.isfinite(x)) and np.all(np.isfinite(i))
+        dev[k_s] = np.max(np.abs(x - x0))
+    assert dev[1e8] > 5e-6
+    assert 8.0 < dev[1e8] / dev[1e9] < 13.0
+    sim = simulate(extend(ASSIGNED), rec, PRECISE)
+    assert np.max(np.abs(x0 - sim.x_B[0])) < 1e-9
