@@ -81,9 +81,10 @@ class Spec:
     """One record of the set. ``key`` is for the manifest only; ``fixed`` holds effect parameters that only shape
     an effect (not calibrated); ``calibrate`` names the magnitudes calibrated (one per effect); ``outside`` is
     ``bump``, ``saturation``, ``drag``, ``scale``, ``pin_friction``, ``scale_factor``, ``deadband``,
-    ``kt_drift``, ``compliance`` or ``hc_damping`` (tests/outside_plant.py); ``disturbance`` one of :data:`DISTURBANCES`, added to the reading after
-    the measurement model (which is then usually off, ``noise_m=0``); ``targets`` overrides ``target`` for single
-    magnitudes (a mixed record's outside effect at 3σ beside a library effect at 2σ)."""
+    ``kt_drift``, ``compliance`` or ``hc_damping`` (tests/outside_plant.py); ``disturbance`` one of
+    :data:`DISTURBANCES`, added to the reading after the measurement model (which is then usually off,
+    ``noise_m=0``); ``targets`` overrides ``target`` for single magnitudes (a mixed record's outside effect at 3σ
+    beside a library effect at 2σ)."""
 
     key: str
     category: str  # library | pair | noise | outside | mixed

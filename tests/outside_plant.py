@@ -122,8 +122,8 @@ def x_B_of_q(q):
 class Outside:
     """Effects of this plant (all off by default): ``bump = (F_b N, x_c m, w m)``, ``drag`` N·s²/m², ``i_sat``
     A, ``scale = (a m, p m, φ rad)``, ``scale_factor`` and ``pin_mu`` (dimensionless), ``deadband`` V,
-    ``kt_drift = (d, T s)``, ``compliance = (k_s N/m, ζ)``, ``hc_damping`` N·s/m²; and the library's ``cogging = (a_cog N·m, n_cog 1/rev, φ_cog rad)`` and ``tau_c``
-    N·m."""
+    ``kt_drift = (d, T s)``, ``compliance = (k_s N/m, ζ)``, ``hc_damping`` N·s/m²; and the library's
+    ``cogging = (a_cog N·m, n_cog 1/rev, φ_cog rad)`` and ``tau_c`` N·m."""
 
     bump: tuple[float, float, float] | None = None
     i_sat: float | None = None
