@@ -11,6 +11,7 @@
 - :func:`structure_test`: is the whitened residual predicted by functions of the states or the input?
   A regression on prewhitened piecewise-constant bases (one family per signal) — the specification test that
   separates "the model misses something" from "the noise is coloured".
+- :func:`robust_portmanteau`: is a prewhitened residual white, when its level may vary along the record?
 """
 from __future__ import annotations
 
@@ -353,3 +354,22 @@ def structure_test(noise: NoiseModel | None, r: np.ndarray, bases: Mapping[str, 
                      "p_value": float(stats.chi2.sf(stat, dof)), "share": ess / (s2 * n) if s2 > 0 else 0.0,
                      "coef": coef.tolist(), "noise": nm.to_dict(), "noise_robust": nm_r.to_dict()}
     return out
+
+
+def robust_portmanteau(e: np.ndarray, lags: int, n_fitted: int = 0) -> dict:
+    """A portmanteau test that the prewhitened residual ``e`` is white, valid when its level varies along the record:
+    Q* = Σ_k r̃_k² over lags k = 1…``lags``, each lag's correlation standardised by its own spread,
+    r̃_k = Σ_t e_t·e_{t−k} / √(Σ_t e_t²·e_{t−k}²) — under white noise of any varying level each r̃_k is N(0, 1)
+    (Lobato, Nankervis and Savin's robust form of the Box–Pierce test), where Ljung–Box's σ² in the denominator
+    makes noise louder on part of the record look correlated. χ²(lags − ``n_fitted``), ``n_fitted`` the AR
+    coefficients the whitening filter took from the residual. Returns {statistic, dof, p_value, lags}."""
+    e = np.asarray(e, float) - float(np.mean(e))
+    K = int(min(max(lags, 1), e.size - 2))
+    q = 0.0
+    for k in range(1, K + 1):
+        a, b = e[k:], e[:-k]
+        spread = float(np.sum(a * a * b * b))
+        if spread > 0.0:
+            q += float(np.sum(a * b)) ** 2 / spread
+    dof = max(K - int(n_fitted), 1)
+    return {"statistic": q, "dof": dof, "p_value": float(stats.chi2.sf(q, dof)), "lags": K}
