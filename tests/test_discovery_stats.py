@@ -21,6 +21,7 @@ from toggle_id.discovery.stats import (
     robust_f,
     separation,
     structure_test,
+    robust_portmanteau,
     vuong_power,
     vuong,
 )
@@ -715,3 +716,54 @@ def test_a_noise_model_as_slow_as_the_motion_leaves_structure_and_makes_every_ac
     ripple = {"name": "cogging_torque", "own_signature": "repeats at its count without it"}
     keep, demoted = TogglePlant.explains(plant, None, [added[0], ripple], ({"slow_noise": slow}, None, None), added)
     assert keep == [ripple] and [d["name"] for d in demoted] == ["contact_nonlinear_stiffness"]
+
+
+def _ringing(n: int) -> np.ndarray:
+    """A 50-Hz ringing of 4 µm under a Gaussian envelope (a transmission's resonance on a closing stroke)."""
+    t = np.arange(n) * 1e-3
+    return 4e-6 * np.sin(2 * np.pi * 50.0 * t) * np.exp(-((t - 0.4) / 0.2) ** 2)
+
+
+def _louder_at_speed(rng: np.random.Generator, n: int = 5001) -> np.ndarray:
+    """White noise, 1 µm, three times louder on the record's first fifth (where a slider would be moving)."""
+    e = 1e-6 * rng.standard_normal(n)
+    e[: n // 5] *= 3.0
+    return e
+
+
+def test_the_robust_portmanteau_keeps_its_level_under_noise_louder_on_part_of_the_record():
+    """Independent noise whose level jumps: Ljung–Box (one σ² for the record) reads the jump as correlation, the
+    robust form does not; a ringing burst — an error the model lacks, on the loud part only — is no white noise."""
+    rng = np.random.default_rng(5)
+    p_robust, p_lb = [], []
+    for _ in range(200):
+        e = _louder_at_speed(rng)
+        p_robust.append(robust_portmanteau(e, 20)["p_value"])
+        p_lb.append(stats.chi2.sf(5001 * 5003 * np.sum(
+            [(np.dot(e[k:], e[:-k]) / np.dot(e, e)) ** 2 / (5001 - k) for k in range(1, 21)]), 20))
+    assert np.mean(np.array(p_robust) < 0.01) <= 0.03
+    assert np.mean(np.array(p_robust) < 0.05) <= 0.09
+    assert np.mean(np.array(p_lb) < 0.01) > 0.5  # measured: 82 % of the draws (the robust form: 1 %)
+    e = _louder_at_speed(rng)
+    e[:800] += _ringing(800)
+    assert robust_portmanteau(e, 20)["p_value"] < 1e-6
+
+
+def test_an_error_louder_where_the_slider_moves_is_structure_only_when_the_noise_model_cannot_whiten_it():
+    """:func:`toggle_id.discovery.residual.noise_misfit`: asked only where the level varies with the motion; white
+    noise louder there passes, a ringing error there does not; a level that varies in time alone is not asked."""
+    from toggle_id.discovery.residual import noise_misfit
+
+    rng = np.random.default_rng(11)
+    moving = {"families": {"speed": {"p_value": 1e-12}, "x_B": {"p_value": 0.4}, "t": {"p_value": 0.3}}}
+    in_time = {"families": {"speed": {"p_value": 0.5}, "x_B": {"p_value": 0.4}, "t": {"p_value": 1e-9}}}
+    loud = _louder_at_speed(rng)
+    white = NoiseModel()
+    assert noise_misfit(white, loud, moving, 20, 0.01)["applies"]
+    assert not noise_misfit(white, loud, moving, 20, 0.01)["misfit"]
+    ringing = loud.copy()
+    ringing[:800] += _ringing(800)
+    found = noise_misfit(white, ringing, moving, 20, 0.01)
+    assert found["misfit"] and found["p_value"] < 1e-6 and "does not whiten it" in found["text"]
+    assert noise_misfit(white, ringing, in_time, 20, 0.01) == {
+        "applies": False, "misfit": False, "statistic": None, "dof": None, "p_value": None, "text": ""}
