@@ -83,25 +83,18 @@ def test_the_scale_factor_error_is_in_the_reading_only():
     np.testing.assert_allclose(x - x0, 5e-4 * x0, rtol=0, atol=1e-15)  # … the reading 0.05 % long
 
 
-def test_pin_friction_acts_only_under_the_clamping_load():
+@pytest.mark.parametrize("term", [{"pin_mu": 0.01}, {"hc_damping": 1e7}])
+def test_pin_friction_and_penetration_damping_act_only_in_the_clamp(term):
+    """Pin friction grows with the clamping force, Hunt–Crossley damping with the penetration: neither acts in free
+    motion; both move x_B once the clamp closes, and vanish at zero."""
     rec = Record.from_cycling(duration=2.0)
     x0, _, info0 = simulate_outside(ASSIGNED, rec)
-    x, _, info = simulate_outside(ASSIGNED, rec, Outside(pin_mu=0.01))
+    x, _, info = simulate_outside(ASSIGNED, rec, Outside(**term))
     assert info0["status"] == info["status"] == 0 and info["contacts"] >= 1
     first = np.argmax(x0 >= 0.056)
-    assert np.max(np.abs(x - x0)[:first]) < 1e-12  # free motion: no clamping force, no pin friction
+    assert np.max(np.abs(x - x0)[:first]) < 1e-12  # free motion: no clamping force, no penetration
     assert np.max(np.abs(x - x0)[first:]) > 2e-6  # in the clamp and after it
-
-
-def test_penetration_damping_acts_only_in_the_clamp():
-    rec = Record.from_cycling(duration=2.0)
-    x0, _, info0 = simulate_outside(ASSIGNED, rec)
-    x, _, info = simulate_outside(ASSIGNED, rec, Outside(hc_damping=1e7))
-    assert info0["status"] == info["status"] == 0 and info["contacts"] >= 1
-    first = np.argmax(x0 >= 0.056)
-    assert np.max(np.abs(x - x0)[:first]) < 1e-12  # free motion: no contact, no damping
-    assert np.max(np.abs(x - x0)[first:]) > 2e-6  # in the clamp and after it
-    off, _, _ = simulate_outside(ASSIGNED, rec, Outside(hc_damping=0.0))
+    off, _, _ = simulate_outside(ASSIGNED, rec, Outside(**{k: 0.0 for k in term}))
     assert np.max(np.abs(off - x0)) < 1e-12
 
 
