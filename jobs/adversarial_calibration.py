@@ -15,8 +15,7 @@ from jobs.adversarial_specs import DURATION, HELD, Spec
 #: First guesses of the calibration (a magnitude of about the right order on the 5-s records).
 GUESS = {"tau_c": 1.5, "F_s": 150.0, "c_B": 3000.0, "tau_d": 5e-4, "b_l": 2e-5, "a_cog": 0.1, "F_load": 150.0,
          "k3": 1e12, "x_off": 1.5e-5, "F_b": 20.0, "i_sat": 3000.0, "c_q": 5000.0, "a_s": 2e-6, "pin_mu": 0.005,
-         "e_s": 5e-4, "v_db": 2e-3, "d_kt": 5e-3,
-         "c_k": 1e-9, "l_hc": 5e7}
+         "e_s": 5e-4, "v_db": 2e-3, "d_kt": 5e-3, "c_k": 1e-9, "l_hc": 5e7}
 
 
 
