@@ -253,6 +253,18 @@ LEVEL_FAMILIES = {"speed": ("xdot_B", True, "slider B speed", 1e3, "mm/s"),
                   "t": ("t", False, "time", 1.0, "s")}
 
 
+def level_basis(signals: Mapping[str, np.ndarray], bins: int = 12, min_count: int = 100) -> np.ndarray | None:
+    """What the noise's level may follow, as bases (N, m) for :func:`.stats.robust_f`: the bins of each family of
+    :data:`LEVEL_FAMILIES` the ``signals`` hold (speed, position, current or force magnitude, time), side by side;
+    a bin holds at least ``min_count`` samples, so that the level in it is an average (±14 % in σ² at 100)."""
+    cols = []
+    for key, magnitude, *_ in LEVEL_FAMILIES.values():
+        if key in signals:
+            v = np.asarray(signals[key], float)
+            cols.append(piecewise_basis(np.abs(v) if magnitude else v, bins, min_count)[0])
+    return np.hstack(cols) if cols else None
+
+
 @one_blas_thread
 def noise_level(noise: NoiseModel, r: np.ndarray, signals: Mapping[str, np.ndarray], *, bins: int = 12,
                 alpha: float = 0.01) -> dict:

@@ -11,7 +11,7 @@ from .. import residuals as R
 from ..effects import ALL_INDEX
 from ..plant import GEOMETRY
 from ..simulate import STATUS_OK
-from .localise import locate, noise_level, signals_of, structure_energy, structure_removed
+from .localise import level_basis, locate, noise_level, signals_of, structure_energy, structure_removed
 from .derivatives import sensitivities
 from .model import Model, inside_bounds
 from .noise import WHITE, NoiseModel, fit_noise
@@ -42,6 +42,18 @@ def _locate(model: Model, r: np.ndarray, states: dict, settings: DiscoverSetting
     return locate(None, r, _signals(model, states), bins=settings.structure_bins, alpha=settings.alpha_diag,
                   lags=settings.ccf_lags, lag_step=settings.ccf_step, J=J, robust=settings.robust_structure,
                   fitted=fitted, fitted_noise=fitted_noise, unconverged_share=settings.unconverged_share)
+
+
+def level_of(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> np.ndarray | None:
+    """The bases of what the noise's level may follow along the trajectory of ``theta``
+    (:func:`.localise.level_basis`), for :func:`.stats.robust_f`; None with ``level_min_count`` 0 or a model that
+    cannot be simulated."""
+    if settings.level_min_count <= 0:
+        return None
+    _, states, _ = _residual(model, theta)
+    if states is None:
+        return None
+    return level_basis(_signals(model, states), settings.structure_bins, settings.level_min_count)
 
 
 def residual_report(model: Model, theta: np.ndarray, settings: DiscoverSettings, split_index: int | None,

@@ -184,6 +184,12 @@ class DiscoverSettings:
       correlation time of ~25 samples). A noise model slower than that is as slow as the motion, and a slow error
       the model lacks passes for it: structure is then left (the result unexplained) and no effect accepted under
       it is called added (:func:`.residual.slow_noise`). 0 turns the check off.
+    - level_min_count: the heteroscedasticity-robust F-test reads the noise's variance from its level along the
+      motion and time (bins of at least this many samples, :func:`.localise.level_basis`) instead of each
+      sample's squared residual alone, which a few large residuals can dominate (:func:`.stats.robust_f`;
+      100 is the tried value). 0 (the default): per sample (HC3). Opt-in until the adversarial set is re-run with
+      it: the per-sample form also blocks stand-ins whose influence sits where a missing effect leaves the residual
+      large, and the level form lets several of those through (docs/discovery.md, *Open problems*).
     """
 
     top_k: int = 3
@@ -250,6 +256,7 @@ class DiscoverSettings:
     prediction_error: bool = True
     unconverged_share: float = 0.1
     min_effective_fraction: float = 0.02
+    level_min_count: int = 0
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -311,6 +318,10 @@ class DiscoverSettings:
                 or not 0.0 <= self.min_effective_fraction < 1.0:
             raise ConfigError("discover.min_effective_fraction must lie in [0, 1), got "
                               f"{self.min_effective_fraction!r}")
+        if not isinstance(self.level_min_count, int) or isinstance(self.level_min_count, bool) \
+                or self.level_min_count < 0:
+            raise ConfigError(f"discover.level_min_count must be a non-negative integer (0: per sample), "
+                              f"got {self.level_min_count!r}")
         if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
             raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
         if not (isinstance(self.validation_material, (int, float)) and not isinstance(self.validation_material, bool)

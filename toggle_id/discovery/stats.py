@@ -46,7 +46,7 @@ def compare(noise: NoiseModel, r0: np.ndarray, r1: np.ndarray, k: int, p1: int) 
 
 
 def robust_f(F: float, noise: NoiseModel, r: np.ndarray, J: np.ndarray, new: Sequence[int],
-             rcond: float = 1e-10, change: np.ndarray | None = None) -> dict:
+             rcond: float = 1e-10, change: np.ndarray | None = None, level: np.ndarray | None = None) -> dict:
     """The F statistic ``F`` of adding the columns ``new`` of ``J`` corrected for heteroscedastic noise.
 
     The F-test takes the noise's variance as one number. When it varies along the record — an encoder or a
@@ -61,8 +61,19 @@ def robust_f(F: float, noise: NoiseModel, r: np.ndarray, J: np.ndarray, new: Seq
     correction). The linearisation can miss where a threshold effect acts (a backlash's sensitivity at its fitted
     gap is not the change from no gap), so when ``change`` — the difference of the two fits' outputs, r₀ − r₁ — is
     given, the same ratio is also taken along it, cₓ = Σwᵢ²eᵢ² / (mean(e²)·Σwᵢ²) with w the whitened change, and
-    the larger of the two is used. Only ever a second test beside the F-test: c < 1 is clipped to 1. Returns
-    {F, ratio, ratio_linear, ratio_change, p_value} with the p-value of F/c on (k, n − p) degrees of freedom."""
+    the larger of the two is used. Only ever a second test beside the F-test: c < 1 is clipped to 1.
+
+    Both ratios read the noise's variance at a sample from that sample's squared residual alone, which is sound
+    only while the new parameters' influence is spread over many samples. When it concentrates on a few — an
+    offset's column, once the other parameters are allowed for, sits in two samples of the sweep's first closing
+    stroke on rec15_d1 of the adversarial held-out draw, where the residual of a model still lacking a friction is
+    13 σ — the ratio is that handful of squared residuals (706 there: a true 15-µm offset rejected at F 1021).
+    With ``level`` (N, m), the bases of what the noise's level may follow (:func:`.localise.level_basis`: bins of
+    the motion and of time), the variance at each sample is instead the least-squares fit of the squared whitened
+    residual on them (a Breusch–Pagan auxiliary regression, floored at 1 % of the mean) and both ratios use it:
+    noise louder at speed is allowed for as before, and no single sample sets the verdict. Returns
+    {F, ratio, ratio_linear, ratio_change, p_value, variance} with the p-value of F/c on (k, n − p) degrees of
+    freedom; ``variance``: "level" or "per sample"."""
     new = [int(j) for j in new]
     k = max(len(new), 1)
     e = noise.whiten(np.asarray(r, float))[noise.order:]
@@ -71,31 +82,49 @@ def robust_f(F: float, noise: NoiseModel, r: np.ndarray, J: np.ndarray, new: Seq
     keep = np.any(X != 0.0, axis=1) | (e != 0.0)
     e, X = e[keep], X[keep]
     n, p = X.shape
+    var = _level_variance(e, np.asarray(level, float)[noise.order:][keep]) if level is not None else None
+    how = "per sample" if var is None else "level"
+    local = e * e if var is None else var
     c_change = 1.0
     if w is not None and np.all(np.isfinite(w[keep])) and float(w[keep] @ w[keep]) > 0 and float(e @ e) > 0:
         w2 = w[keep] ** 2
-        c_change = float(w2 @ (e * e)) / (float(np.mean(e * e)) * float(w2.sum()))
+        c_change = float(w2 @ local) / (float(np.mean(local)) * float(w2.sum()))
     if not new or n <= p or not np.all(np.isfinite(X)) or not np.all(np.isfinite(e)) or not F > 0:
-        return {"F": float(F), "ratio": 1.0, "ratio_linear": 1.0, "ratio_change": c_change,
+        return {"F": float(F), "ratio": 1.0, "ratio_linear": 1.0, "ratio_change": c_change, "variance": how,
                 "p_value": 1.0 if not F > 0 else float(stats.f.sf(F, k, max(n - p, 1)))}
     norms = np.linalg.norm(X, axis=0)
     norms[norms == 0.0] = 1.0
     U, s, Vt = np.linalg.svd(X / norms, full_matrices=False)
     m = s > rcond * s[0]
     U, s, Vt = U[:, m], s[m], Vt[m]
-    h = np.minimum(np.einsum("ij,ij->i", U, U), 0.99)  # leverages
     A = Vt.T / s  # (XᵀX)⁺ = A Aᵀ in the scaled coordinates
-    B = U * (e / (1.0 - h))[:, None]
+    if var is None:
+        h = np.minimum(np.einsum("ij,ij->i", U, U), 0.99)  # leverages
+        B = U * (e / (1.0 - h))[:, None]
+        s2 = float(e @ e) / (n - p)
+    else:  # the sandwich with the level's variance; its mean for the classical one (only the shape counts)
+        B = U * np.sqrt(var)[:, None]
+        s2 = float(np.mean(var))
     v_hc = (A @ (B.T @ B) @ A.T)[np.ix_(new, new)]
-    v_0 = (float(e @ e) / (n - p)) * (A @ A.T)[np.ix_(new, new)]
+    v_0 = s2 * (A @ A.T)[np.ix_(new, new)]
     try:
         c = float(np.trace(np.linalg.solve(v_0, v_hc))) / k
     except np.linalg.LinAlgError:
         c = 1.0
     c_lin = c if np.isfinite(c) else 1.0
     c = max(c_lin, c_change, 1.0)
-    return {"F": float(F / c), "ratio": c, "ratio_linear": c_lin, "ratio_change": c_change,
+    return {"F": float(F / c), "ratio": c, "ratio_linear": c_lin, "ratio_change": c_change, "variance": how,
             "p_value": float(stats.f.sf(F / c, k, n - p))}
+
+
+def _level_variance(e: np.ndarray, B: np.ndarray, floor: float = 0.01) -> np.ndarray | None:
+    """The noise's variance at each sample of the whitened residual ``e``: the least-squares fit of e² on the
+    level's bases ``B`` (rows as ``e``), at least ``floor`` times the mean of e² (None: no usable bases)."""
+    e2 = e * e
+    if B.ndim != 2 or B.shape[0] != e.size or B.shape[1] == 0 or not np.all(np.isfinite(B)) or not e2.mean() > 0:
+        return None
+    fitted = B @ np.linalg.lstsq(B, e2, rcond=1e-10)[0]
+    return np.maximum(fitted, floor * float(e2.mean()))
 
 
 def vuong(noise: NoiseModel, r_a: np.ndarray, r_b: np.ndarray, k_a: int, k_b: int, lags: int | None = None

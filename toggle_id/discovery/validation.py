@@ -35,7 +35,7 @@ from ..effects import ALL_INDEX
 from .derivatives import sensitivities
 from .model import Fit, Model, _with, fit_free, minimising_under
 from .noise import NoiseModel, fit_noise
-from .residual import leave_out_glitches
+from .residual import leave_out_glitches, level_of
 from .settings import DiscoverSettings
 from .stats import compare, f_test, out_of_sample, robust_f
 
@@ -210,7 +210,7 @@ class Judge:
         c = compare(noise, r0, r1, k, len(large.free))
         oos = out_of_sample(noise, r0, J0, r1, J1, self.s.cv_block, self.s.cv_folds)
         new = [j for j, nm in enumerate(large.free) if nm not in set(small.free)]
-        rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1)
+        rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1, level=level_of(self.model, large.theta, self.s))
         ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], oos["cv0"], oos["cv1"], c["sse0_w"], c["sse1_w"],
                       F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"], cv_z=oos["z"],
                       cv_p=oos["p_value"], level=self.level)
