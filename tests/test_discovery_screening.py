@@ -38,7 +38,8 @@ def test_settings_validate_and_reject_bad_values():
                         ({"unconverged_share": 1.0}, "unconverged_share"),
                         ({"unconverged_share": "x"}, "unconverged_share"),
                         ({"other_starts_above": 0.5}, "other_starts_above"),
-                        ({"other_starts_above": True}, "other_starts_above")]:
+                        ({"other_starts_above": True}, "other_starts_above"),
+                        ({"level_min_count": -1}, "level_min_count"), ({"level_min_count": True}, "level_min_count")]:
         with pytest.raises(ConfigError, match=needle):
             D.DiscoverSettings.from_dict(bad)
     with pytest.raises(ConfigError, match="nominal"):

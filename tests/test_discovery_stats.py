@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import signal, stats
 
-from toggle_id.discovery.localise import locate, noise_level
+from toggle_id.discovery.localise import level_basis, locate, noise_level
 from toggle_id.discovery.noise import NoiseModel, autocovariance, fit_noise, whitened_sse
 from toggle_id.discovery.stats import (
     block_cv,
@@ -234,6 +234,56 @@ def test_robust_f_keeps_its_level_under_heteroscedastic_noise_and_its_power_unde
                 robust += rob["p_value"] < 0.01
     assert naive >= 12 and robust <= 6, (naive, robust)  # 1 % of 200 is 2
     assert power_f >= 100 and power_robust >= power_f - 6, (power_f, power_robust)
+
+
+def test_robust_f_from_the_level_keeps_its_level_and_power_where_the_noise_follows_the_motion():
+    """The level form (variance from bins of the 'speed' and time) does what the per-sample form does on noise
+    whose level follows the speed: near its level on a nonsense regressor, the F-test's power on a real one."""
+    naive, robust, power_f, power_robust = 0, 0, 0, 0
+    for seed in range(200):
+        X0, z, e = heteroscedastic_case(seed)
+        X = np.column_stack([X0, z])
+        level = level_basis({"xdot_B": np.cbrt(z), "t": np.arange(N) / 1000.0})
+        effect = np.random.default_rng(1000 + seed).standard_normal(N) + 0.045 * z / z.std()
+        for y, real in ((e, False), (effect, True)):
+            r0 = y - X0 @ np.linalg.lstsq(X0, y, rcond=None)[0]
+            r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
+            res = compare(NoiseModel(), r0, r1, 1, 4)
+            rob = robust_f(res["F"], NoiseModel(), r1, X, [3], change=r0 - r1, level=level)
+            assert rob["variance"] == "level"
+            if real:
+                power_f += res["p_value"] < 0.01
+                power_robust += rob["p_value"] < 0.01
+            else:
+                naive += res["p_value"] < 0.01
+                robust += rob["p_value"] < 0.01
+    assert naive >= 12 and robust <= 6, (naive, robust)
+    assert power_f >= 100 and power_robust >= power_f - 6, (power_f, power_robust)
+
+
+def test_robust_f_from_the_level_is_not_set_by_a_few_large_residuals():
+    """A new column whose influence sits in three samples where the residual is 12 σ (a model error at an impact,
+    not louder noise): the per-sample sandwich divides F by about that 12², the level's by what the three raise
+    their bins' mean by (3·12² over ~400 samples: about 2.5); with one constant level both ratios are exactly 1."""
+    rng = np.random.default_rng(3)
+    t = np.arange(N) / 1000.0
+    X0 = np.column_stack([np.ones(N), t])
+    z = np.zeros(N)
+    z[[1200, 1201, 1202]] = 1.0
+    X = np.column_stack([X0, z])
+    y = rng.standard_normal(N)
+    y[[1200, 1201, 1202]] += 12.0 * np.array([1.0, -1.0, 1.0])
+    r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
+    change = np.zeros(N)
+    change[[1200, 1201, 1202]] = 1.0
+    level = level_basis({"xdot_B": np.sin(2 * np.pi * 2.0 * t), "t": t})
+    per_sample = robust_f(50.0, NoiseModel(), r1, X, [2], change=change)
+    by_level = robust_f(50.0, NoiseModel(), r1, X, [2], change=change, level=level)
+    assert per_sample["variance"] == "per sample" and per_sample["ratio"] > 40.0, per_sample
+    assert by_level["variance"] == "level" and by_level["ratio"] < 4.0, by_level
+    flat = robust_f(50.0, NoiseModel(), r1, X, [2], change=change, level=np.ones((N, 1)))
+    assert flat["ratio_linear"] == pytest.approx(1.0, rel=1e-9) and flat["ratio_change"] == pytest.approx(1.0)
+    assert flat["F"] == pytest.approx(50.0, rel=1e-9)
 
 
 def test_block_cv_equals_exact_cross_validation_for_a_linear_model():

@@ -59,6 +59,8 @@ class Evidence:
     F_robust: float = float("nan")
     p_robust: float = float("nan")
     hc_ratio: float = 1.0
+    #: where that factor's variance came from: "per sample" (HC3) or "level" (``discover.level_min_count``)
+    hc_variance: str = "per sample"
     #: the out-of-sample gain against the noise's spread of it and its one-sided p-value (:func:`.stats.out_of_sample`)
     cv_z: float = float("nan")
     cv_p: float = float("nan")
@@ -92,7 +94,7 @@ class Evidence:
     def to_dict(self) -> dict:
         return {"noise_model": self.noise.to_dict(), "F": self.F, "p_value": self.p_value,
                 "delta_bic": self.delta_bic, "F_robust": self.F_robust, "p_value_robust": self.p_robust,
-                "hc_ratio": self.hc_ratio, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
+                "hc_ratio": self.hc_ratio, "hc_variance": self.hc_variance, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
                 "cv_sse_w_before": self.cv0, "cv_sse_w_after": self.cv1, "cv_z": self.cv_z, "cv_p_value": self.cv_p,
                 "level": self.level,
                 "validation_sse_before_m2": self.validation0, "validation_sse_after_m2": self.validation1,
@@ -212,8 +214,8 @@ class Judge:
         new = [j for j, nm in enumerate(large.free) if nm not in set(small.free)]
         rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1, level=level_of(self.model, large.theta, self.s))
         ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], oos["cv0"], oos["cv1"], c["sse0_w"], c["sse1_w"],
-                      F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"], cv_z=oos["z"],
-                      cv_p=oos["p_value"], level=self.level)
+                      F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"], hc_variance=rob["variance"],
+                      cv_z=oos["z"], cv_p=oos["p_value"], level=self.level)
         ev.checks = {"f_test": c["p_value"] < self.level, "robust_f_test": rob["p_value"] < self.level,
                      "bic": c["delta_bic"] < 0, "cross_validation": oos["p_value"] < self.s.cv_alpha}
         if self.validation is not None:
