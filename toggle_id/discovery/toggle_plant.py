@@ -14,12 +14,12 @@ from ..residuals import glitch_text, plant_states
 from .catchall import (accepted_beside, beside_generic, catch_all, model_state, reading_needed, removal_verdict,
                        reusable)
 from .engine import Step
-from .gauge import GAUGE_HELD, domains_in_gauge, freed_with, gauge_scales, in_gauge_of
-from .model import Fit, Model, _off_values, _with, fit_free, revived
+from .gauge import domains_in_gauge, gauge_scales, in_gauge_of
+from .model import Fit, Model, _with, fit_free, revived
 from .noise import WHITE, fit_noise
 from .periodic import implausible, turns, whole_count, whole_counts
 from .forward import _iteration, _polish_with_effect, rescreened, widened_at_edge
-from .refit import Refit
+from .refit import Refit, without_effect
 from .residual import (fitting_noise, prediction_report, residual_report, residual_structure_energy,
                        structure_energy_of)
 from .scoring import CandidateScore
@@ -63,6 +63,8 @@ class TogglePlant:
         #: the noise model the loop's fits minimise under (white: least squares; ``prediction_error``: the AR model
         #: of the current model's residual less its structure, :func:`.residual.fitting_noise`)
         self.fit_noise = WHITE
+        #: the loop's fits by the set of effects they have: a model refitted without an effect starts from there too
+        self.had: dict[frozenset, Fit] = {}
 
     @property
     def has_validation(self) -> bool:
@@ -167,6 +169,7 @@ class TogglePlant:
         if step["better_null"] is not None and not added:  # a better nominal optimum: the error "before" is its
             self.baseline_fit = base
         self.iterations.append(step["record"])
+        self.had[frozenset(a["name"] for a in added)] = base
         chosen = step["chosen"]
         if chosen is None:
             return Step(base)
@@ -192,6 +195,7 @@ class TogglePlant:
         if whole:  # counts held at their whole numbers from here on
             item["held_whole"] = {nm: {"fitted": chosen.params[nm], "held_at": k, "rmse_free_m": chosen.fit.rmse(n),
                                        "rmse_held_m": after.rmse(n)} for nm, k in whole.items()}
+        self.had[frozenset(a["name"] for a in added) | {chosen.name}] = after
         self.say(f"added {chosen.name} "
                  + ", ".join(f"{nm} {after.theta[ALL_INDEX[nm]]:.4g}" for nm in EFFECTS_BY_NAME[chosen.name].names)
                  + f"; rms {after.rmse(n) * 1e6:.4g} µm")
@@ -199,7 +203,8 @@ class TogglePlant:
 
     def without(self, current: Fit, a: dict | None, added: Sequence[dict], rival: dict | None = None) -> Fit:
         self._fitting()
-        return _without(self.model, current, a and a["name"], added, self.held, self.s, rival)
+        had = self.had.get(frozenset(b["name"] for b in added) - {a["name"]}) if a and rival is None else None
+        return without_effect(self.model, current, a and a["name"], added, self.held, self.s, rival, had)
 
     def judge(self, small: Fit, large: Fit) -> Evidence:
         return self.referee.judge_pair(small, large)
@@ -476,21 +481,3 @@ def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], fre
         raise DataError("the nominal model cannot be simulated on this record from any start; fit it first")
     current.info["starts"] = report
     return current, anchor
-
-
-def _without(model: Model, current: Fit, name: str | None, added: Sequence[dict], held: Sequence[str],
-             settings: DiscoverSettings, rival: dict | None = None) -> Fit:
-    """The current model refitted with effect ``name`` switched off (and the gauge parameter it alone freed held
-    again); with ``rival`` ({name, params}), that effect switched on in its place (``name`` None: beside the
-    effects the model has), started at its ``params``."""
-    free, start = tuple(current.free), current.theta
-    if name is not None:
-        eff = EFFECTS_BY_NAME[name]
-        others = {s for b in added if b["name"] != name for s in EFFECTS_BY_NAME[b["name"]].breaks}
-        rehold = {GAUGE_HELD[s] for s in eff.breaks if s not in others and GAUGE_HELD[s] in held}
-        free = tuple(nm for nm in free if nm not in eff.names and nm not in rehold)
-        start = _with(start, _off_values(eff))
-    if rival is not None:
-        free = freed_with(free, EFFECTS_BY_NAME[rival["name"]], held)
-        start = _with(start, rival["params"])
-    return fit_free(model, start, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
