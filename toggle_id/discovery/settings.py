@@ -190,6 +190,9 @@ class DiscoverSettings:
       100 is the tried value). 0 (the default): per sample (HC3). Opt-in until the adversarial set is re-run with
       it: the per-sample form also blocks stand-ins whose influence sits where a missing effect leaves the residual
       large, and the level form lets several of those through (docs/discovery.md, *Open problems*).
+    - pe_guard_alpha: with ``prediction_error``, a prediction-error fit whose raw SSE exceeds the least-squares
+      fit it started from by more than the noise allows at this level (:func:`.noise.prediction_error_drift`) is
+      refused and the route fits by least squares. 0 (the default): off; opt-in until the set is re-run with it.
     """
 
     top_k: int = 3
@@ -257,6 +260,7 @@ class DiscoverSettings:
     unconverged_share: float = 0.1
     min_effective_fraction: float = 0.02
     level_min_count: int = 0
+    pe_guard_alpha: float = 0.0
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -322,6 +326,9 @@ class DiscoverSettings:
                 or self.level_min_count < 0:
             raise ConfigError(f"discover.level_min_count must be a non-negative integer (0: per sample), "
                               f"got {self.level_min_count!r}")
+        if isinstance(self.pe_guard_alpha, bool) or not isinstance(self.pe_guard_alpha, (int, float)) \
+                or not 0.0 <= self.pe_guard_alpha < 1.0:
+            raise ConfigError(f"discover.pe_guard_alpha must lie in [0, 1) (0: off), got {self.pe_guard_alpha!r}")
         if not (isinstance(self.explain_fraction, (int, float)) and 0.0 < float(self.explain_fraction) < 1.0):
             raise ConfigError(f"discover.explain_fraction must lie in (0, 1), got {self.explain_fraction!r}")
         if not (isinstance(self.validation_material, (int, float)) and not isinstance(self.validation_material, bool)

@@ -16,7 +16,7 @@ from .catchall import (accepted_beside, beside_generic, catch_all, model_state, 
 from .engine import Step
 from .gauge import domains_in_gauge, gauge_scales, in_gauge_of
 from .model import Fit, Model, _with, fit_free, revived
-from .noise import WHITE, fit_noise
+from .noise import WHITE, fit_noise, prediction_error_drift
 from .periodic import implausible, turns, whole_count, whole_counts
 from .forward import _iteration, _polish_with_effect, rescreened, widened_at_edge
 from .refit import Refit, without_effect
@@ -132,6 +132,11 @@ class TogglePlant:
             return fit
         out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
         out.info["starts"] = fit.info.get("starts")
+        drift = prediction_error_drift(fit, out, noise, self.s.pe_guard_alpha)
+        if drift is not None:  # the noise model holds what the model lacks: this route fits by least squares
+            self.model.noise = self.fit_noise = WHITE
+            self.say(f"  prediction-error fit under {noise.describe()} refused: {drift}; least squares from here")
+            return fit
         self.say(f"  prediction-error fit under the noise model of its residual less what the states express, "
                  f"{noise.describe()}: rms {out.rmse(self.model.n) * 1e6:.4g} µm (before "
                  f"{fit.rmse(self.model.n) * 1e6:.4g} µm)")
