@@ -133,9 +133,10 @@ class TogglePlant:
         out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
         out.info["starts"] = fit.info.get("starts")
         drift = prediction_error_drift(fit, out, noise, self.s.pe_guard_alpha)
-        if drift is not None:  # the noise model holds what the model lacks: this route fits by least squares
+        if drift is not None:  # the noise model holds what the model lacks: least squares (asked again next model)
             self.model.noise = self.fit_noise = WHITE
-            self.say(f"  prediction-error fit under {noise.describe()} refused: {drift}; least squares from here")
+            self.say(f"  prediction-error fit under {noise.describe()} refused: {drift}; this model stays fitted "
+                     "by least squares")
             return fit
         self.say(f"  prediction-error fit under the noise model of its residual less what the states express, "
                  f"{noise.describe()}: rms {out.rmse(self.model.n) * 1e6:.4g} µm (before "
