@@ -213,19 +213,23 @@ def test_robust_f_matches_the_textbook_hc3_sandwich_for_one_new_column():
     assert along["ratio"] == pytest.approx(max(out["ratio"], along["ratio_change"], 1.0), rel=1e-10)
 
 
-def test_robust_f_keeps_its_level_under_heteroscedastic_noise_and_its_power_under_white_noise():
+@pytest.mark.parametrize("form", ["per sample", "level"])
+def test_robust_f_keeps_its_level_under_heteroscedastic_noise_and_its_power_under_white_noise(form):
     """Nonsense regressor where the noise is loud: the F-test rejects far too often, the robust one at about its
-    level; a real effect under white noise is found as often by both."""
+    level; a real effect under white noise is found as often by both. The same with the variance from the level
+    (bins of the 'speed' and of time, ``discover.level_min_count``) as per sample."""
     naive, robust, power_f, power_robust = 0, 0, 0, 0
     for seed in range(200):
         X0, z, e = heteroscedastic_case(seed)
         X = np.column_stack([X0, z])
+        level = level_basis({"xdot_B": np.cbrt(z), "t": np.arange(N) / 1000.0}) if form == "level" else None
         effect = np.random.default_rng(1000 + seed).standard_normal(N) + 0.045 * z / z.std()
         for y, real in ((e, False), (effect, True)):
             r0 = y - X0 @ np.linalg.lstsq(X0, y, rcond=None)[0]
             r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
             res = compare(NoiseModel(), r0, r1, 1, 4)
-            rob = robust_f(res["F"], NoiseModel(), r1, X, [3], change=r0 - r1)
+            rob = robust_f(res["F"], NoiseModel(), r1, X, [3], change=r0 - r1, level=level)
+            assert rob["variance"] == form
             if real:
                 power_f += res["p_value"] < 0.01
                 power_robust += rob["p_value"] < 0.01
@@ -233,31 +237,6 @@ def test_robust_f_keeps_its_level_under_heteroscedastic_noise_and_its_power_unde
                 naive += res["p_value"] < 0.01
                 robust += rob["p_value"] < 0.01
     assert naive >= 12 and robust <= 6, (naive, robust)  # 1 % of 200 is 2
-    assert power_f >= 100 and power_robust >= power_f - 6, (power_f, power_robust)
-
-
-def test_robust_f_from_the_level_keeps_its_level_and_power_where_the_noise_follows_the_motion():
-    """The level form (variance from bins of the 'speed' and time) does what the per-sample form does on noise
-    whose level follows the speed: near its level on a nonsense regressor, the F-test's power on a real one."""
-    naive, robust, power_f, power_robust = 0, 0, 0, 0
-    for seed in range(200):
-        X0, z, e = heteroscedastic_case(seed)
-        X = np.column_stack([X0, z])
-        level = level_basis({"xdot_B": np.cbrt(z), "t": np.arange(N) / 1000.0})
-        effect = np.random.default_rng(1000 + seed).standard_normal(N) + 0.045 * z / z.std()
-        for y, real in ((e, False), (effect, True)):
-            r0 = y - X0 @ np.linalg.lstsq(X0, y, rcond=None)[0]
-            r1 = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
-            res = compare(NoiseModel(), r0, r1, 1, 4)
-            rob = robust_f(res["F"], NoiseModel(), r1, X, [3], change=r0 - r1, level=level)
-            assert rob["variance"] == "level"
-            if real:
-                power_f += res["p_value"] < 0.01
-                power_robust += rob["p_value"] < 0.01
-            else:
-                naive += res["p_value"] < 0.01
-                robust += rob["p_value"] < 0.01
-    assert naive >= 12 and robust <= 6, (naive, robust)
     assert power_f >= 100 and power_robust >= power_f - 6, (power_f, power_robust)
 
 
