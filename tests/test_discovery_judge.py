@@ -155,6 +155,7 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
         return Fit(start, tuple(free), 4.0, noise=m.noise)
 
     monkeypatch.setattr(TP, "fit_free", fake_fit_free)
+    monkeypatch.setattr("toggle_id.discovery.refit.fit_free", fake_fit_free)  # the refits without an effect
     monkeypatch.setattr(TP, "_polish_with_effect", lambda m, chosen, *a, **k: Fit(theta, ("mu", "x_off"), 3.0,
                                                                               noise=m.noise))
     # the stand-in model has no record to read its noise off: the profile of the added effect (forward.rescreened,
