@@ -115,8 +115,8 @@ def noise_misfit(noise: NoiseModel, r: np.ndarray, level: dict, lags: int, alpha
     transmission on the sweep's one closing stroke, measured on rec48 of the adversarial set: σ 3.0 µm at speed
     against 1.6 µm at rest, the robust portmanteau at p 9e-65 on its first run's final fit, where the final fits of
     the held-out draw's in-library and noise records give p ≥ 0.027 (the 1-µm encoder's 4e-4, whose level does not
-    follow the motion, is not asked) — fails it: then structure is left, whatever the robust statistic said. Returns {applies, misfit,
-    statistic, dof, p_value, text}."""
+    follow the motion, is not asked) — fails it: then structure is left, whatever the robust statistic said.
+    Returns {applies, misfit, statistic, dof, p_value, text}."""
     fams = level.get("families") or {}
     gate = alpha / max(len(fams), 1)
     moving = [k for k in MOTION_LEVELS if k in fams and fams[k]["p_value"] < gate]

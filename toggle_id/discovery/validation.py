@@ -94,7 +94,8 @@ class Evidence:
     def to_dict(self) -> dict:
         return {"noise_model": self.noise.to_dict(), "F": self.F, "p_value": self.p_value,
                 "delta_bic": self.delta_bic, "F_robust": self.F_robust, "p_value_robust": self.p_robust,
-                "hc_ratio": self.hc_ratio, "hc_variance": self.hc_variance, "sse_w_before": self.sse0_w, "sse_w_after": self.sse1_w,
+                "hc_ratio": self.hc_ratio, "hc_variance": self.hc_variance, "sse_w_before": self.sse0_w,
+                "sse_w_after": self.sse1_w,
                 "cv_sse_w_before": self.cv0, "cv_sse_w_after": self.cv1, "cv_z": self.cv_z, "cv_p_value": self.cv_p,
                 "level": self.level,
                 "validation_sse_before_m2": self.validation0, "validation_sse_after_m2": self.validation1,
@@ -111,6 +112,7 @@ class Judge:
         self.validation = Model(validation, model.settings, model.parallel) if validation is not None else None
         self._cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
         self._val: dict[bytes, float] = {}
+        self._levels: dict[bytes, np.ndarray | None] = {}
         #: how many candidates the comparison being judged was chosen among (:attr:`level`; set by the forward step)
         self.family = 1
         #: the glitches of the measurement left out of both records (:func:`.residual.leave_out_glitches`; None:
@@ -131,6 +133,7 @@ class Judge:
         self.glitches = [g for m in models for g in [leave_out_glitches(m, theta, self.s.glitch_k)] if g is not None]
         self._cache.clear()
         self._val.clear()
+        self._levels.clear()
         return any(g["count"] for g in self.glitches)
 
     def _key(self, fit: Fit) -> bytes:
@@ -143,6 +146,14 @@ class Judge:
             J = sensitivities(self.model, fit.theta, fit.free, self.s.jac_rel_step)
             self._cache[key] = (r, J)
         return self._cache[key]
+
+    def level_basis(self, fit: Fit) -> np.ndarray | None:
+        """What the noise's level may follow along ``fit``'s trajectory (:func:`.residual.level_of`), once per fit:
+        its whitened refits and the loop's fit of one model are judged more than once."""
+        key = self._key(fit)
+        if key not in self._levels:
+            self._levels[key] = level_of(self.model, fit.theta, self.s)
+        return self._levels[key]
 
     def residual(self, fit: Fit) -> np.ndarray:
         """The residual of ``fit`` on the record: the cached one of a fit already judged, else one simulation."""
@@ -212,7 +223,7 @@ class Judge:
         c = compare(noise, r0, r1, k, len(large.free))
         oos = out_of_sample(noise, r0, J0, r1, J1, self.s.cv_block, self.s.cv_folds)
         new = [j for j, nm in enumerate(large.free) if nm not in set(small.free)]
-        rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1, level=level_of(self.model, large.theta, self.s))
+        rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1, level=self.level_basis(large))
         ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], oos["cv0"], oos["cv1"], c["sse0_w"], c["sse1_w"],
                       F_robust=rob["F"], p_robust=rob["p_value"], hc_ratio=rob["ratio"], hc_variance=rob["variance"],
                       cv_z=oos["z"], cv_p=oos["p_value"], level=self.level)
