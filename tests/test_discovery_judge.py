@@ -387,3 +387,61 @@ def test_a_model_without_an_effect_also_starts_from_the_loops_own_fit_of_it(monk
         plant.had[frozenset()] = Fit(had, ("J_m", "R_s"), had_j)
         out = plant.without(current, added[0], added)
         assert len(starts) == 2 and out.theta[ALL_INDEX["J_m"]] == kept and out.free == ("J_m", "R_s")
+
+
+def test_a_noise_model_that_is_an_error_the_model_lacks_is_not_whitened_by(monkeypatch):
+    """With ``pe_guard_alpha``, a nested comparison whose larger model's prediction-error refit drifts from its
+    least-squares fit beyond the noise (:func:`.noise.prediction_error_drift`) is judged on the loop's own
+    least-squares fits, unwhitened, with the F-test and BIC deflated by the residual's serial correlation
+    (:func:`.stats.serial_ratio`); within the bound, or with the guard off, the whitened refits are judged as before."""
+    from toggle_id.discovery import validation as V
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.noise import NoiseModel
+    from toggle_id.discovery.settings import DiscoverSettings
+    from toggle_id.discovery.stats import serial_ratio
+
+    n, rho = 2000, 0.8
+    ar = NoiseModel((rho,), 1.0, 1.0 / (1 - rho ** 2), n)
+    rng = np.random.default_rng(3)
+    r1 = np.zeros(n)
+    for i in range(1, n):  # a slow residual: what whitening would call noise
+        r1[i] = rho * r1[i - 1] + rng.standard_normal()
+    t = np.linspace(0.0, 1.0, n)
+    J1 = np.column_stack([np.ones(n), np.sin(2 * np.pi * t)])
+    theta = extend(ASSIGNED)[0]
+    small, large = Fit(theta, ("mu",), sse=1.2 * float(r1 @ r1)), Fit(theta, ("mu", "x_off"), sse=float(r1 @ r1))
+    drift_to = {}
+
+    def fake_fit_free(model, start, names, *a, **k):  # the whitened refits; the larger one's raw SSE as set
+        return Fit(start.copy(), tuple(names), sse=1.0, raw_sse=drift_to.get(len(names), 1.0), noise=ar)
+
+    asked = []
+
+    def evidence(s, lg, noise):
+        asked.append((s, lg, noise))
+        return V.Evidence(noise, 60.0, 1e-12, -50.0, 1.0, 0.9, s.sse, lg.sse,
+                          checks={"f_test": True, "robust_f_test": True, "bic": True, "cross_validation": True})
+
+    for guard, excess, serial in ((1e-3, 1e3, True), (1e-3, 1e-6, False), (0.0, 1e3, False)):
+        monkeypatch.setattr(V, "fit_free", fake_fit_free)
+        monkeypatch.setattr(V, "fit_noise", lambda r, order: ar)
+        judge = V.Judge(type("M", (), {"noise": V.WHITE, "settings": None, "parallel": False, "n": n})(),
+                        DiscoverSettings(pe_guard_alpha=guard))
+        monkeypatch.setattr(judge, "residual_and_jacobian", lambda fit: (r1, J1))
+        monkeypatch.setattr(judge, "evidence", evidence)
+        monkeypatch.setattr(judge, "_reported_gain", lambda s, lg: True)
+        drift_to[2] = large.sse + excess * ar.peak_spectrum
+        asked.clear()
+        ev = judge.judge_pair(small, large)
+        if serial:
+            assert asked == [(small, large, V.WHITE)]  # the loop's own fits, unwhitened
+            c = serial_ratio(r1, J1, [1])["ratio"]
+            assert c > 3.0  # AR(1) 0.8 and a slow column: about (1 + ρ)/(1 − ρ) = 9
+            assert ev.inference == "least squares (HAC)" and "not noise" in ev.drift and ev.noise is ar
+            assert ev.F == pytest.approx(60.0 / c) and ev.hc_ratio == pytest.approx(c)
+            assert ev.delta_bic == pytest.approx((n / c) * np.log(1 / 1.2) + np.log(n / c))
+            assert ev.checks["f_test"] == (ev.p_value < judge.level) and ev.checks["robust_f_test"] == ev.checks["f_test"]
+            assert ev.to_dict()["inference"] == "least squares (HAC)"
+        else:
+            assert len(asked) == 1 and asked[0][0] is not small and asked[0][2] is ar  # the whitened refits
+            assert ev.inference == "prewhitened" and ev.drift is None

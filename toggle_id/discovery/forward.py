@@ -107,6 +107,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         ev = rf.evidence
         hc = ev.get("hc_ratio", 1.0) or 1.0
         robust = f" (robust p {ev.get('p_value_robust', np.nan):.3g}, ×{hc:.3g})" if hc > 1.2 else ""
+        if ev.get("inference", "prewhitened") != "prewhitened":  # Judge.serial_evidence
+            robust = f" (least squares, serial correlation ×{hc:.3g}: its noise model is an error the model lacks)"
         say(f"  refit {eff.name}: rms {(rf.fit.rmse(n) if rf.fit else np.inf) * 1e6:.4g} µm, F {rf.F:.3g}, "
             f"p {rf.p_value:.3g}{robust}, ΔBIC {rf.delta_bic:.4g}, "
             f"out of sample {ev.get('cv_sse_w_before', np.nan):.4g} → "

@@ -192,8 +192,10 @@ class DiscoverSettings:
       large, and the level form lets several of those through (docs/discovery.md, *Open problems*).
     - pe_guard_alpha: with ``prediction_error``, a prediction-error fit whose raw SSE exceeds the least-squares
       fit it started from by more than the noise allows at this level (:func:`.noise.prediction_error_drift`) is
-      refused and that model is fitted by least squares (asked again of the next). 0 (the default): off; opt-in
-      until the set is re-run with it.
+      refused and that model is fitted by least squares (asked again of the next); and the judge, when the larger
+      model's refit under the noise model of its residual drifts so, judges the loop's least-squares fits unwhitened
+      with the F-test and BIC deflated by the residual's serial correlation (:meth:`.validation.Judge.serial_evidence`).
+      0 (the default): off; opt-in until the set is re-run with it.
     """
 
     top_k: int = 3
