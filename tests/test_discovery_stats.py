@@ -872,3 +872,24 @@ def test_serial_ratio_is_the_newey_west_sandwich_and_restores_the_f_tests_level_
         rates[rho] = (plain / 300, corrected / 300)
     assert rates[0.0][1] <= 0.08 and rates[0.0][0] - rates[0.0][1] <= 0.03, rates  # white: next to no correction
     assert rates[0.7][0] >= 0.25 and rates[0.7][1] <= 0.12, rates
+
+
+def test_the_stationary_block_cv_agrees_at_the_optimum_and_credits_no_step_the_fit_left_undone():
+    """``stats.block_cv(stationary=True)``: at the least-squares optimum of a linear model both forms give the
+    same held-out errors (each the exact leave-blocks-out refit); from a point off the optimum the step form
+    re-estimates every fold towards the optimum the fit did not reach, and its held-out error drops below the
+    in-sample error, while the stationary form's stays above it (a fold is never predicted better than fitted)."""
+    from toggle_id.discovery.stats import block_cv
+
+    rng = np.random.default_rng(5)
+    n = 1200
+    X = np.column_stack([np.ones(n), np.linspace(0, 1, n), rng.standard_normal(n)])
+    y = X @ np.array([1.0, -2.0, 0.5]) + 0.1 * rng.standard_normal(n)
+    white = NoiseModel()
+    r = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
+    a, b = block_cv(white, r, X, 10, 5), block_cv(white, r, X, 10, 5, stationary=True)
+    assert np.allclose(a["errors_w"], b["errors_w"], rtol=1e-9, atol=1e-12)
+    assert b["cv_sse_w"] > b["in_sse_w"]
+    off = r + X @ np.array([0.0, 0.3, 0.0])  # a fit stopped short of the optimum along one direction
+    a, b = block_cv(white, off, X, 10, 5), block_cv(white, off, X, 10, 5, stationary=True)
+    assert a["cv_sse_w"] < a["in_sse_w"] and b["cv_sse_w"] > b["in_sse_w"]
