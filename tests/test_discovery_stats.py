@@ -879,7 +879,7 @@ def test_the_stationary_block_cv_agrees_at_the_optimum_and_credits_no_step_the_f
     same held-out errors (each the exact leave-blocks-out refit); from a point off the optimum the step form
     re-estimates every fold towards the optimum the fit did not reach, and its held-out error drops below the
     in-sample error, while the stationary form's stays above it (a fold is never predicted better than fitted)."""
-    from toggle_id.discovery.stats import block_cv
+    from toggle_id.discovery.stats import block_cv, fold_of
 
     rng = np.random.default_rng(5)
     n = 1200
@@ -889,6 +889,12 @@ def test_the_stationary_block_cv_agrees_at_the_optimum_and_credits_no_step_the_f
     r = y - X @ np.linalg.lstsq(X, y, rcond=None)[0]
     a, b = block_cv(white, r, X, 10, 5), block_cv(white, r, X, 10, 5, stationary=True)
     assert np.allclose(a["errors_w"], b["errors_w"], rtol=1e-9, atol=1e-12)
+    fold = fold_of(n, 10, 5)  # the reference: each fold predicted by the least-squares fit of the others
+    ref = np.empty(n)
+    for k in range(5):
+        t = fold == k
+        ref[t] = y[t] - X[t] @ np.linalg.lstsq(X[~t], y[~t], rcond=None)[0]
+    assert np.allclose(b["errors_w"], ref, rtol=1e-8, atol=1e-12)
     assert b["cv_sse_w"] > b["in_sse_w"]
     off = r + X @ np.array([0.0, 0.3, 0.0])  # a fit stopped short of the optimum along one direction
     a, b = block_cv(white, off, X, 10, 5), block_cv(white, off, X, 10, 5, stationary=True)
