@@ -60,8 +60,9 @@ class DiscoverSettings:
       any drop — 0.05 refused rec06's true Coulomb friction, F 72, z 1.2); cv_form: how a fold's fit is re-estimated
       from the other folds (:func:`.stats.block_cv`): "step", a Gauss–Newton step on them (the default), or
       "stationary", the fit taken as the optimum of its own data — the two agree for a fit at its optimum, and the
-      second does not credit the folds with what a fit stopped in a curved valley left undone (opt-in until the
-      adversarial set is re-run with it); bonferroni: a forward step chooses among
+      second does not credit the folds with what a fit stopped in a curved valley left undone (opt-in: on rec15_d1
+      of the held-out draw it blew up along the nominal parameters' near-null directions, docs/discovery.md, *Open
+      problems*); bonferroni: a forward step chooses among
       the m candidates it has left, so its judge's F-tests are at ``alpha``/m (false: at ``alpha``, as before
       2026-12-03); structure_bins: bins per signal of
       the structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
@@ -198,8 +199,9 @@ class DiscoverSettings:
       fit it started from by more than the noise allows at this level (:func:`.noise.prediction_error_drift`) is
       refused and that model is fitted by least squares (asked again of the next); and the judge, when the larger
       model's refit under the noise model of its residual drifts so, judges the loop's least-squares fits unwhitened
-      with the F-test and BIC deflated by the residual's serial correlation (:meth:`.validation.Judge.serial_evidence`).
-      0 (the default): off; opt-in until the set is re-run with it.
+      with the F-test and BIC deflated by the residual's serial correlation (:meth:`.validation.Judge.serial_evidence`;
+      on rec15_d1 it found the true offset and then let two stand-ins through). 0 (the default): off; opt-in until
+      the set is re-run with it.
     """
 
     top_k: int = 3
