@@ -61,7 +61,7 @@ class DiscoverSettings:
       from the other folds (:func:`.stats.block_cv`): "step", a Gauss–Newton step on them (the default), or
       "stationary", the fit taken as the optimum of its own data — the two agree for a fit at its optimum, and the
       second does not credit the folds with what a fit stopped in a curved valley left undone (opt-in: on rec15_d1
-      of the held-out draw it blew up along the nominal parameters' near-null directions, docs/discovery.md, *Open
+      of the held-out draw it blew up along the nominal parameters' sloppy directions, docs/discovery.md, *Open
       problems*); bonferroni: a forward step chooses among
       the m candidates it has left, so its judge's F-tests are at ``alpha``/m (false: at ``alpha``, as before
       2026-12-03); structure_bins: bins per signal of
