@@ -41,7 +41,7 @@ def test_settings_validate_and_reject_bad_values():
                         ({"other_starts_above": True}, "other_starts_above"),
                         ({"level_min_count": -1}, "level_min_count"), ({"level_min_count": True}, "level_min_count"),
                         ({"pe_guard_alpha": 1.0}, "pe_guard_alpha"), ({"pe_guard_alpha": "x"}, "pe_guard_alpha"),
-                        ({"cv_form": "refit"}, "cv_form")]:
+                        ({"cv_rcond": 0.0}, "cv_rcond"), ({"cv_rcond": True}, "cv_rcond")]:
         with pytest.raises(ConfigError, match=needle):
             D.DiscoverSettings.from_dict(bad)
     with pytest.raises(ConfigError, match="nominal"):

@@ -57,12 +57,11 @@ class DiscoverSettings:
       cross-validation an effect must lower the out-of-sample error of (short blocks: the whitened errors are
       nearly independent, and long blocks would take a whole transient out); cv_alpha: level of the one-sided
       test the drop must pass against the noise's spread of it (:func:`.stats.out_of_sample`; 0.5, the default:
-      any drop — 0.05 refused rec06's true Coulomb friction, F 72, z 1.2); cv_form: how a fold's fit is re-estimated
-      from the other folds (:func:`.stats.block_cv`): "step", a Gauss–Newton step on them (the default), or
-      "stationary", the fit taken as the optimum of its own data — the two agree for a fit at its optimum, and the
-      second does not credit the folds with what a fit stopped in a curved valley left undone (opt-in: on rec15_d1
-      of the held-out draw it blew up along the nominal parameters' sloppy directions, docs/discovery.md, *Open
-      problems*); bonferroni: a forward step chooses among
+      any drop — 0.05 refused rec06's true Coulomb friction, F 72, z 1.2); cv_rcond: where the cross-validation's
+      linearised refit of a fold is truncated, relative to the largest singular value of the sensitivities
+      (:func:`.stats.block_cv`; 1e-8, the default, keeps directions finer than the finite differences resolve: on
+      rec15_d1 of the held-out draw 1e-4 to 1e-3 brings it near a refit of every fold; opt-in until the adversarial
+      set is re-run with it); bonferroni: a forward step chooses among
       the m candidates it has left, so its judge's F-tests are at ``alpha``/m (false: at ``alpha``, as before
       2026-12-03); structure_bins: bins per signal of
       the structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
@@ -236,7 +235,7 @@ class DiscoverSettings:
     cv_folds: int = 5
     cv_block: int = 10
     cv_alpha: float = 0.5
-    cv_form: str = "step"
+    cv_rcond: float = 1e-8
     bonferroni: bool = True
     structure_bins: int = 12
     scout_all: bool = True
@@ -325,8 +324,9 @@ class DiscoverSettings:
         if isinstance(self.cv_alpha, bool) or not isinstance(self.cv_alpha, (int, float)) \
                 or not 0.0 < float(self.cv_alpha) <= 0.5:
             raise ConfigError(f"discover.cv_alpha must lie in (0, 0.5], got {self.cv_alpha!r}")
-        if self.cv_form not in ("step", "stationary"):
-            raise ConfigError(f"discover.cv_form must be 'step' or 'stationary', got {self.cv_form!r}")
+        if isinstance(self.cv_rcond, bool) or not isinstance(self.cv_rcond, (int, float)) \
+                or not 0.0 < float(self.cv_rcond) < 1.0:
+            raise ConfigError(f"discover.cv_rcond must lie in (0, 1), got {self.cv_rcond!r}")
         if isinstance(self.unconverged_share, bool) or not isinstance(self.unconverged_share, (int, float)) \
                 or not 0.0 <= self.unconverged_share < 1.0:
             raise ConfigError(f"discover.unconverged_share must lie in [0, 1), got {self.unconverged_share!r}")

@@ -260,8 +260,7 @@ class Judge:
                             checks={"f_test": False})
         noise = self.model.noise if noise is None else noise
         c = compare(noise, r0, r1, k, len(large.free))
-        oos = out_of_sample(noise, r0, J0, r1, J1, self.s.cv_block, self.s.cv_folds,
-                            stationary=self.s.cv_form == "stationary")
+        oos = out_of_sample(noise, r0, J0, r1, J1, self.s.cv_block, self.s.cv_folds, self.s.cv_rcond)
         new = [j for j, nm in enumerate(large.free) if nm not in set(small.free)]
         rob = robust_f(c["F"], noise, r1, J1, new, change=r0 - r1, level=self.level_basis(large))
         ev = Evidence(noise, c["F"], c["p_value"], c["delta_bic"], oos["cv0"], oos["cv1"], c["sse0_w"], c["sse1_w"],
