@@ -218,13 +218,14 @@ class Judge:
         ``large``'s residual is an error the model lacks: ``large``'s prediction-error refit under it drifted from
         least squares by more than noise allows (``drift``, :func:`.noise.prediction_error_drift`, at
         ``pe_guard_alpha``). Whitening by it would let the fits drift along the missing effect and hide what lies in
-        the record's slow part (rec15_d1 of the held-out draw: a true 15-µm offset whose whitened column survives only
-        at the sweep's start and its first impact, rejected out of sample at z −15). So the fits are judged as least
+        the record's slow part (rec15_d1 of the held-out draw: a true 15-µm offset whose whitened out-of-sample gain
+        is lost at the sweep's first impact, rejected at z −15). So the fits are judged as least
         squares, with inference that allows for the residual's serial correlation instead of removing it: the F-test
         on F/c and BIC on n/c samples, c the Newey–West ratio of the new parameters (:func:`.stats.serial_ratio` —
         heteroscedasticity- and autocorrelation-consistent, so it is the robust F-test too); cross-validation and the
         validation record unwhitened (OLS with HAC inference: what stays valid when a Hausman test rejects the
-        whitened estimator)."""
+        whitened estimator). Opt-in: on rec15_d1 it accepted the true offset and then two stand-ins — the plug-in
+        bandwidth under-corrects a residual that is mostly a missing effect (docs/discovery.md, *Open problems*)."""
         ev = self.evidence(small, large, WHITE)
         ev.noise, ev.inference, ev.drift = noise, "least squares (HAC)", drift
         r1, J1 = self.residual_and_jacobian(large)
