@@ -93,12 +93,7 @@ def robust_f(F: float, noise: NoiseModel, r: np.ndarray, J: np.ndarray, new: Seq
     if not new or n <= p or not np.all(np.isfinite(X)) or not np.all(np.isfinite(e)) or not F > 0:
         return {"F": float(F), "ratio": 1.0, "ratio_linear": 1.0, "ratio_change": c_change, "variance": how,
                 "p_value": 1.0 if not F > 0 else float(stats.f.sf(F, k, max(n - p, 1)))}
-    norms = np.linalg.norm(X, axis=0)
-    norms[norms == 0.0] = 1.0
-    U, s, Vt = np.linalg.svd(X / norms, full_matrices=False)
-    m = s > rcond * s[0]
-    U, s, Vt = U[:, m], s[m], Vt[m]
-    A = Vt.T / s  # (XᵀX)⁺ = A Aᵀ in the scaled coordinates
+    U, A = _scaled_pinv(X, rcond)
     if var is None:
         h = np.minimum(np.einsum("ij,ij->i", U, U), 0.99)  # leverages
         B = U * (e / (1.0 - h))[:, None]
@@ -106,12 +101,7 @@ def robust_f(F: float, noise: NoiseModel, r: np.ndarray, J: np.ndarray, new: Seq
     else:  # the sandwich with the level's variance; its mean for the classical one (only the shape counts)
         B = U * np.sqrt(var)[:, None]
         s2 = float(np.mean(var))
-    v_hc = (A @ (B.T @ B) @ A.T)[np.ix_(new, new)]
-    v_0 = s2 * (A @ A.T)[np.ix_(new, new)]
-    try:
-        c = float(np.trace(np.linalg.solve(v_0, v_hc))) / k
-    except np.linalg.LinAlgError:
-        c = 1.0
+    c = _sandwich_ratio(A, B.T @ B, s2, new)
     c_lin = c if np.isfinite(c) else 1.0
     c = max(c_lin, c_change, 1.0)
     return {"F": float(F / c), "ratio": c, "ratio_linear": c_lin, "ratio_change": c_change, "variance": how,
@@ -138,23 +128,35 @@ def serial_ratio(r: np.ndarray, J: np.ndarray, new: Sequence[int], lags: int | N
         a = 4.0 * rho ** 2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
         lags = int(np.ceil(1.1447 * (a * n) ** (1.0 / 3.0)))
     L = int(min(max(lags, 0), n // 5))
-    norms = np.linalg.norm(X, axis=0)
-    norms[norms == 0.0] = 1.0
-    U, s, Vt = np.linalg.svd(X / norms, full_matrices=False)
-    m = s > rcond * s[0]
-    A = Vt[m].T / s[m]  # (XᵀX)⁺ = A Aᵀ in the scaled coordinates
-    S = U[:, m] * e[:, None]  # the score contributions
+    U, A = _scaled_pinv(X, rcond)
+    S = U * e[:, None]  # the score contributions
     G = S.T @ S
     for j in range(1, L + 1):
         g = S[j:].T @ S[:-j]
         G += (1.0 - j / (L + 1.0)) * (g + g.T)
-    v_hac = (A @ G @ A.T)[np.ix_(new, new)]
-    v_0 = float(e @ e) / (n - p) * (A @ A.T)[np.ix_(new, new)]
-    try:
-        c = float(np.trace(np.linalg.solve(v_0, v_hac))) / len(new)
-    except np.linalg.LinAlgError:
-        c = 1.0
+    c = _sandwich_ratio(A, G, float(e @ e) / (n - p), new)
     return {"ratio": max(c, 1.0) if np.isfinite(c) else 1.0, "lags": L, "rho": rho}
+
+
+def _scaled_pinv(X: np.ndarray, rcond: float) -> tuple[np.ndarray, np.ndarray]:
+    """The thin SVD of ``X`` with unit-norm columns, truncated at ``rcond``: (U, A) with (XᵀX)⁺ = A Aᵀ in the
+    scaled coordinates."""
+    norms = np.linalg.norm(X, axis=0)
+    norms[norms == 0.0] = 1.0
+    U, s, Vt = np.linalg.svd(X / norms, full_matrices=False)
+    m = s > rcond * s[0]
+    return U[:, m], Vt[m].T / s[m]
+
+
+def _sandwich_ratio(A: np.ndarray, meat: np.ndarray, s2: float, new: Sequence[int]) -> float:
+    """tr(V₀⁻¹V)/k over the block ``new``: V = A·meat·Aᵀ the sandwich, V₀ = s²·A Aᵀ the classical covariance
+    (:func:`robust_f`, :func:`serial_ratio`); 1 when V₀ is singular."""
+    v = (A @ meat @ A.T)[np.ix_(new, new)]
+    v_0 = s2 * (A @ A.T)[np.ix_(new, new)]
+    try:
+        return float(np.trace(np.linalg.solve(v_0, v))) / len(new)
+    except np.linalg.LinAlgError:
+        return 1.0
 
 
 def _level_variance(e: np.ndarray, B: np.ndarray, floor: float = 0.01) -> np.ndarray | None:
