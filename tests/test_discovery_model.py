@@ -176,6 +176,44 @@ def test_a_nominal_vector_moved_into_anothers_gauge_holds_its_values_and_the_sam
     assert in_gauge_of(theta, far) is None
 
 
+def test_effect_values_carried_to_a_start_at_other_scales_keep_x_B():
+    """gauge.carried: effect values fitted at one point, carried to another whose mechanism and current sit at other
+    scales, read there as the same effect — a force, torque or damping with the mechanism, the drive limit with the
+    current, c_kt with its square, a delay as it is — so the start with them simulates the same x_B as the point
+    they were fitted at, where the start is that point's symmetric image."""
+    from toggle_id.discovery.gauge import _scale, carried
+
+    rng = np.random.default_rng(12)
+    start = extend(ASSIGNED * np.exp(0.3 * rng.standard_normal(len(PARAM_NAMES))))[0]
+    truth = {"c_B": 900.0, "tau_c": 0.05, "s_sat": 0.17, "c_kt": 1e-6, "tau_d": 1e-3}
+    at = start.copy()
+    for nm, v in truth.items():
+        at[ALL_INDEX[nm]] = v
+    _scale(at, 0.3, 2.5)  # the point the values were fitted at: the mechanism ×0.3, the current ×2.5
+    fitted = {nm: float(at[ALL_INDEX[nm]]) for nm in truth}
+    assert fitted["c_B"] == pytest.approx(270.0) and fitted["tau_d"] == 1e-3  # (moved, and not)
+    back = carried(fitted, start, at)
+    assert back == pytest.approx(truth, rel=1e-9)
+    rec = Record.from_sweep("simulation", 1.0, name="carried")
+    rec.x_B = np.zeros(rec.n)  # outputs only
+    with_values = start.copy()
+    for nm, v in back.items():
+        with_values[ALL_INDEX[nm]] = v
+    y = D.Model(rec, PRECISE).outputs(np.array([at, with_values, _with_values(start, fitted)]))
+    assert np.all(np.isfinite(y)) and np.max(np.abs(y[0] - y[1])) < 1e-7  # the adaptive steps' tolerance
+    assert np.max(np.abs(y[0] - y[2])) > 1e-5  # carried unchanged, they are another effect
+    bad = start.copy()
+    bad[ALL_INDEX["D"]] = 0.0  # a scale that cannot be read: the values as they are
+    assert carried(fitted, bad, at) == fitted
+
+
+def _with_values(theta: np.ndarray, values: dict) -> np.ndarray:
+    out = theta.copy()
+    for nm, v in values.items():
+        out[ALL_INDEX[nm]] = v
+    return out
+
+
 def test_the_effects_domains_hold_at_the_reference_scale_in_any_gauge():
     """gauge.domains_in_gauge: a loop whose mechanism sits at 1.6 times the reference scale and its current at half
     of it reads a force-type magnitude's domain 1.6 times wider, a drive limit's (1/V) twice and a torque

@@ -11,7 +11,7 @@ from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME, Effect
 from ..fast import difference_noise
-from .gauge import freed_with, scale_type
+from .gauge import carried, freed_with, scale_type
 from .landscape import profile, profiled_names
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
@@ -86,7 +86,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     def refit(sc) -> None:
         added = so_far()
         take(refit_candidate(model, base, EFFECTS_BY_NAME[sc.name], sc, settings, it, judge, held,
-                             anchor=_with(anchor, added), others=[_with(st, added) for st in others],
+                             anchor=_with(anchor, added),
+                             others=[_with(st, carried(added, st, base.theta)) for st in others],
                              noise_m=noise_m))
 
     def take(rf: Refit, replaces: Refit | None = None) -> None:

@@ -98,6 +98,25 @@ def gauge_scales(theta: np.ndarray, free: Collection[str], reference: np.ndarray
     return (float(np.exp(logc[0])) if use_m else 1.0), (float(np.exp(logc[-1])) if use_e else 1.0)
 
 
+def carried(values: Mapping[str, float], start: np.ndarray, at: np.ndarray) -> dict[str, float]:
+    """Effect values fitted at ``at`` as they read at ``start``, another point of the same gauge (its held parameters
+    at ``at``'s values, :func:`in_gauge_of`) whose mechanism and current sit at other scales: each value divided by
+    the factor :func:`_scale` gives it along the scales that move ``start`` nearest ``at`` in log space
+    (:func:`gauge_scales`), so that the effect keeps its size relative to each start's own mechanism (a force, a
+    torque, a damping) and current (a drive limit, a torque saturation); the others as they are. Where the scales
+    cannot be read (a parameter not positive), the values as they are.
+
+    Measured on the held-out record rec15_d1 (a slider viscous friction and a sensor offset; the baseline at ×0.058
+    the reference mechanism, the job's reference values moved into its gauge at ×0.0093): the friction's refit,
+    c_B ≈ 300 in the baseline's gauge, carried unchanged to the reference start is six times its optimum there and
+    the polish stalls at 2.44 µm; from 3 to 100 it reaches 1.697 µm at c_B 37.4."""
+    scales = gauge_scales(start, set(MECHANICAL) | set(ELECTRICAL), at)
+    if scales is None:
+        return dict(values)
+    c_m, c_e = scales
+    return {n: float(v) / ((c_m if _force_like(n) else 1.0) * c_e ** current_power(n)) for n, v in values.items()}
+
+
 def domains_in_gauge(c_m: float, c_e: float, given: Mapping[str, Sequence[float]] | None = None
                      ) -> dict[str, tuple[float, float]]:
     """The library's feasible domains of the effect parameters that follow the mechanical or the current scale, as

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
-from .gauge import GAUGE_HELD, freed_with
+from .gauge import GAUGE_HELD, carried, freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free, minimising_under, revived
 from .noise import WHITE
 from .residual import fitting_noise
@@ -180,8 +180,8 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     out = judged(fit, dict(scout.search))
     if out.accepted and others and fit.rmse(model.n) > settings.other_starts_above * noise_m > 0.0:
         values = {nm: fit.theta[ALL_INDEX[nm]] for nm in free if nm not in base.free}
-        again = _from_other_starts(model, effect, [_with(other, values) for other in others], free, settings,
-                                   NEAR_NOISE * noise_m, fit.rmse(model.n))
+        again = _from_other_starts(model, effect, [_with(other, carried(values, other, fit.theta)) for other in others],
+                                   free, settings, NEAR_NOISE * noise_m, fit.rmse(model.n))
         report = [{"rmse_m": f.rmse(model.n), "nfev": f.info.get("nfev")} for f in again]
         lowest = min(again, key=lambda f: f.sse, default=fit)
         if lowest.sse < fit.sse:
@@ -216,8 +216,9 @@ def _judged(model: Model, base: Fit, effect: Effect, fit: Fit, search: dict, jud
 def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSettings, judge: Judge,
                       others: Sequence[np.ndarray], noise_m: float) -> Refit | None:
     """A dismissed refit ``rf`` polished once from each of ``others`` (the baseline's other starts, in its gauge,
-    with the effects added so far) with its effect at the refit's values — its magnitude, where the refit left it
-    at "off", at its profile's best grid value, else at its first probe's — until one ends within
+    with the effects added so far) with its effect at the refit's values, carried to that start's scales
+    (:func:`.gauge.carried`) — its magnitude, where the refit left it at "off", at its profile's best grid value,
+    else at its first probe's — until one ends within
     :data:`NEAR_NOISE` times ``noise_m``; the lowest, judged against ``base``, where it ends lower than ``rf``
     (None otherwise; the polishes are in ``rf.search["other_starts"]``).
 
@@ -243,13 +244,15 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
         values[mag.name] = float(best) if best is not None and best != mag.off else \
             float(effect.probe[0][mag.name])
     fits: list[Fit] = []
+    report = []
     with minimising_under(model, WHITE):  # the search by least squares (see above)
         for other in others:
-            fits.append(fit_free(model, _with(other, values), free, settings.baseline_nfev, settings.fd_rel_step,
+            at = carried(values, other, rf.fit.theta)  # the effect's values at this start's scales
+            fits.append(fit_free(model, _with(other, at), free, settings.baseline_nfev, settings.fd_rel_step,
                                  rounds=settings.rounds))
+            report.append({"rmse_m": fits[-1].rmse(model.n), "nfev": fits[-1].info.get("nfev"), "start": at})
             if fits[-1].rmse(model.n) <= NEAR_NOISE * noise_m:
                 break
-    report = [{"rmse_m": f.rmse(model.n), "nfev": f.info.get("nfev"), "start": values} for f in fits]
     lowest = min(fits, key=lambda f: f.rmse(model.n), default=None)
     if lowest is not None and not model.noise.white:
         # then a prediction-error fit as the loop's are, under the noise model of its own residual (as an accepted
