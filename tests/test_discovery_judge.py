@@ -162,7 +162,8 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
     # tests/test_landscape.py) is not this test's
     monkeypatch.setattr(TP, "rescreened", lambda m, name, fit, *a: (fit, []))
     noises, chosen = [], [None, SimpleNamespace(name="sensor_offset", F=50.0, p_value=1e-9, delta_bic=-40.0,
-                                                params={}, evidence={}, fit=Fit(theta, ("mu", "x_off"), 3.0))]
+                                                params={}, evidence={}, fit=Fit(theta, ("mu", "x_off"), 3.0),
+                                                partner=None)]
 
     def iteration(m, *a, **k):
         noises.append(m.noise)
@@ -232,7 +233,7 @@ def test_an_effect_found_under_its_own_noise_model_is_polished_under_it(monkeypa
     monkeypatch.setattr(TP, "_polish_with_effect", polish_with_effect)
     monkeypatch.setattr(TP, "rescreened", lambda m, name, fit, *a: (fit, []))  # the stand-in has no record
     found = SimpleNamespace(name="dead_time", F=50.0, p_value=1e-9, delta_bic=-40.0, params={}, evidence={},
-                            fit=Fit(theta, ("mu", "tau_d"), 3.0, noise=own))
+                            fit=Fit(theta, ("mu", "tau_d"), 3.0, noise=own), partner=None)
     monkeypatch.setattr(TP, "_iteration", lambda m, *a, **k: {
         "refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": found, "rivals": []})
     model = SimpleNamespace(n=100, noise=loops)

@@ -31,7 +31,7 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -144,6 +144,8 @@ class Step:
     base: Any
     chosen: dict | None = None
     after: Any = None
+    #: further items the step adds with ``chosen`` (effects supported only together with it), already in ``after``
+    more: list[dict] = field(default_factory=list)
 
 
 @dataclass
@@ -234,6 +236,7 @@ def forward(plant: Plant, max_effects: int | None) -> tuple[Any, list[dict]]:
             break
         current = step.after
         added.append(step.chosen)
+        added.extend(step.more)
     return current, added
 
 

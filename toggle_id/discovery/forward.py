@@ -15,6 +15,7 @@ from .gauge import carried, freed_with, scale_type
 from .landscape import profile, profiled_names
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
+from .pairs import pair_look
 from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_null, refit_candidate,
                     scout_candidate, share_of_room)
 from .scoring import assess, score_leaders, worth_refitting
@@ -171,17 +172,28 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                     break
     winners = [rf for rf in refits if rf.accepted]
     chosen = lowest_of(winners, n)
-    rivals = _rivals(judge, chosen, winners, settings) if chosen is not None else []
+    pairs: list[dict] = []
+    if settings.pair_look > 1:  # no single effect takes the record near its noise: pairs refitted together
+        near = settings.pair_above * (noise_m if noise_m > 0 else difference_noise([model.record]))
+        if chosen is None or chosen.fit.rmse(n) > near:
+            pair, pairs = pair_look(model, judge, base, refits, chosen, settings, it, held, say)
+            if pair is not None:
+                say(f"  {pair.name} and {pair.partner} together explain more than any one effect "
+                    f"({pair.fit.rmse(n) * 1e6:.4g} µm)")
+                chosen = pair
+    rivals = _rivals(judge, chosen, winners, settings) if chosen is not None and chosen.partner is None else []
     for rf in winners:
         if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
-            rf.reason = f"supported, but {chosen.name} explains more (lower SSE); judged again next iteration"
+            rf.reason = (f"supported, but {chosen.name}{' with ' + chosen.partner if chosen.partner else ''} explains "
+                         "more (lower SSE); judged again next iteration")
     if rivals:
         say(f"  {chosen.name} and " + ", ".join(r["name"] for r in rivals) + " fit this record equally well "
             "(Vuong " + ", ".join(f"z {r['vuong']['z']:.2f}" for r in rivals) + "): ambiguous")
     record = {"iteration": it, "rmse_m": base.rmse(n), "rank_J": points[0].proj.rank,
               "noise_model_of_current_residual": noise.to_dict(), "points": [pt.label for pt in points],
               "scores": [c.to_dict() for c in scores], "refits": [rf.to_dict(n) for rf in refits],
-              "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals}
+              "accepted": chosen.name if chosen else None, "indistinguishable_from": rivals,
+              **({"pairs": pairs, "accepted_with": chosen.partner if chosen else None} if pairs else {})}
     return {"scores": scores, "refits": refits, "chosen": chosen, "better_null": better_null, "record": record,
             "base": base, "rivals": rivals}
 

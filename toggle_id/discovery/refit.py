@@ -49,6 +49,8 @@ class Refit:
     std_errors: dict = field(default_factory=dict)
     seconds: float = 0.0
     evidence: dict = field(default_factory=dict)
+    #: the second effect of a pair refitted together (:mod:`.pairs`), None for a single effect
+    partner: str | None = None
 
     def judge(self, ev: Evidence, base_sse: float) -> None:
         """Take the verdict of ``ev`` (against a base fit of SSE ``base_sse``)."""
@@ -71,7 +73,8 @@ class Refit:
                 "added_params": self.k, "total_params": self.p1, "F": self.F, "p_value": self.p_value,
                 "delta_bic": self.delta_bic, "significant": self.accepted, "reason": self.reason,
                 "null_refit_sse_m2": self.null_sse, "search": self.search,
-                "polish": self.fit.info if self.fit else None, "seconds": self.seconds, "evidence": self.evidence}
+                "polish": self.fit.info if self.fit else None, "seconds": self.seconds, "evidence": self.evidence,
+                **({"partner": self.partner} if self.partner else {})}
 
 
 

@@ -194,6 +194,11 @@ class DiscoverSettings:
       100 is the tried value). 0 (the default): per sample (HC3). Opt-in until the adversarial set is re-run with
       it: the per-sample form also blocks stand-ins whose influence sits where a missing effect leaves the residual
       large, and the level form lets several of those through (docs/discovery.md, *Open problems*).
+    - pair_look: where no supported single refit of a step ends within ``pair_above`` times the record's own
+      noise (its third differences, :func:`toggle_id.fast.difference_noise`), every pair of the this many single
+      refits of lowest error is refitted together and judged (:mod:`.pairs`); a supported pair lower than the
+      step's best single effect, and significant beside it where it is one of the two, adds both. 0 (the
+      default): off. Opt-in until the adversarial set is re-run with it.
     - pe_guard_alpha: with ``prediction_error``, a prediction-error fit whose raw SSE exceeds the least-squares
       fit it started from by more than the noise allows at this level (:func:`.noise.prediction_error_drift`) is
       refused and that model is fitted by least squares (asked again of the next); and the judge, when the larger
@@ -270,6 +275,8 @@ class DiscoverSettings:
     min_effective_fraction: float = 0.02
     level_min_count: int = 0
     pe_guard_alpha: float = 0.0
+    pair_look: int = 0
+    pair_above: float = 1.2
 
     @property
     def jacobian(self) -> tuple[SolverSettings, float]:
@@ -338,6 +345,11 @@ class DiscoverSettings:
                 or self.level_min_count < 0:
             raise ConfigError(f"discover.level_min_count must be a non-negative integer (0: per sample), "
                               f"got {self.level_min_count!r}")
+        if not isinstance(self.pair_look, int) or isinstance(self.pair_look, bool) or self.pair_look < 0:
+            raise ConfigError(f"discover.pair_look must be a non-negative integer (0: off), got {self.pair_look!r}")
+        if isinstance(self.pair_above, bool) or not isinstance(self.pair_above, (int, float)) or self.pair_above < 1:
+            raise ConfigError(f"discover.pair_above must be a number ≥ 1 (times the record's noise), "
+                              f"got {self.pair_above!r}")
         if isinstance(self.pe_guard_alpha, bool) or not isinstance(self.pe_guard_alpha, (int, float)) \
                 or not 0.0 <= self.pe_guard_alpha < 1.0:
             raise ConfigError(f"discover.pe_guard_alpha must lie in [0, 1) (0: off), got {self.pe_guard_alpha!r}")

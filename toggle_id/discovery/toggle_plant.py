@@ -185,12 +185,17 @@ class TogglePlant:
             # would once the effect is added — under the old one, fitted to a residual the effect dominated, the
             # polish can whiten the effect away again
             self.model.noise = self.fit_noise = chosen.fit.noise
-        whole = whole_counts(chosen.name, chosen.fit.theta, chosen.fit.free, self.s.cogging_whole_tol)
+        names = [chosen.name] + ([chosen.partner] if chosen.partner else [])  # a pair adds both (:mod:`.pairs`)
+        whole = {k: v for nm in names for k, v in whole_counts(nm, chosen.fit.theta, chosen.fit.free,
+                                                                self.s.cogging_whole_tol).items()}
         after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say, hold=whole)
-        after, wide = widened_at_edge(self.model, chosen.name, after, self.s, self.say, self.domains)
-        self.gauge_bounds = self.model.gauge_bounds
-        self.widened.update(wide)
-        after, screened = rescreened(self.model, chosen.name, after, self.s, self.say)
+        screened = []
+        for nm in names:
+            after, wide = widened_at_edge(self.model, nm, after, self.s, self.say, self.domains)
+            self.gauge_bounds = self.model.gauge_bounds
+            self.widened.update(wide)
+            after, more = rescreened(self.model, nm, after, self.s, self.say)
+            screened += more
         if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
             after = self._under(after)
         item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
@@ -201,11 +206,17 @@ class TogglePlant:
         if whole:  # counts held at their whole numbers from here on
             item["held_whole"] = {nm: {"fitted": chosen.params[nm], "held_at": k, "rmse_free_m": chosen.fit.rmse(n),
                                        "rmse_held_m": after.rmse(n)} for nm, k in whole.items()}
-        self.had[frozenset(a["name"] for a in added) | {chosen.name}] = after
-        self.say(f"added {chosen.name} "
-                 + ", ".join(f"{nm} {after.theta[ALL_INDEX[nm]]:.4g}" for nm in EFFECTS_BY_NAME[chosen.name].names)
+        self.had[frozenset(a["name"] for a in added) | set(names)] = after
+        self.say(f"added {' and '.join(names)} "
+                 + ", ".join(f"{p} {after.theta[ALL_INDEX[p]]:.4g}" for nm in names for p in EFFECTS_BY_NAME[nm].names)
                  + f"; rms {after.rmse(n) * 1e6:.4g} µm")
-        return Step(base, item, after)
+        if chosen.partner is None:
+            return Step(base, item, after)
+        item["added_with"] = chosen.partner
+        second = {**item, "name": chosen.partner, "added_with": chosen.name,
+                  "params_at_acceptance": {p: chosen.params[p] for p in EFFECTS_BY_NAME[chosen.partner].names}}
+        item["params_at_acceptance"] = {p: chosen.params[p] for p in EFFECTS_BY_NAME[chosen.name].names}
+        return Step(base, item, after, more=[second])
 
     def without(self, current: Fit, a: dict | None, added: Sequence[dict], rival: dict | None = None) -> Fit:
         self._fitting()
