@@ -171,7 +171,8 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
                 "rivals": []}
 
     monkeypatch.setattr(TP, "_iteration", iteration)
-    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), DiscoverSettings(prediction_error=pem, glitch_k=0.0),
+    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]),
+                           DiscoverSettings(prediction_error=pem, glitch_k=0.0, other_starts_above=0.0),
                            theta, [], ("mu",), (), [], None, lambda s: None, None)
     base = plant.baseline()
     refit = pem and not white
@@ -237,8 +238,8 @@ def test_an_effect_found_under_its_own_noise_model_is_polished_under_it(monkeypa
     monkeypatch.setattr(TP, "_iteration", lambda m, *a, **k: {
         "refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": found, "rivals": []})
     model = SimpleNamespace(n=100, noise=loops)
-    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), DiscoverSettings(glitch_k=0.0), theta, [], ("mu",),
-                           (), [], None, lambda s: None, None)
+    plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), DiscoverSettings(glitch_k=0.0, other_starts_above=0.0),
+                           theta, [], ("mu",), (), [], None, lambda s: None, None)
     plant.fit_noise = loops
     step = plant.forward_step(Fit(theta, ("mu",), 4.0, noise=loops), [], 1)
     assert under == [own]  # not the loop's

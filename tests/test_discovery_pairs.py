@@ -132,7 +132,8 @@ def test_a_supported_pair_adds_both_effects_in_one_step(monkeypatch):
         "refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": next(steps),
         "rivals": []})
     plant = TP.TogglePlant(SimpleNamespace(n=N, noise=WHITE), SimpleNamespace(glitches=[]),
-                           DiscoverSettings(glitch_k=0.0, prediction_error=False, edge_widenings=0), theta, [],
+                           DiscoverSettings(glitch_k=0.0, prediction_error=False, edge_widenings=0,
+                                            other_starts_above=0.0), theta, [],
                            ("mu",), (), list(EFFECTS), None, lambda s: None, None)
     plant.baseline_fit, plant.anchor = Fit(theta, ("mu",), 4.0), theta
     final, added = E.forward(plant, None)

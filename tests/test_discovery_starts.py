@@ -462,3 +462,31 @@ def test_a_magnitude_outside_the_library_at_the_reference_scale_is_said():
     (line,) = beyond_the_library(added, fit, {}, False)
     assert "in the loop's gauge" in line
     assert beyond_the_library(added, fit, {"c_B": (0.0, 3e4)}, True) == []
+
+
+def test_the_start_the_baseline_came_from_is_searched_too_and_last():
+    """The other starts of the searches (TogglePlant._other_starts): each start of the baseline moved into its gauge,
+    the one the baseline came from last — with an effect on, its polish may reach another basin than the nominal
+    polish from it did (docs/discovery.md, rec15_d1) — and the record's own noise; none when the rule is off."""
+    from types import SimpleNamespace
+
+    from toggle_id.data import Record
+    from toggle_id.discovery import toggle_plant as TP
+    from toggle_id.discovery.gauge import in_gauge_of
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    rec = Record.from_sweep("simulation", 0.2, name="starts")
+    rec.x_B = np.random.default_rng(0).normal(0.0, 1e-6, rec.n)
+    ga = extend(ASSIGNED * np.exp(0.2 * np.random.default_rng(1).standard_normal(len(ASSIGNED))))[0]
+    ref = extend(ASSIGNED)[0]
+
+    def plant(settings):
+        p = TP.TogglePlant(SimpleNamespace(record=rec, n=rec.n), SimpleNamespace(glitches=[]), settings, ga, [ref],
+                           ("mu",), (), [], None, lambda s: None, None)
+        p.anchor = ga  # the baseline came from the GA's fit
+        return p
+
+    others, noise = plant(DiscoverSettings())._other_starts()
+    assert len(others) == 2 and np.allclose(others[0], in_gauge_of(ref, ga)) and np.array_equal(others[1], ga)
+    assert noise == pytest.approx(1e-6, rel=0.1)
+    assert plant(DiscoverSettings(other_starts_above=0.0))._other_starts() == ([], 0.0)

@@ -28,11 +28,9 @@ from .validation import Evidence, Judge
 
 
 class TogglePlant:
-    """The toggle mechanism as a plant of the discovery engine (:class:`.engine.Plant`): its baseline polish, its
-    forward step (scores, scouts, refits, guards: :func:`.forward._iteration`), its refits without an effect (the gauge
-    parameter the effect alone freed held again) and its structure test and catch-all check. Keeps what the report
-    needs: the baseline (updated when a guard finds a better nominal optimum before any effect is added), the
-    first iteration's scores, every iteration's record and every refit."""
+    """The toggle plant (see the module; the forward step: :func:`.forward._iteration`). Keeps what the report needs:
+    the baseline (updated when a guard finds a better nominal optimum before any effect is added), the first
+    iteration's scores, every iteration's record and every refit."""
 
     stage = "iteration"
 
@@ -144,13 +142,14 @@ class TogglePlant:
         return out
 
     def _other_starts(self) -> tuple[list[np.ndarray], float]:
-        """The baseline's starts other than the one it came from, moved into its gauge, and the record's own noise
-        (m, read off its third differences), from which and against which an accepted refit far above the noise is
-        polished again (``other_starts_above``); none when that is off."""
+        """The baseline's starts moved into its gauge — the one it came from last: with an effect on, its polish may
+        reach another basin (rec15_d1, docs/discovery.md) — and the record's own noise (m, its third differences),
+        for the searches from the other starts (``other_starts_above``); none when that is off."""
         if not self.s.other_starts_above > 0:
             return [], 0.0
-        others = [in_gauge_of(th, self.anchor) for th in (self.theta, *self.starts)]
-        others = [th for th in others if th is not None and not np.allclose(th, self.anchor, rtol=1e-9, atol=0.0)]
+        moved = [th for th in (in_gauge_of(th, self.anchor) for th in (self.theta, *self.starts)) if th is not None]
+        own = [th for th in moved if np.allclose(th, self.anchor, rtol=1e-9, atol=0.0)]
+        others = [th for th in moved if not np.allclose(th, self.anchor, rtol=1e-9, atol=0.0)] + own[:1]
         return (others, difference_noise([self.model.record])) if others else ([], 0.0)
 
     def remaining(self, added: Sequence[dict]) -> list[Effect]:
