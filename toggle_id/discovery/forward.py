@@ -118,7 +118,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             f"{'accepted' if rf.accepted else 'rejected: ' + rf.reason} ({rf.seconds:.1f} s)"
             + (f"; from another start of the baseline (it had stopped at "
                f"{rf.search['before_other_starts']['rmse_m'] * 1e6:.4g} µm)" if "before_other_starts" in rf.search
-               else ""))
+               else "")
+            + (" (the other starts' polishes: " + ", ".join(f"{p['rmse_m'] * 1e6:.4g}" for p in rf.search["other_starts"])
+               + " µm)" if rf.search.get("other_starts") else ""))
         if replaces is None:
             refits.append(rf)
         else:
