@@ -141,3 +141,19 @@ def test_a_supported_pair_adds_both_effects_in_one_step(monkeypatch):
     assert added[0]["params_at_acceptance"] == {"F_s": 300.0, "v_s": 0.03}
     assert added[1]["params_at_acceptance"] == {"tau_d": 4e-4} and added[1]["added_with"] == "stribeck_friction"
     assert final.free == free and frozenset(["stribeck_friction", "dead_time"]) in plant.had
+
+
+def test_the_look_stops_at_a_supported_pair_near_the_noise(monkeypatch, model):
+    """Pairs are refitted in order until a supported one ends within the noise band: no other can explain much
+    more."""
+    seen = []
+    monkeypatch.setattr(PR, "pair_fit", lambda m, base, a, b, s, held: seen.append((a.name, b.name)) or _fit(
+        1.02 if (a.name, b.name) == ("stribeck_friction", "dead_time") else 1.3, BASE_FREE + ("tau_d",)))
+    refits = [_single("stribeck_friction", 1.33, F_s=360.0, v_s=0.1), _single("dead_time", 1.35, tau_d=1e-4),
+              _single("sensor_offset", 1.4, x_off=1e-6)]
+    out, report = PR.pair_look(model, _Judge(1.4), _fit(1.45), refits, None, DiscoverSettings(pair_look=3), 1, (),
+                               lambda s: None, near_m=1.2e-6)
+    assert seen == [("stribeck_friction", "dead_time")] and out.partner == "dead_time" and len(report) == 1
+    seen.clear()
+    PR.pair_look(model, _Judge(1.4), _fit(1.45), refits, None, DiscoverSettings(pair_look=3), 1, (), lambda s: None)
+    assert len(seen) == 3  # no band: every pair

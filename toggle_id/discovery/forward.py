@@ -178,7 +178,7 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     if settings.pair_look > 1:  # no single effect takes the record near its noise: pairs refitted together
         near = settings.pair_above * (noise_m if noise_m > 0 else difference_noise([model.record]))
         if chosen is None or chosen.fit.rmse(n) > near:
-            pair, pairs = pair_look(model, judge, base, refits, chosen, settings, it, held, say)
+            pair, pairs = pair_look(model, judge, base, refits, chosen, settings, it, held, say, near)
             if pair is not None:
                 say(f"  {pair.name} and {pair.partner} together explain more than any one effect "
                     f"({pair.fit.rmse(n) * 1e6:.4g} µm)")

@@ -60,12 +60,12 @@ def pair_fit(model: Model, base: Fit, a: Refit, b: Refit, settings: DiscoverSett
 
 def pair_look(model: Model, judge: Judge, base: Fit, refits: Sequence[Refit], best: Refit | None,
               settings: DiscoverSettings, iteration: int, held: Collection[str],
-              say: Callable[[str], None]) -> tuple[Refit | None, list[dict]]:
-    """Every pair of the ``settings.pair_look`` single refits of lowest error refitted together (:func:`pair_fit`)
-    and judged against ``base``; the supported pair of lowest raw error that is lower than ``best`` (the step's
-    chosen single refit, None: none) and, where ``best`` is one of its effects, significant beside it — as a
-    :class:`~.refit.Refit` named after its member of lower single error, the other in ``partner`` — or None; and
-    every pair's report."""
+              say: Callable[[str], None], near_m: float = 0.0) -> tuple[Refit | None, list[dict]]:
+    """The pairs of the ``settings.pair_look`` single refits of lowest error, in order, refitted together
+    (:func:`pair_fit`) and judged against ``base`` until a supported one ends within ``near_m`` (m RMS); the
+    supported pair of lowest raw error that is lower than ``best`` (the step's chosen single refit, None: none) and,
+    where ``best`` is one of its effects, significant beside it — as a :class:`~.refit.Refit` named after its member
+    of lower single error, the other in ``partner`` — or None; and every pair's report."""
     n = model.n
     found: list[Refit] = []
     report: list[dict] = []
@@ -90,5 +90,7 @@ def pair_look(model: Model, judge: Judge, base: Fit, refits: Sequence[Refit], be
         report.append(rf.to_dict(n))
         if rf.accepted:
             found.append(rf)
+            if fit.rmse(n) <= near_m and (best is None or fit.rmse(n) < best.fit.rmse(n)):
+                break  # near the noise: no other pair can explain much more
     lower = [rf for rf in found if best is None or rf.fit.rmse(n) < best.fit.rmse(n)]
     return min(lower, key=lambda rf: rf.fit.rmse(n), default=None), report
