@@ -175,9 +175,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     winners = [rf for rf in refits if rf.accepted]
     chosen = lowest_of(winners, n)
     pairs: list[dict] = []
-    if settings.pair_look > 1:  # no single effect takes the record near its noise: pairs refitted together
+    if settings.pair_look > 1:  # no single effect takes the record into the noise band: pairs refitted together
         near = settings.pair_above * (noise_m if noise_m > 0 else difference_noise([model.record]))
-        if chosen is None or chosen.fit.rmse(n) > near:
+        if base.rmse(n) > near and (chosen is None or chosen.fit.rmse(n) > near):
             pair, pairs = pair_look(model, judge, base, refits, chosen, settings, it, held, say, near)
             if pair is not None:
                 say(f"  {pair.name} and {pair.partner} together explain more than any one effect "

@@ -194,11 +194,11 @@ class DiscoverSettings:
       100 is the tried value). 0 (the default): per sample (HC3). Opt-in until the adversarial set is re-run with
       it: the per-sample form also blocks stand-ins whose influence sits where a missing effect leaves the residual
       large, and the level form lets several of those through (docs/discovery.md, *Open problems*).
-    - pair_look: where no supported single refit of a step ends within ``pair_above`` times the record's own
-      noise (its third differences, :func:`toggle_id.fast.difference_noise`), every pair of the this many single
-      refits of lowest error is refitted together and judged (:mod:`.pairs`); a supported pair lower than the
-      step's best single effect, and significant beside it where it is one of the two, adds both. 0 (the
-      default): off. Opt-in until the adversarial set is re-run with it.
+    - pair_look: where the current model and every supported single refit of a step lie above ``pair_above``
+      times the record's own noise (its third differences, :func:`toggle_id.fast.difference_noise`), the pairs of
+      this many single refits of lowest error are refitted together and judged (:mod:`.pairs`), until one ends
+      within that band; a supported pair lower than the step's best single effect, and significant beside it where
+      it is one of the two, adds both. 0 (the default): off. Opt-in until the adversarial set is re-run with it.
     - pe_guard_alpha: with ``prediction_error``, a prediction-error fit whose raw SSE exceeds the least-squares
       fit it started from by more than the noise allows at this level (:func:`.noise.prediction_error_drift`) is
       refused and that model is fitted by least squares (asked again of the next); and the judge, when the larger
