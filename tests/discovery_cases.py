@@ -24,7 +24,7 @@ def fake_model(**attrs):
         lo, hi = stage_bounds([name])
         return float(lo[0]), float(hi[0])
 
-    return SimpleNamespace(domain=domain, gauge_bounds={}, **attrs)
+    return SimpleNamespace(domain=domain, domains=dict, gauge_bounds={}, **attrs)
 
 
 def make_record(effects: dict, duration: float = 1.0, seed: int = 0, pert: float = 0.05, start_pert: float = 0.03,

@@ -207,6 +207,38 @@ def test_effect_values_carried_to_a_start_at_other_scales_keep_x_B():
     assert carried(fitted, bad, at) == fitted
 
 
+def test_the_domains_make_room_for_a_start_at_a_larger_scale():
+    """gauge.domains_at: the effects' domains in one point's gauge widened to hold at another point's scales too (a
+    force's domain divided by the factor its value is carried by, the wider of the two; a length as it is);
+    domains_of_start does so inside a block only; refit.room_for keeps the room where a find from another start lies
+    outside the domains, and leaves them as they are where it does not."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery.gauge import _scale, carried, domains_at, domains_of_start
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.refit import room_for
+
+    at = extend(ASSIGNED)[0]
+    start = at.copy()
+    _scale(start, 4.0, 0.5)  # its mechanism at 4 times, its current at half the scale of ``at``
+    bounds = {"c_B": (0.0, 581.0), "x_off": (-5e-3, 5e-3), "s_sat": (0.0, 1.0)}
+    wide = domains_at(bounds, start, at)
+    assert wide["c_B"] == pytest.approx((0.0, 4 * 581.0)) and wide["x_off"] == bounds["x_off"]
+    assert wide["s_sat"] == pytest.approx((0.0, 1.0))  # (its domain there, 0.5, is narrower: the wider kept)
+    assert carried({"c_B": 581.0}, start, at)["c_B"] == pytest.approx(wide["c_B"][1])  # the edge carried is the edge
+    model = SimpleNamespace(gauge_bounds=dict(bounds))
+    with domains_of_start(model, start, at):
+        assert model.gauge_bounds == wide
+    assert model.gauge_bounds == bounds
+    model = SimpleNamespace(gauge_bounds=dict(bounds), domains=lambda: model.gauge_bounds)
+    inside = Fit(_with_values(start, {"c_B": 500.0}), ("mu", "c_B"), 1.0)
+    room_for(model, inside, at)
+    assert model.gauge_bounds == bounds
+    outside = Fit(_with_values(start, {"c_B": 2000.0}), ("mu", "c_B"), 1.0)
+    room_for(model, outside, at)
+    assert model.gauge_bounds["c_B"] == pytest.approx((0.0, 4 * 581.0))
+
+
 def _with_values(theta: np.ndarray, values: dict) -> np.ndarray:
     out = theta.copy()
     for nm, v in values.items():

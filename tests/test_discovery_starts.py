@@ -107,7 +107,8 @@ def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_mag
 
     monkeypatch.setattr(RF, "fit_free", fake_fit_free)
     monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
-    model = SimpleNamespace(n=1000, noise=WHITE, domain=lambda nm: (0.0, 0.05))  # the library's τ_d domain
+    model = SimpleNamespace(n=1000, noise=WHITE, domain=lambda nm: (0.0, 0.05), domains=dict,  # the library's τ_d
+                            gauge_bounds={})
     other = with_value(theta, "mu", 0.3)
     got = RF.from_other_starts(model, base, rf, DiscoverSettings(), SimpleNamespace(judge_pair=pair),
                                [other, other], 1e-6)

@@ -2,7 +2,8 @@
 fit nearest the reference values for the report."""
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -98,6 +99,16 @@ def gauge_scales(theta: np.ndarray, free: Collection[str], reference: np.ndarray
     return (float(np.exp(logc[0])) if use_m else 1.0), (float(np.exp(logc[-1])) if use_e else 1.0)
 
 
+def _factor(name: str, c_m: float, c_e: float) -> float:
+    """What :func:`_scale` multiplies effect parameter ``name`` by along the scales (``c_m``, ``c_e``)."""
+    return (c_m if _force_like(name) else 1.0) * c_e ** current_power(name)
+
+
+def _scales_to(start: np.ndarray, at: np.ndarray) -> tuple[float, float] | None:
+    """The mechanical and current scales that move ``start`` nearest ``at`` in log space (None: not readable)."""
+    return gauge_scales(start, set(MECHANICAL) | set(ELECTRICAL), at)
+
+
 def carried(values: Mapping[str, float], start: np.ndarray, at: np.ndarray) -> dict[str, float]:
     """Effect values fitted at ``at`` as they read at ``start``, another point of the same gauge (its held parameters
     at ``at``'s values, :func:`in_gauge_of`) whose mechanism and current sit at other scales: each value divided by
@@ -110,11 +121,40 @@ def carried(values: Mapping[str, float], start: np.ndarray, at: np.ndarray) -> d
     the reference mechanism, the job's reference values moved into its gauge at ×0.0093): the friction's refit,
     c_B ≈ 300 in the baseline's gauge, carried unchanged to the reference start is six times its optimum there and
     the polish stalls at 2.44 µm; from 3 to 100 it reaches 1.697 µm at c_B 37.4."""
-    scales = gauge_scales(start, set(MECHANICAL) | set(ELECTRICAL), at)
+    scales = _scales_to(start, at)
     if scales is None:
         return dict(values)
-    c_m, c_e = scales
-    return {n: float(v) / ((c_m if _force_like(n) else 1.0) * c_e ** current_power(n)) for n, v in values.items()}
+    return {n: float(v) / _factor(n, *scales) for n, v in values.items()}
+
+
+def domains_at(bounds: Mapping[str, Sequence[float]], start: np.ndarray, at: np.ndarray
+               ) -> dict[str, tuple[float, float]]:
+    """``bounds``, the effects' domains in the gauge of ``at`` (:func:`domains_in_gauge`), widened to hold at
+    ``start``'s scales too: each as it reads there (divided by :func:`carried`'s factor), the wider of the two. A
+    start whose mechanism sits at a larger scale than the baseline's needs room for larger forces: on rec15_d1 the
+    reference values, as a start of the baseline at ×0.058 the reference mechanism, would have the slider's
+    viscous friction at 17 times the baseline's domain (docs/discovery.md)."""
+    scales = _scales_to(start, at)
+    out = {n: (float(lo), float(hi)) for n, (lo, hi) in bounds.items()}
+    if scales is None:
+        return out
+    for n, (lo, hi) in out.items():
+        f = _factor(n, *scales)
+        if f > 0 and np.isfinite(f) and f != 1.0:
+            out[n] = (min(lo, lo / f), max(hi, hi / f))
+    return out
+
+
+@contextmanager
+def domains_of_start(model: Model, start: np.ndarray, at: np.ndarray) -> Iterator[Model]:
+    """Inside the block the fits of ``model`` keep to its gauge's domains widened for ``start`` (:func:`domains_at`,
+    ``at`` the point whose gauge they were read in); after it, to the domains they had."""
+    before = model.gauge_bounds
+    model.gauge_bounds = domains_at(before, start, at)
+    try:
+        yield model
+    finally:
+        model.gauge_bounds = before
 
 
 def domains_in_gauge(c_m: float, c_e: float, given: Mapping[str, Sequence[float]] | None = None

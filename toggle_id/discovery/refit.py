@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
-from .gauge import GAUGE_HELD, carried, freed_with
+from ..identify import stage_bounds
+from .gauge import GAUGE_HELD, carried, domains_at, domains_of_start, freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free, minimising_under, revived
 from .noise import WHITE
 from .residual import fitting_noise
@@ -184,10 +185,11 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
     if out.accepted and others and fit.rmse(model.n) > settings.other_starts_above * noise_m > 0.0:
         values = {nm: fit.theta[ALL_INDEX[nm]] for nm in free if nm not in base.free}
         again = _from_other_starts(model, effect, [_with(other, carried(values, other, fit.theta)) for other in others],
-                                   free, settings, NEAR_NOISE * noise_m, fit.rmse(model.n))
+                                   free, settings, NEAR_NOISE * noise_m, fit.rmse(model.n), at=fit.theta)
         report = [{"rmse_m": f.rmse(model.n), "nfev": f.info.get("nfev")} for f in again]
         lowest = min(again, key=lambda f: f.sse, default=fit)
         if lowest.sse < fit.sse:
+            room_for(model, lowest, fit.theta)
             first = {"rmse_m": fit.rmse(model.n), "reason": out.reason}
             fit = lowest
             out = judged(fit, {**out.search, "other_starts": report, "before_other_starts": first})
@@ -251,12 +253,15 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
     with minimising_under(model, WHITE):  # the search by least squares (see above)
         for other in others:
             at = carried(values, other, rf.fit.theta)  # the effect's values at this start's scales
-            fits.append(fit_free(model, _with(other, at), free, settings.baseline_nfev, settings.fd_rel_step,
-                                 rounds=settings.rounds))
+            with domains_of_start(model, other, rf.fit.theta):  # and its domains
+                fits.append(fit_free(model, _with(other, at), free, settings.baseline_nfev, settings.fd_rel_step,
+                                     rounds=settings.rounds))
             report.append({"rmse_m": fits[-1].rmse(model.n), "nfev": fits[-1].info.get("nfev"), "start": at})
             if fits[-1].rmse(model.n) <= NEAR_NOISE * noise_m:
                 break
     lowest = min(fits, key=lambda f: f.rmse(model.n), default=None)
+    if lowest is not None:
+        room_for(model, lowest, rf.fit.theta)
     if lowest is not None and not model.noise.white:
         # then a prediction-error fit as the loop's are, under the noise model of its own residual (as an accepted
         # effect's fit is, ``_under``), not the loop's: that one is what whitened the effect away
@@ -297,22 +302,36 @@ SCREEN_FACTORS = (0.5, 0.7, 1.0, 1.4, 2.0)
 
 
 def _from_other_starts(model: Model, effect: Effect, others: Sequence[np.ndarray], free: Sequence[str],
-                       settings: DiscoverSettings, floor_m: float, back_m: float = math.nan) -> list[Fit]:
+                       settings: DiscoverSettings, floor_m: float, back_m: float = math.nan,
+                       at: np.ndarray | None = None) -> list[Fit]:
     """Polishes from each of ``others`` at its screened magnitudes (:func:`screened_starts`), in order, until one
     ends at or below ``floor_m`` (m RMS): every fit made. A start whose polish comes back to ``back_m`` (the
     refit's RMS, within :data:`SAME_OPTIMUM`) leads to the refit's own optimum, and its other magnitudes are left:
     while a second effect is missing no polish can reach the floor, and every screened start would be polished
-    (the two-effect probe of docs/discovery.md, *A large threshold effect*)."""
+    (the two-effect probe of docs/discovery.md, *A large threshold effect*). ``at``: the point the model's domains
+    were read at; each start's polishes keep to them widened for its own scales (:func:`.gauge.domains_of_start`)."""
     fits: list[Fit] = []
     for other in others:
-        for st in screened_starts(model, effect, other):
-            fits.append(fit_free(model, st, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds))
-            rmse = fits[-1].rmse(model.n)
-            if rmse <= floor_m:
-                return fits
-            if abs(rmse - back_m) <= SAME_OPTIMUM * back_m:
-                break
+        with domains_of_start(model, other, at if at is not None else other):
+            for st in screened_starts(model, effect, other):
+                fits.append(fit_free(model, st, free, settings.baseline_nfev, settings.fd_rel_step,
+                                     rounds=settings.rounds))
+                rmse = fits[-1].rmse(model.n)
+                if rmse <= floor_m:
+                    return fits
+                if abs(rmse - back_m) <= SAME_OPTIMUM * back_m:
+                    break
     return fits
+
+
+def room_for(model: Model, fit: Fit, at: np.ndarray) -> None:
+    """Where ``fit`` (polished from another start, within that start's domains: :func:`.gauge.domains_of_start`) lies
+    outside the model's domains, those widened for its scales from here on (:func:`.gauge.domains_at`; ``at``: the
+    point they were read at), so that the fits that judge, polish and extend it keep it."""
+    lo, hi = stage_bounds(list(fit.free), model.domains())
+    x = fit.theta[[ALL_INDEX[nm] for nm in fit.free]]
+    if np.any(x < lo) or np.any(x > hi):
+        model.gauge_bounds = domains_at(model.gauge_bounds, fit.theta, at)
 
 
 def screened_starts(model: Model, effect: Effect, start: np.ndarray) -> list[np.ndarray]:

@@ -167,6 +167,7 @@ class TogglePlant:
                               self._beside if self.s.beside_generic else None, *self._other_starts())
         finally:
             self.referee.family = 1
+        self.gauge_bounds = self.model.gauge_bounds  # (widened where a find from another start needs the room)
         self.all_refits.extend(step["refits"])
         if self.first_scores is None:
             self.first_scores = step["scores"]
