@@ -491,3 +491,65 @@ def test_the_start_the_baseline_came_from_is_searched_too_and_last():
     assert len(others) == 2 and np.allclose(others[0], in_gauge_of(ref, ga)) and np.array_equal(others[1], ga)
     assert noise == pytest.approx(1e-6, rel=0.1)
     assert plant(DiscoverSettings(other_starts_above=0.0))._other_starts() == ([], 0.0)
+
+
+@pytest.mark.parametrize("base_rms_um, winner_um, looked", [(1.45, None, True), (1.45, 1.40, True),
+                                                             (1.45, 1.0, False), (1.1, None, False)])
+def test_pairs_are_looked_at_only_while_the_model_and_every_single_refit_lie_above_the_noise_band(
+        monkeypatch, base_rms_um, winner_um, looked):
+    """discover.pair_look: the step's pairs are refitted only while the current model and the best supported single
+    refit both lie above ``pair_above`` times the record's noise; a pair the look returns becomes the step's choice
+    (no rivals are looked for: the pair is judged beside its own member)."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import forward as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.refit import Refit, Scout
+    from toggle_id.discovery.scoring import CandidateScore
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    n, noise_m = 1000, 1e-6
+    base_sse = (base_rms_um * 1e-6) ** 2 * n
+    names = ["stribeck_friction", "dead_time"]
+    theta = extend(ASSIGNED)[0]
+
+    def assess(model, label, th, free, remaining, settings, noise):
+        sc = {nm: CandidateScore(nm, 50.0, 0.3, {}, None, 1.0, 1.0) for nm in names}
+        return SimpleNamespace(label=label, scores=sc, profiles=set(names), proj=SimpleNamespace(rank=len(free)))
+
+    def refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=None, **other_starts):
+        win = eff.name == "dead_time" and winner_um is not None
+        sse = (winner_um * 1e-6) ** 2 * n if win else base_sse * 0.99
+        return Refit(eff.name, it, Fit(theta, base.free, sse, raw_sse=sse), {}, base_sse, sse, 1, len(base.free) + 1,
+                     50.0 if win else 0.5, 0.0 if win else 0.48, -40.0 if win else 5.0, win, "ok", {})
+
+    asked = []
+    pair = Refit("stribeck_friction", 1, Fit(theta, ("J_m",), 1.02e-12 * n, raw_sse=1.02e-12 * n), {}, base_sse,
+                 1.02e-12 * n, 3, 4, 1e3, 0.0, -1e3, True, "ok", {}, partner="dead_time")
+
+    def pair_look(model, judge, base, refits, best, settings, it, held, say, near):
+        asked.append((best.name if best else None, near))
+        return pair, [pair.to_dict(n)]
+
+    monkeypatch.setattr(TP, "assess", assess)
+    monkeypatch.setattr(TP, "scout_candidate", lambda model, base, points, eff, settings, held: Scout(
+        eff.name, base_sse * 0.99, None, {}))
+    monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
+    monkeypatch.setattr(TP, "guard_null", lambda *a: None)
+    monkeypatch.setattr(TP, "pair_look", pair_look)
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    st = DiscoverSettings(top_k=4, second_point=False, ambiguity_alpha=0.0, pair_look=4, other_starts_above=0.0)
+    out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
+                        [EFFECTS_BY_NAME[nm] for nm in names], st, 1, (), lambda s: None, None,
+                        others=[], noise_m=noise_m)
+    if looked:
+        assert asked == [("dead_time" if winner_um else None, pytest.approx(1.2e-6))]
+        assert out["chosen"] is pair and out["record"]["accepted_with"] == "dead_time" and not out["rivals"]
+    else:
+        assert asked == [] and "pairs" not in out["record"]
+        assert (out["chosen"].name if out["chosen"] else None) == ("dead_time" if winner_um else None)
+    off = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
+                        [EFFECTS_BY_NAME[nm] for nm in names], DiscoverSettings(top_k=4, second_point=False,
+                                                                                ambiguity_alpha=0.0), 1, (),
+                        lambda s: None, None, others=[], noise_m=noise_m)
+    assert len(asked) == int(looked) and off["chosen"] is not pair  # pair_look 0: off
