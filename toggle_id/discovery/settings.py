@@ -134,8 +134,10 @@ class DiscoverSettings:
       final model's effects the same way and says where the cost is rough (:mod:`.landscape`).
       other_starts_above: an accepted refit that converged above this many times the record's own noise (read off
       its third differences, :func:`toggle_id.fast.difference_noise`) is polished again from the baseline's other
-      starts (the job's reference values, the nominal fit as given), each moved into the baseline's gauge
-      (:func:`.gauge.in_gauge_of`) with the refit's effect values, its magnitude screened there
+      starts (the job's reference values, the nominal fit as given; the one the baseline came from last), each
+      moved into the baseline's gauge (:func:`.gauge.in_gauge_of`) with the refit's effect values carried to its
+      scales and its domains widened for them (:func:`.gauge.carried`, :func:`.gauge.domains_at`), its magnitude
+      screened there
       (:func:`.refit.screened_starts`), in order until a polish ends within 1.5 times the noise (a start whose
       polish comes back to the refit's own error is left there); the lowest error is judged. While no supported
       refit of an iteration ends within this many times the noise, the dismissed candidates whose score is
