@@ -30,8 +30,7 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME
 from .gauge import freed_with
 from .model import Fit, Model, _std_errors, _with, fit_free, minimising_under
 from .noise import WHITE
-from .refit import Refit
-from .residual import fitting_noise
+from .refit import Refit, under_own_noise
 from .settings import DiscoverSettings
 from .validation import Judge
 
@@ -52,10 +51,7 @@ def pair_fit(model: Model, base: Fit, a: Refit, b: Refit, settings: DiscoverSett
     with minimising_under(model, WHITE):
         fit = fit_free(model, _with(base.theta, values), free, settings.baseline_nfev, settings.fd_rel_step,
                        rounds=settings.rounds)
-    if not model.noise.white:
-        with minimising_under(model, fitting_noise(model, fit.theta, settings)):
-            fit = fit_free(model, fit.theta, free, settings.baseline_nfev, settings.fd_rel_step, rounds=settings.rounds)
-    return fit
+    return under_own_noise(model, fit, settings)[0] if not model.noise.white else fit
 
 
 def pair_look(model: Model, judge: Judge, base: Fit, refits: Sequence[Refit], best: Refit | None,

@@ -12,7 +12,7 @@ from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..identify import stage_bounds
 from .gauge import GAUGE_HELD, carried, domains_at, domains_of_start, freed_with
 from .model import Fit, Model, _off_values, _std_errors, _with, fit_free, minimising_under, revived
-from .noise import WHITE
+from .noise import WHITE, NoiseModel
 from .residual import fitting_noise
 from .scoring import Point, refit_start
 from .settings import DiscoverSettings
@@ -263,12 +263,7 @@ def from_other_starts(model: Model, base: Fit, rf: Refit, settings: DiscoverSett
     if lowest is not None:
         room_for(model, lowest, rf.fit.theta)
     if lowest is not None and not model.noise.white:
-        # then a prediction-error fit as the loop's are, under the noise model of its own residual (as an accepted
-        # effect's fit is, ``_under``), not the loop's: that one is what whitened the effect away
-        own = fitting_noise(model, lowest.theta, settings)
-        with minimising_under(model, own):
-            lowest = fit_free(model, lowest.theta, free, settings.baseline_nfev, settings.fd_rel_step,
-                              rounds=settings.rounds)
+        lowest, own = under_own_noise(model, lowest, settings)
         report.append({"rmse_m": lowest.rmse(model.n), "nfev": lowest.info.get("nfev"),
                        "under": own.describe()})
     if lowest is None or not np.less(*loop_sse(lowest, rf.fit)):  # raw where the two noise models differ
@@ -322,6 +317,17 @@ def _from_other_starts(model: Model, effect: Effect, others: Sequence[np.ndarray
                 if abs(rmse - back_m) <= SAME_OPTIMUM * back_m:
                     break
     return fits
+
+
+def under_own_noise(model: Model, fit: Fit, settings: DiscoverSettings) -> tuple[Fit, NoiseModel]:
+    """``fit`` (found by least squares) polished again as the loop's fits are, the prediction-error way, under the
+    noise model of its own residual (:func:`.residual.fitting_noise`; as an accepted effect's fit is), not the loop's:
+    that one was fitted to a residual the missing effect dominates and whitens the effect away. Returns the fit and
+    that noise model."""
+    own = fitting_noise(model, fit.theta, settings)
+    with minimising_under(model, own):
+        return fit_free(model, fit.theta, fit.free, settings.baseline_nfev, settings.fd_rel_step,
+                        rounds=settings.rounds), own
 
 
 def room_for(model: Model, fit: Fit, at: np.ndarray) -> None:
