@@ -239,15 +239,18 @@ def test_an_alternative_route_far_above_the_first_is_skipped_before_its_loop():
     assert off[1]["baseline_from"] is None and off[0] == limited[0]
 
 
-#: Each case costs 20-45 s of simulations. By default: dead time, where a candidate its score test ranks above it is
-#: refitted and rejected (the whole loop: ranking, refits, verdicts, magnitude, white residual after). The others
-#: are slow: the loop naming an offset is the discover job's end-to-end test below (the same 1-s record), and every
-#: effect, these included, is named on the 5-s record by the slow every-effect test.
+#: Each case costs 20-80 s of simulations, so all are slow (issue 15: the default suite's five minutes; the dead-time
+#: case was the default suite's until 2026-12-07, 80 s of its 406). The default suite keeps the loop on real
+#: simulations in the discover job's end-to-end test below (the same 1-s record, an offset named), and the rules
+#: these cases exercise in isolation: which candidates are refitted (a score leader whatever its scout, a scout
+#: beyond top_k while it could beat the best refit: test_discovery_screening.py), the judge's verdicts
+#: (test_discovery_judge.py). The dead-time case: a candidate its score test ranks above it is refitted and rejected.
+@pytest.mark.slow
 @pytest.mark.parametrize("name,effects,magnitude", [
-    pytest.param("sensor_offset", {"x_off": 1e-4}, ("x_off", 1e-4), marks=pytest.mark.slow),
-    pytest.param("constant_load_force", {"F_load": 500.0}, ("F_load", 500.0), marks=pytest.mark.slow),
+    ("sensor_offset", {"x_off": 1e-4}, ("x_off", 1e-4)),
+    ("constant_load_force", {"F_load": 500.0}, ("F_load", 500.0)),
     ("dead_time", {"tau_d": 2e-3}, ("tau_d", 2e-3)),
-    pytest.param("coulomb_friction_motor", {"tau_c": 3.0}, ("tau_c", 3.0), marks=pytest.mark.slow),
+    ("coulomb_friction_motor", {"tau_c": 3.0}, ("tau_c", 3.0)),
 ])
 def test_loop_names_the_undeclared_effect(name, effects, magnitude):
     res, _ = discover_on(effects)
@@ -271,8 +274,10 @@ def test_loop_names_the_undeclared_effect(name, effects, magnitude):
     assert res.diagnostics_before["verdict"]["structure_left"] and not res.diagnostics_after["verdict"]["structure_left"]
 
 
+@pytest.mark.slow
 def test_loop_names_backlash():
-    """The lash opens at every reversal of the flank force: a second degree of freedom the rigid model lacks."""
+    """The lash opens at every reversal of the flank force: a second degree of freedom the rigid model lacks (slow,
+    66 s: the default suite tests the lash's kernel against an independent reference, tests/test_backlash.py)."""
     res, _ = discover_on({"b_l": 5e-4}, candidates=(*SUBSET, "backlash"))
     assert res.rmse_before_m > 20.0 * NOISE
     assert [a["name"] for a in res.effects_added] == ["backlash"]
