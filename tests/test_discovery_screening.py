@@ -106,6 +106,51 @@ def test_candidates_within_the_score_tests_resolution_of_the_top_one_all_lead():
     assert score_leaders(scored, 0.05, screen=3.84) == {"torque_constant_saturation", "contact_nonlinear_stiffness"}
 
 
+def test_a_leader_whose_refit_explains_nothing_hands_its_look_to_the_next_significant_leaders():
+    """Held-out rec46_d1's first route: the dead time led the score test and its refit found nothing; the backlash,
+    second by its score, had scouted fifth and was never refitted alone. Now it is, before the catch-all."""
+    from types import SimpleNamespace as NS
+
+    from toggle_id.discovery.forward import next_leaders
+    from toggle_id.discovery.scoring import CandidateScore
+
+    def cand(name, stat):
+        return CandidateScore(name, stat, 0.0, {}, None, 1.0, 1.0, profile_score=0.0)
+
+    scores = [cand("dead_time", 165.0), cand("backlash", 132.0), cand("constant_load_force", 130.0),
+              cand("stribeck_friction", 120.0), cand("cogging_torque", 39.0), cand("viscous_friction_slider", 5.0)]
+    order = [NS(name=nm) for nm in ("cogging_torque", "constant_load_force", "stribeck_friction", "backlash",
+                                    "viscous_friction_slider", "dead_time")]  # the scouts' order
+    screen = 6.63
+
+    def refit(name, F, k=1, accepted=False):
+        return NS(name=name, F=F, k=k, accepted=accepted)
+
+    def run(refits, answers):
+        """The names the rule sends to a refit, each refit's result taken from ``answers`` as it comes."""
+        sent = []
+        for sc in next_leaders(refits, scores, order, {"dead_time"}, screen, 0.05):
+            sent.append(sc.name)
+            refits.append(answers[sc.name])
+        return sent
+
+    first = [refit("cogging_torque", 30.7, 3), refit("constant_load_force", 213.0), refit("dead_time", -0.002)]
+    # the backlash and the load force (130, within χ²(1)'s 3.84 of 132) lead next; the load force was refitted
+    assert run(list(first), {"backlash": refit("backlash", 779.0, accepted=True)}) == ["backlash"]
+    # the backlash explains nothing either: set aside too; the load force (130) leads alone and was refitted
+    assert run(list(first), {"backlash": refit("backlash", 0.5)}) == ["backlash"]
+    # a leader that explained something, though not accepted: its score told something, nobody else is owed a look
+    assert run([*first[:2], refit("dead_time", 40.0)], {}) == []
+    # something of the round supported: the rule does not run
+    assert run([*first[:2], refit("dead_time", -0.002), refit("sensor_offset", 50.0, accepted=True)], {}) == []
+    # below the screen no statistic is evidence: with only noise-level scores left nothing is sent
+    quiet = [cand("dead_time", 165.0), cand("viscous_friction_slider", 5.0)]
+    assert list(next_leaders([refit("dead_time", 0.0)], quiet, order, {"dead_time"}, screen, 0.05)) == []
+    # the setting is validated
+    with pytest.raises(ConfigError, match="next_leaders"):
+        D.DiscoverSettings.from_dict({"next_leaders": "yes"})
+
+
 def test_beyond_top_k_a_scout_is_refitted_while_it_could_beat_or_tie_the_best_refit_or_its_score_exceeds_it():
     from toggle_id.discovery.settings import DiscoverSettings
     from toggle_id.discovery.scoring import worth_refitting

@@ -65,7 +65,9 @@ class DiscoverSettings:
       the m candidates it has left, so its judge's F-tests are at ``alpha``/m (false: at ``alpha``, as before
       2026-12-03); structure_bins: bins per signal of
       the structure test and localisation; scout_all: scout every candidate of the library from its grid, whatever
-      its score (global screening; false: only those whose score passes ``screen_alpha``); backward: drop,
+      its score (global screening; false: only those whose score passes ``screen_alpha``); next_leaders: while
+      nothing of a round is supported, a score leader whose refit explains nothing is set aside and the next
+      significant leaders are refitted, whatever their scouts (:func:`.forward.next_leaders`); backward: drop,
       at the end, every accepted effect the others make unnecessary. explain_fraction: when structure is left,
       an accepted effect still counts as an explanation if it removed at least this fraction of the structure
       energy of the model without it (:func:`.localise.structure_energy`: it explains most of what it was added
@@ -246,6 +248,7 @@ class DiscoverSettings:
     bonferroni: bool = True
     structure_bins: int = 12
     scout_all: bool = True
+    next_leaders: bool = True
     backward: bool = True
     explain_fraction: float = 0.5
     validation_material: float = 1.5
@@ -422,7 +425,7 @@ class DiscoverSettings:
         if not (isinstance(self.route_rtol, (int, float)) and not isinstance(self.route_rtol, bool)
                 and 0.0 <= float(self.route_rtol) < 1.0):
             raise ConfigError(f"discover.route_rtol must lie in [0, 1), got {self.route_rtol!r}")
-        for name in ("scout_all", "backward", "catch_all"):
+        for name in ("scout_all", "next_leaders", "backward", "catch_all"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std > 0):
