@@ -17,6 +17,8 @@ from toggle_id.effects import ALL_INDEX, EFFECTS
 from toggle_id.params import ASSIGNED
 from toggle_id.simulate import extend
 
+from discovery_cases import NOISE, make_record
+
 N = 1000
 THETA = extend(ASSIGNED)[0]
 BASE_FREE = ("mu", "D")
@@ -157,3 +159,28 @@ def test_the_look_stops_at_a_supported_pair_near_the_noise(monkeypatch, model):
     seen.clear()
     PR.pair_look(model, _Judge(1.4), _fit(1.45), refits, None, DiscoverSettings(pair_look=3), 1, (), lambda s: None)
     assert len(seen) == 3  # no band: every pair
+
+
+def test_the_pair_looks_gate_reads_coloured_noise_as_noise_and_a_missing_effect_as_structure():
+    """The gate behind the pair look's RMS band (:func:`toggle_id.discovery.residual.structure_left_at`): AR(1)
+    ρ 0.9 noise of σ = 1 µm around the true model is noise (its third differences read about 0.27 µm, so the RMS
+    band alone would open), a 20-µm offset the model lacks, under white noise, is structure."""
+    from toggle_id.discovery.model import Model
+    from toggle_id.discovery.residual import structure_left_at
+    from toggle_id.fast import difference_noise
+
+    rec, truth, _ = make_record({}, noise=0.0)
+    rng = np.random.default_rng(4)
+    e = np.zeros(rec.n)
+    w = rng.standard_normal(rec.n) * NOISE * np.sqrt(1.0 - 0.9 ** 2)
+    e[0] = NOISE * rng.standard_normal()
+    for t in range(1, rec.n):
+        e[t] = 0.9 * e[t - 1] + w[t]
+    clean = rec.x_B.copy()
+    rec.x_B = clean + e
+    assert difference_noise([rec]) < 0.4 * NOISE  # the RMS band would read this record as far above its noise
+    left, text = structure_left_at(Model(rec), truth, DiscoverSettings())
+    assert not left and text.startswith("no structure left")
+    rec.x_B = clean + 2e-5 + NOISE * rng.standard_normal(rec.n)
+    left, text = structure_left_at(Model(rec), truth, DiscoverSettings())
+    assert left and text.startswith("structure left")

@@ -493,13 +493,15 @@ def test_the_start_the_baseline_came_from_is_searched_too_and_last():
     assert plant(DiscoverSettings(other_starts_above=0.0))._other_starts() == ([], 0.0)
 
 
-@pytest.mark.parametrize("base_rms_um, winner_um, looked", [(1.45, None, True), (1.45, 1.40, True),
-                                                             (1.45, 1.0, False), (1.1, None, False)])
+@pytest.mark.parametrize("base_rms_um, winner_um, structure, looked", [
+    (1.45, None, True, True), (1.45, 1.40, True, True), (1.45, 1.0, True, False), (1.1, None, True, False),
+    (1.45, 1.40, False, False), (1.45, None, False, False)])
 def test_pairs_are_looked_at_only_while_the_model_and_every_single_refit_lie_above_the_noise_band(
-        monkeypatch, base_rms_um, winner_um, looked):
+        monkeypatch, base_rms_um, winner_um, structure, looked):
     """discover.pair_look: the step's pairs are refitted only while the current model and the best supported single
-    refit both lie above ``pair_above`` times the record's noise; a pair the look returns becomes the step's choice
-    (no rivals are looked for: the pair is judged beside its own member)."""
+    refit both lie above ``pair_above`` times the record's noise and what the step leaves (the best single refit,
+    or the current model) holds structure by the noise-aware structure test; a pair the look returns becomes the
+    step's choice (no rivals are looked for: the pair is judged beside its own member)."""
     from types import SimpleNamespace
 
     from toggle_id.discovery import forward as TP
@@ -537,6 +539,9 @@ def test_pairs_are_looked_at_only_while_the_model_and_every_single_refit_lie_abo
     monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
     monkeypatch.setattr(TP, "guard_null", lambda *a: None)
     monkeypatch.setattr(TP, "pair_look", pair_look)
+    gated = []
+    monkeypatch.setattr(TP, "structure_left_at", lambda model, th, settings: (
+        gated.append(th) or structure, "structure left: …" if structure else "no structure left: …"))
     model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
     st = DiscoverSettings(top_k=4, second_point=False, ambiguity_alpha=0.0, pair_look=4, other_starts_above=0.0)
     out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
@@ -553,3 +558,4 @@ def test_pairs_are_looked_at_only_while_the_model_and_every_single_refit_lie_abo
                                                                                 ambiguity_alpha=0.0), 1, (),
                         lambda s: None, None, others=[], noise_m=noise_m)
     assert len(asked) == int(looked) and off["chosen"] is not pair  # pair_look 0: off
+    assert len(gated) == int(base_rms_um > 1.2 and (winner_um or 2.0) > 1.2)  # the structure test behind the RMS gate

@@ -340,6 +340,18 @@ def parameter_part(model: Model, free: Sequence[str], r_e: np.ndarray, nm: Noise
             "explained_rms_m": float(np.sqrt(np.mean(explained ** 2))), "_explained": explained, "_J": J_v}
 
 
+def structure_left_at(model: Model, theta: np.ndarray, settings: DiscoverSettings) -> tuple[bool, str]:
+    """Whether the residual of ``theta`` holds structure by the noise-aware structure test
+    (:func:`.localise.locate`: each family of state functions under the noise model of its own alternative, so
+    that coloured noise is not read as structure), and the test's one line; (True, ...) where ``theta`` cannot be
+    simulated."""
+    r, states, status = _residual(model, theta)
+    if states is None:
+        return True, f"the model cannot be simulated (status {status})"
+    loc = _locate(model, r, states, settings)
+    return bool(loc["structure_left"]), loc["text"]
+
+
 def structure_energy_of(model: Model, r: np.ndarray, states: dict | None, settings: DiscoverSettings) -> float:
     """:func:`.localise.structure_energy` of a residual ``r`` with its plant ``states`` (inf without them: the
     model could not be simulated)."""
