@@ -15,13 +15,16 @@ from discovery_cases import fake_model, refit_case, with_value
 
 
 # ---------------------------------------------------------------------------------------------- other starts
-@pytest.mark.parametrize("base_rms_um, reached", [(30.0, True), (30.0, False), (3.0, False)])
+@pytest.mark.parametrize("base_rms_um, reached, structure", [(30.0, True, True), (30.0, False, True), (3.0, False, True),
+                                                              (30.0, True, False)])
 def test_far_above_the_noise_the_dismissed_candidates_are_polished_again_from_the_other_starts(
-        monkeypatch, base_rms_um, reached):
+        monkeypatch, base_rms_um, reached, structure):
     """A 3-ms dead time hidden by a bent baseline (its refit there does not move): while nothing supported reaches
     within ``other_starts_above`` times the record's noise, the dismissed candidates whose score is significant are
     polished again from the baseline's other starts, strongest score first, until one ends near the noise; one that
-    ends lower replaces its refit and is judged. Within that factor of the noise nothing more is fitted."""
+    ends lower replaces its refit and is judged. Within that factor of the noise nothing more is fitted, nor where
+    what is left holds no structure by the noise-aware structure test (coloured noise reads low in the record's
+    third differences)."""
     from types import SimpleNamespace
 
     from toggle_id.discovery import forward as TP
@@ -60,6 +63,7 @@ def test_far_above_the_noise_the_dismissed_candidates_are_polished_again_from_th
     monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
     monkeypatch.setattr(TP, "from_other_starts", from_other_starts)
     monkeypatch.setattr(TP, "guard_null", lambda *a: None)
+    monkeypatch.setattr(TP, "structure_left_at", lambda model, th, settings: (structure, ""))
     model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
     said = []
     st = DiscoverSettings(top_k=4, second_point=False, ambiguity_alpha=0.0)
@@ -67,7 +71,7 @@ def test_far_above_the_noise_the_dismissed_candidates_are_polished_again_from_th
                         [EFFECTS_BY_NAME[nm] for nm in names], st, 1, (), said.append, None,
                         others=[theta.copy()], noise_m=noise_m)
     assert sorted(rf.name for rf in out["refits"]) == sorted(names)
-    if base_rms_um < st.other_starts_above:
+    if base_rms_um < st.other_starts_above or not structure:
         assert asked == [] and out["chosen"] is None
     elif reached:  # strongest first; the dead time ends near the noise, so the search stops there
         assert asked == ["viscous_friction_slider", "dead_time"]
@@ -282,6 +286,8 @@ def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baseli
     monkeypatch.setattr(RF, "_std_errors", lambda fit, names, n: {})
     monkeypatch.setattr(RF, "revived", lambda th, free: None)
     monkeypatch.setattr(RF, "screened_starts", lambda model, effect, start: [start])  # (tested on its own below)
+    structure = [True]
+    monkeypatch.setattr(RF, "structure_left_at", lambda model, th, settings: (structure[0], ""))
     model = fake_model(n=1000)
     noise = 0.02  # RMS 0.224 from the scout's start: above 5 times it
     rf = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair),
@@ -295,6 +301,11 @@ def test_an_accepted_refit_far_above_the_noise_is_polished_again_from_the_baseli
         kept = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(other_starts_above=above), 1,
                                   SimpleNamespace(judge_pair=pair), others=others, noise_m=noise_m)
         assert kept.sse1 == 50.0 and judged == [50.0] and "other_starts" not in kept.search
+    structure[0] = False  # far above the noise read off the differences, but what it leaves is noise by the
+    judged.clear()  # noise-aware structure test (coloured noise reads low in the differences): nothing more fitted
+    kept = RF.refit_candidate(model, base, eff, scout, DiscoverSettings(), 1, SimpleNamespace(judge_pair=pair),
+                              others=[other], noise_m=noise)
+    assert kept.sse1 == 50.0 and judged == [50.0] and "other_starts" not in kept.search
 
 
 def test_another_start_is_screened_over_the_effects_magnitudes_and_its_threshold_grid_in_one_batch():

@@ -165,9 +165,11 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
             if on_refit is not None:
                 on_refit(rf)
     far = settings.other_starts_above * noise_m
-    if others and far > 0.0 and min((rf.fit.rmse(n) for rf in refits if rf.accepted), default=base.rmse(n)) > far:
-        # nothing supported reaches near the noise: the dismissed candidates the score test ranks significant,
-        # strongest first, polished again from the baseline's other starts (a bent baseline can hide a large effect)
+    lowest_now = min((rf.fit for rf in refits if rf.accepted), key=lambda f: f.rmse(n), default=base)
+    if others and far > 0.0 and lowest_now.rmse(n) > far and structure_left_at(model, lowest_now.theta, settings)[0]:
+        # nothing supported reaches near the noise, and what is left is structure: the dismissed candidates the
+        # score test ranks significant, strongest first, polished again from the baseline's other starts (a bent
+        # baseline can hide a large effect)
         added = so_far()
         for rf in sorted((rf for rf in refits if not rf.accepted and stat.get(rf.name, 0.0) > screen),
                          key=lambda rf: -stat[rf.name]):

@@ -135,7 +135,9 @@ class DiscoverSettings:
       there and kept where it ends lower (:func:`.forward.rescreened`; 0 points: off). The report profiles the
       final model's effects the same way and says where the cost is rough (:mod:`.landscape`).
       other_starts_above: an accepted refit that converged above this many times the record's own noise (read off
-      its third differences, :func:`toggle_id.fast.difference_noise`) is polished again from the baseline's other
+      its third differences, :func:`toggle_id.fast.difference_noise`; a quarter of σ under AR(1) ρ 0.9 noise, so
+      only where its residual holds structure by the noise-aware structure test too,
+      :func:`.residual.structure_left_at`) is polished again from the baseline's other
       starts (the job's reference values, the nominal fit as given; the one the baseline came from last), each
       moved into the baseline's gauge (:func:`.gauge.in_gauge_of`) with the refit's effect values carried to its
       scales and its domains widened for them (:func:`.gauge.carried`, :func:`.gauge.domains_at`), its magnitude
@@ -143,7 +145,8 @@ class DiscoverSettings:
       (:func:`.refit.screened_starts`), in order until a polish ends within 1.5 times the noise (a start whose
       polish comes back to the refit's own error is left there); the lowest error is judged. While no supported
       refit of an iteration ends within this many times the noise, the dismissed candidates whose score is
-      significant are polished once from each other start too (by least squares), strongest score first, until one
+      significant are polished once from each other start too (by least squares; again only where what is left
+      holds structure), strongest score first, until one
       ends within 1.5 times the noise (:func:`.refit.from_other_starts`: a 3-ms dead time the baseline hid,
       refitted from there to τ_d ≈ 0, reaches 0.989 µm from the reference values). The baseline and its start bend
       the nominal parameters towards what the effect does, and a large
@@ -199,8 +202,9 @@ class DiscoverSettings:
       it: the per-sample form also blocks stand-ins whose influence sits where a missing effect leaves the residual
       large, and the level form lets several of those through (docs/discovery.md, *Open problems*).
     - pair_look: where the current model and every supported single refit of a step lie above ``pair_above``
-      times the record's own noise (its third differences, :func:`toggle_id.fast.difference_noise`), the pairs of
-      this many single refits of lowest error are refitted together and judged (:mod:`.pairs`), until one ends
+      times the record's own noise (its third differences, :func:`toggle_id.fast.difference_noise`) and what the
+      step leaves holds structure by the noise-aware structure test (:func:`.residual.structure_left_at`), the pairs
+      of this many single refits of lowest error are refitted together and judged (:mod:`.pairs`), until one ends
       within that band; a supported pair lower than the step's best single effect, and significant beside it where
       it is one of the two, adds both. 0 (the default): off. Opt-in until the adversarial set is re-run with it.
     - pe_guard_alpha: with ``prediction_error``, a prediction-error fit whose raw SSE exceeds the least-squares
