@@ -16,9 +16,9 @@ from .landscape import profile, profiled_names
 from .model import Fit, Model, _with, fit_free
 from .noise import fit_noise
 from .pairs import pair_look
-from .residual import structure_left_at
 from .refit import (NEAR_NOISE, Refit, from_current, from_other_starts, guard_null, refit_candidate,
                     scout_candidate, share_of_room)
+from .residual import structure_left_at
 from .scoring import assess, score_leaders, worth_refitting
 from .settings import DiscoverSettings
 from .ties import indistinguishable

@@ -155,8 +155,9 @@ def refit_candidate(model: Model, base: Fit, effect: Effect, scout: Scout, setti
 
     An accepted refit whose raw RMS is above ``settings.other_starts_above`` times ``noise_m`` (the record's own
     noise, m, read off its third differences: a quarter of σ under AR(1) ρ 0.9 noise) and whose residual holds
-    structure by the noise-aware structure test (:func:`.residual.structure_left_at`) is also polished from ``others`` (the baseline's other starts, in its gauge, with the effects added so
-    far) at its effect's screened magnitudes (:func:`_from_other_starts`); where one ends lower it is judged
+    structure by the noise-aware structure test (:func:`.residual.structure_left_at`) is also polished from
+    ``others`` (the baseline's other starts, in its gauge, with the effects added so far) at its effect's screened
+    magnitudes (:func:`_from_other_starts`); where one ends lower it is judged
     instead: no effect is named at the optimum one start happened to give."""
     t0 = time.perf_counter()
     names = effect.names
