@@ -81,6 +81,51 @@ def test_far_above_the_noise_the_dismissed_candidates_are_polished_again_from_th
         assert asked == ["viscous_friction_slider", "dead_time", "sensor_offset"] and out["chosen"] is None
 
 
+@pytest.mark.parametrize("first_um, searched", [(0.98, False), (3.0, True)])
+def test_once_a_supported_refit_is_near_the_noise_the_rounds_other_refits_are_not_searched_from_other_starts(
+        monkeypatch, first_um, searched):
+    """The discover job's end-to-end record: a 50-µm offset refitted first to 0.975 µm; the load force after it,
+    accepted at 10.6 µm, was polished from four other starts (all 10.59 µm) and never chosen. Once a supported refit
+    of the round lies within NEAR_NOISE times the noise, the later refits get no other starts; above, they do."""
+    from types import SimpleNamespace
+
+    from toggle_id.discovery import forward as TP
+    from toggle_id.discovery.model import Fit
+    from toggle_id.discovery.refit import Refit, Scout
+    from toggle_id.discovery.scoring import CandidateScore
+    from toggle_id.discovery.settings import DiscoverSettings
+
+    n, noise_m = 1000, 1e-6
+    base_sse = (15e-6) ** 2 * n
+    names = ["sensor_offset", "constant_load_force"]
+    theta = extend(ASSIGNED)[0]
+    given = {}
+
+    def assess(model, label, th, free, remaining, settings, noise):
+        sc = {nm: CandidateScore(nm, 80.0, 0.0, {}, None, 1.0, 1.0) for nm in names}
+        return SimpleNamespace(label=label, scores=sc, profiles=set(names), proj=SimpleNamespace(rank=len(free)))
+
+    def refit_candidate(model, base, eff, sc, settings, it, judge, held, anchor=None, others=(), noise_m=0.0):
+        given[eff.name] = len(others)
+        sse = ((first_um if eff.name == "sensor_offset" else 10.6) * 1e-6) ** 2 * n
+        return Refit(eff.name, it, Fit(theta, base.free, sse), {}, base_sse, sse, 1, len(base.free) + 1, 1e3, 0.0,
+                     -1e3, True, "ok", {})
+
+    monkeypatch.setattr(TP, "assess", assess)
+    monkeypatch.setattr(TP, "scout_candidate", lambda model, base, points, eff, settings, held: Scout(
+        eff.name, base_sse * (0.1 if eff.name == "sensor_offset" else 0.5), None, {}))  # the offset's scout first
+    monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
+    monkeypatch.setattr(TP, "guard_null", lambda *a: None)
+    monkeypatch.setattr(TP, "structure_left_at", lambda model, th, settings: (True, ""))
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
+                        [EFFECTS_BY_NAME[nm] for nm in names], DiscoverSettings(top_k=2, second_point=False,
+                                                                                ambiguity_alpha=0.0),
+                        1, (), lambda s: None, None, others=[theta.copy(), theta.copy()], noise_m=noise_m)
+    assert given == {"sensor_offset": 2, "constant_load_force": 2 if searched else 0}
+    assert out["chosen"].name == "sensor_offset"
+
+
 def test_a_dismissed_refit_is_polished_from_the_other_starts_at_its_profiles_magnitude_where_it_left_it_off(
         monkeypatch):
     """refit.from_other_starts: a refit left at "off" (τ_d ≈ 0) starts from its profile's best grid magnitude at
