@@ -55,9 +55,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
             rows.append({"run": k, "wall_s": wall, "n_samples": rep.get("n_samples"),
                          "effects_added": [a["name"] for a in rep["effects_added"]],
                          "rmse_before_um": rep["rmse_before_m"] * 1e6, "rmse_after_um": rep["rmse_after_m"] * 1e6,
-                         "loop_s": rep.get("seconds")})
+                         "loop_s": rep.get("seconds"), "n_simulations": rep.get("n_simulations")})
             r = rows[-1]
-            print(f"run {k}: {wall:7.1f} s wall (loop {r['loop_s'] or float('nan'):.1f} s)  "
+            print(f"run {k}: {wall:7.1f} s wall (loop {r['loop_s'] or float('nan'):.1f} s, "
+                  f"{r['n_simulations']} simulations)  "
                   f"effects {r['effects_added'] or 'none'}  rms {r['rmse_before_um']:.3g} -> {r['rmse_after_um']:.3g} um",
                   flush=True)
     med = statistics.median(r["wall_s"] for r in rows)

@@ -412,6 +412,7 @@ def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, capsys)
     rows = json.loads((tmp_path / "bench.json").read_text())
     assert len(rows) == 1 and rows[0]["effects_added"] == ["sensor_offset"] and rows[0]["wall_s"] > 0
     assert rows[0]["rmse_after_um"] < 1.1 and rows[0]["rmse_before_um"] > 5.0
+    assert rows[0]["n_simulations"] > 0 and f"{rows[0]['n_simulations']} simulations" in out  # the load-free figure
 
 
 @pytest.mark.integration
