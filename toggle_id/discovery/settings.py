@@ -205,8 +205,8 @@ class DiscoverSettings:
       times the record's own noise (its third differences, :func:`toggle_id.fast.difference_noise`) and what the
       step leaves holds structure by the noise-aware structure test (:func:`.residual.structure_left_at`), the pairs
       of this many single refits of lowest error are refitted together and judged (:mod:`.pairs`), until one ends
-      within that band; a supported pair lower than the step's best single effect, and significant beside it where
-      it is one of the two, adds both. 0 (the default): off. Opt-in until the adversarial set is re-run with it.
+      within that band; a supported pair lower than the step's best single effect, significant beside it where
+      it is one of the two, and, above the band, leaving no structure, adds both. 0 (the default): off. Opt-in until the adversarial set is re-run with it.
     - pe_guard_alpha: with ``prediction_error``, a prediction-error fit whose raw SSE exceeds the least-squares
       fit it started from by more than the noise allows at this level (:func:`.noise.prediction_error_drift`) is
       refused and that model is fitted by least squares (asked again of the next); and the judge, when the larger
