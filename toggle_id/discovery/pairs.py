@@ -89,7 +89,7 @@ def pair_look(model: Model, judge: Judge, base: Fit, refits: Sequence[Refit], be
             left, text = structure_left_at(model, fit.theta, settings)
             rf.evidence["structure_after"] = text
             if left:
-                rf.accepted, rf.reason = False, ("supported, but above the noise band it leaves " + text
+                rf.accepted, rf.reason = False, ("supported, but above the noise band with " + text
                                                  + ": together they compensate, they do not explain the record")
         rf.seconds = time.perf_counter() - t0
         say(f"  pair {a.name} + {b.name} refitted together: rms {fit.rmse(n) * 1e6:.4g} µm, F {rf.F:.3g}, "
