@@ -231,15 +231,15 @@ def next_leaders(refits: list[Refit], scores: Sequence, order: Sequence, leaders
     is left to the catch-all. Held-out record rec46_d1 (a backlash on the paper's sweep, 2026-12-07): the dead
     time led (χ² 165) and its refit found nothing (F ≈ 0); the backlash (132), second, had scouted fifth and was
     never refitted alone on that route (the second route named it: F 779, out of sample z 19.9)."""
+    scouted = {sc.name for sc in order}
     set_aside: set[str] = set()
     while not any(rf.accepted for rf in refits):
         done = {rf.name: rf for rf in refits}
-        empty = {nm for nm in leaders | set_aside if nm in done and not done[nm].F * done[nm].k > screen}
-        if empty <= set_aside:
+        empty = {nm for nm in leaders if nm in done and not done[nm].F * done[nm].k > screen} - set_aside
+        if not empty:
             return
         set_aside |= empty
-        rest = [c for c in scores if c.name not in set_aside and c.statistic > screen
-                and any(sc.name == c.name for sc in order)]
+        rest = [c for c in scores if c.name not in set_aside and c.statistic > screen and c.name in scouted]
         leaders = score_leaders(rest, alpha, screen)
         new = [sc for sc in order if sc.name in leaders and sc.name not in done]
         if not new:
