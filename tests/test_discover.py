@@ -303,7 +303,7 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     from conftest import run_job
 
     proc = run_job("jobs.run", "+experiment=discover", f"hydra.run.dir={tmp_path / 'run'}", "evaluator=serial",
-                   "data.duration=1.0", "data.effects.x_off=5e-5", "discover.nominal=base", "discover.max_effects=1",
+                   "data.duration=0.5", "data.effects.x_off=5e-5", "discover.nominal=base", "discover.max_effects=1",
                    "discover.candidates=[sensor_offset,constant_load_force]", "progress=false",
                    cwd=tmp_path, env=job_env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -334,7 +334,7 @@ def test_discover_job_end_to_end(tmp_path, job_env):
     client = MlflowClient(job_env["MLFLOW_TRACKING_URI"])
     runs = client.search_runs([client.get_experiment_by_name("toggle-id").experiment_id])
     parent = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
-    assert len(parent) == 1 and parent[0].info.run_name.startswith("discover evaluator=serial data.duration=1.0 ")
+    assert len(parent) == 1 and parent[0].info.run_name.startswith("discover evaluator=serial data.duration=0.5 ")
     assert "data.effects.x_off=5e-5" in parent[0].info.run_name
     # comparing: the result in µm, the shared curve ending at it, the record as a dataset, the model
     assert parent[0].data.metrics["rmse_um"] == pytest.approx(1e6 * d["rmse_after_m"])
