@@ -18,7 +18,12 @@ would otherwise make every true sensor offset look unneeded. If the judge finds 
 taken out of the model with them in turn: one whose removal the same checks do
 not find significant — or that keeps less than ``catch_all_keep`` (10 %) of the error reduction it brings to the
 final model (a least-squares polish converges only so far, and an F-test on thousands of samples finds a 0.1 %
-gap) — does nothing the generic force does not do, and is listed as *compensating*, never as added.
+gap) — does nothing the generic force does not do, and is listed as *compensating*, never as added. That share is
+read against what the effect would keep were it true (:func:`share_if_true`): the generic terms can span an effect's
+own signature (on the paper's sweep the motor angle is a function of x_B, so the position error of a cogging ripple
+the servo holds is one too, which the reading error's 40 knots follow), and a true effect then keeps little beside
+them by construction; an effect significant beside them that keeps less than ``catch_all_keep`` is still needed when
+it keeps at least ``catch_all_keep`` of that calibrated share.
 An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
 the generic terms explain nothing more — the missing physics is then neither a force on slider B nor an error of
 the reading, and the check decides nothing. The generic terms are never part of the reported model. An effect
@@ -78,10 +83,47 @@ def _supports(ev) -> bool:
     return all(ok for check, ok in ev.checks.items() if check in SUPPORT)
 
 
-def _needed(ev, kept_fraction: float, settings: DiscoverSettings) -> bool:
+def _needed(ev, kept_fraction: float, settings: DiscoverSettings, share: float = 1.0) -> bool:
     """Whether an effect is still needed beside the generic terms: the judge's evidence ``ev`` passes the checks of
-    :data:`SUPPORT`, and it keeps at least ``catch_all_keep`` of what it explains without them."""
-    return _supports(ev) and kept_fraction >= settings.catch_all_keep
+    :data:`SUPPORT`, and it keeps at least ``catch_all_keep`` of what it explains without them — of what a true
+    effect of its size would keep there, ``share`` (:func:`share_if_true`; 1: the generic terms cannot do its work)."""
+    return _supports(ev) and kept_fraction >= settings.catch_all_keep * min(1.0, max(share, 0.0))
+
+
+def _generic_fit(model: Model, start: np.ndarray, free: Sequence[str], shaping: tuple[str, ...],
+                 weights: tuple[str, ...], settings: DiscoverSettings) -> Fit:
+    """The generic terms ``weights`` fitted on ``model`` from ``start``: ``shaping`` alone first (their shape, the
+    model held), then ``free`` and ``weights`` together."""
+    shaped = fit_free(model, start, shaping, settings.baseline_nfev, settings.fd_rel_step)
+    return fit_free(model, shaped.theta, tuple(free) + weights, settings.baseline_nfev, settings.fd_rel_step,
+                    rounds=settings.rounds)
+
+
+def share_if_true(model: Model, current: Fit, a: dict, knots: dict, weights: tuple[str, ...],
+                  settings: DiscoverSettings) -> float | None:
+    """The share of its gain that effect ``a``, were it true at its fitted size, keeps beside the generic terms
+    ``weights``: the final model ``current`` simulated without noise (a twin of ``model``: the same integrators,
+    domains, noise model and samples left out), refitted there without ``a`` and then with the generic terms as the
+    check fits them (the force first, then the reading error) — SSE with them over SSE without ``a``. None when the
+    twin cannot be simulated or ``a`` explains nothing there."""
+    x = model.outputs(current.theta[None, :])[0]
+    if not np.all(np.isfinite(x)):
+        return None
+    twin = Model(replace(model.record, x_B=x), model.settings, model.parallel,
+                 jacobian=(model.jacobian, model.jacobian_step), jacobian_reuse=model.jacobian_reuse,
+                 derivatives=model.derivatives)
+    twin.noise, twin.stiff, twin.excluded = model.noise, set(model.stiff), model.excluded
+    twin.bounds, twin.gauge_bounds = dict(model.bounds), dict(model.gauge_bounds)
+    effect = EFFECTS_BY_NAME[a["name"]]
+    off = fit_free(twin, _with(current.theta, _off_values(effect)),
+                   tuple(nm for nm in current.free if nm not in effect.names), settings.baseline_nfev,
+                   settings.fd_rel_step, rounds=settings.rounds)
+    if not off.sse > 0:
+        return None
+    generic = _generic_fit(twin, _with(off.theta, knots), off.free, FORCE_WEIGHTS, FORCE_WEIGHTS, settings)
+    if weights != FORCE_WEIGHTS:
+        generic = _generic_fit(twin, generic.theta, off.free, SENSOR_WEIGHTS, weights, settings)
+    return float(np.clip(generic.sse / off.sse, 0.0, 1.0))
 
 
 def model_state(model: Model) -> tuple:
@@ -194,12 +236,6 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
     n = model.n
     knots = knots_of(states, model.record.x_B)
 
-    def generic_fit(start: np.ndarray, shaping: tuple[str, ...], weights: tuple[str, ...]) -> Fit:
-        # the new weights alone first (their shape, the model held), then everything
-        shaped = fit_free(model, start, shaping, settings.baseline_nfev, settings.fd_rel_step)
-        return fit_free(model, shaped.theta, tuple(current.free) + weights, settings.baseline_nfev,
-                        settings.fd_rel_step, rounds=settings.rounds)
-
     # the force first, then the reading error beside it (nested: from the force's fit). The reading error is kept
     # only if the judge finds it needed beyond the force: it contains a constant, so a true sensor offset would
     # otherwise always be "done" by it, whatever else it finds to do
@@ -207,8 +243,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         force, both = looked
         say("catch-all: the generic terms fitted on this model before (its second look), the model as it was then")
     else:
-        force = generic_fit(_with(current.theta, knots), FORCE_WEIGHTS, FORCE_WEIGHTS)
-        both = generic_fit(force.theta, SENSOR_WEIGHTS, WEIGHTS)
+        force = _generic_fit(model, _with(current.theta, knots), current.free, FORCE_WEIGHTS, FORCE_WEIGHTS, settings)
+        both = _generic_fit(model, force.theta, current.free, SENSOR_WEIGHTS, WEIGHTS, settings)
     ev_reading = judge.judge_pair(force, both)
     reading = _supports(ev_reading)
     weights, generic = (WEIGHTS, both) if reading else (FORCE_WEIGHTS, force)
@@ -262,15 +298,23 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         gain = alone.sse - current.sse
         kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
         needed = _needed(ev_a, kept_fraction, settings)
+        share = None
+        if not needed and _supports(ev_a) and settings.catch_all_calibrated:
+            # significant beside the generic terms but a small share: is that all a true effect would keep there?
+            share = share_if_true(model, current, a, knots, weights, settings)
+            needed = share is not None and _needed(ev_a, kept_fraction, settings, share)
         # its values beside the generic terms: where the final model leaves structure, its own values may stand in
         # for part of what is missing (rec38: a_cog 0.0106 N·m in its final model, 0.0058 when first fitted beside
         # the generic terms; truth 0.0052)
         values = {nm: float(generic.theta[ALL_INDEX[nm]]) for nm in EFFECTS_BY_NAME[a["name"]].names}
         report["effects"][a["name"]] = {"rmse_without_m": small.rmse(n), "rmse_final_without_m": alone.rmse(n),
-                                        "kept_fraction": kept_fraction, "evidence": ev_a.to_dict(),
+                                        "kept_fraction": kept_fraction, "share_if_true": share,
+                                        "evidence": ev_a.to_dict(),
                                         "needed": needed, "values_with_generic": values}
         say(f"  without {a['name']}: rms {small.rmse(n) * 1e6:.4g} µm (it keeps {kept_fraction:.1%} of what it "
-            f"explains without the generic force; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
+            f"explains without the generic force" + ("" if share is None else f", and a true one of its size "
+                                                      f"{share:.1%} there, noise-free")
+            + f"; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
         if needed:
             kept.append(a)
             if with_rival is not None and a.get("indistinguishable_from"):

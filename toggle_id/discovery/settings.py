@@ -84,6 +84,9 @@ class DiscoverSettings:
       effect is still needed beside them if its removal is significant in sample and costs at least this fraction
       of the error reduction it brings to the final model; a rival tied with a kept effect, switched on in its
       place there, is needed by the same rule, and the tie is resolved for the effect where it is not.
+      catch_all_calibrated: an effect significant beside them that keeps less than catch_all_keep is still needed
+      if it keeps catch_all_keep of what it would keep were it true (the final model simulated noise-free and
+      refitted without it, then with the generic terms: :func:`.catchall.share_if_true`).
       cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
       compensating, whether structure is left or not: a motor's cogging repeats a whole number of times per
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
@@ -258,6 +261,7 @@ class DiscoverSettings:
     validation_material: float = 1.5
     catch_all: bool = True
     catch_all_keep: float = 0.1
+    catch_all_calibrated: bool = True
     cogging_whole_tol: float = 0.1
     signature_min_periods: float = 10.0
     cogging_min_periods: float = 10.0
@@ -429,7 +433,7 @@ class DiscoverSettings:
         if not (isinstance(self.route_rtol, (int, float)) and not isinstance(self.route_rtol, bool)
                 and 0.0 <= float(self.route_rtol) < 1.0):
             raise ConfigError(f"discover.route_rtol must lie in [0, 1), got {self.route_rtol!r}")
-        for name in ("scout_all", "next_leaders", "backward", "catch_all"):
+        for name in ("scout_all", "next_leaders", "backward", "catch_all", "catch_all_calibrated"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"discover.{name} must be true or false, got {getattr(self, name)!r}")
         if self.noise_std is not None and not (np.isfinite(self.noise_std) and self.noise_std > 0):
