@@ -883,7 +883,9 @@ def test_the_share_a_true_effect_keeps_is_measured_on_its_noise_free_twin():
     states = {"x_B": model.outputs(_with(theta, {"x_off": 0.0})[None, :])[0], "xdot_B": np.linspace(-0.01, 0.2, rec.n)}
     knots = catchall.knots_of(states, x)
     settings = DiscoverSettings(baseline_nfev=30)
+    before = model.n_sims
     both = catchall.share_if_true(model, current, {"name": "sensor_offset"}, knots, catchall.WEIGHTS, settings)
     force = catchall.share_if_true(model, current, {"name": "sensor_offset"}, knots, catchall.FORCE_WEIGHTS, settings)
     assert 0.0 <= both < 1e-4 and 0.01 < force < 1.0
+    assert model.n_sims > before + 100  # the twin's simulations are counted as the job's
     assert model.record.x_B is x  # the record itself is left as it was

@@ -118,12 +118,14 @@ def share_if_true(model: Model, current: Fit, a: dict, knots: dict, weights: tup
     off = fit_free(twin, _with(current.theta, _off_values(effect)),
                    tuple(nm for nm in current.free if nm not in effect.names), settings.baseline_nfev,
                    settings.fd_rel_step, rounds=settings.rounds)
-    if not off.sse > 0:
-        return None
-    generic = _generic_fit(twin, _with(off.theta, knots), off.free, FORCE_WEIGHTS, FORCE_WEIGHTS, settings)
-    if weights != FORCE_WEIGHTS:
-        generic = _generic_fit(twin, generic.theta, off.free, SENSOR_WEIGHTS, weights, settings)
-    return float(np.clip(generic.sse / off.sse, 0.0, 1.0))
+    share = None
+    if off.sse > 0:
+        generic = _generic_fit(twin, _with(off.theta, knots), off.free, FORCE_WEIGHTS, FORCE_WEIGHTS, settings)
+        if weights != FORCE_WEIGHTS:
+            generic = _generic_fit(twin, generic.theta, off.free, SENSOR_WEIGHTS, weights, settings)
+        share = float(np.clip(generic.sse / off.sse, 0.0, 1.0))
+    model.n_sims += twin.n_sims  # the job's count of simulations holds the twin's
+    return share
 
 
 def model_state(model: Model) -> tuple:
