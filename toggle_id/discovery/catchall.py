@@ -348,7 +348,10 @@ def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
     reading of unknown shape does: it stood in for part of what the library lacks, which also hid the difference
     between the two (rec38 of the adversarial set: a Stribeck friction tied with the cogging torque beside a
     quadratic drag). It moves to ``a``'s ``ties_resolved``; a rival still needed stays tied. Edits ``a`` in place;
-    ``entry`` (``a``'s entry in the report) receives each rival's case under ``rivals``."""
+    ``entry`` (``a``'s entry in the report) receives each rival's case under ``rivals``. The rival's floor is the
+    plain ``catch_all_keep``, not calibrated as ``a``'s may be (:func:`share_if_true`): where ``a`` was kept by its
+    calibrated share, a rival of the same kind significant but under the floor resolves the tie for ``a`` — not yet
+    measured on a record (docs/discovery.md, *Open problems*, item 11)."""
     keep, resolved = [], []
     for rv in a["indistinguishable_from"]:
         big = with_rival(small, rv)
