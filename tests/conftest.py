@@ -242,6 +242,7 @@ needs_records = pytest.mark.skipif(EMPS_FILES is None, reason=EMPS_MISSING or ""
 SHARED_FIXTURES = ("two_stage_job", "ray_session")
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads the groups into the test ids
 def pytest_collection_modifyitems(config, items):
     for item in items:
         shared = [name for name in SHARED_FIXTURES if name in getattr(item, "fixturenames", ())]

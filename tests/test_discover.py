@@ -399,14 +399,25 @@ def test_discover_job_restarts_its_ga_from_the_next_seed_while_the_record_is_une
 
 
 @pytest.mark.integration
-def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, capsys):
+def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, capsys, monkeypatch, mlflow_template):
     """The benchmark's command line, in this process (the job it times is the one the test above runs as a user
-    would): one run, its line and the median printed, the rows written."""
+    would): one run, its line and the median printed, the rows written. Its figures are not rendered here (the
+    end-to-end test above renders the job's; tests/test_residuals.py each kind) and its store is a copy of the
+    session's empty one (the benchmark's own override of ``tracking.uri`` comes first; the last one wins)."""
+    from conftest import scratch_store
     from jobs.bench_discover import main
 
+    from toggle_id import figures
+
+    def unrendered(fig, path, **kw):
+        figures.close(fig)
+        Path(path).write_bytes(b"")
+        return str(path)
+
+    monkeypatch.setattr(figures, "save", unrendered)
     main(["--json", str(tmp_path / "bench.json"), "evaluator=serial", "data.duration=0.5", "data.effects.tau_c=0.0",
           "data.effects.x_off=5e-5", "discover.nominal=base", "discover.max_effects=1",
-          "discover.candidates=[sensor_offset]"])
+          "discover.candidates=[sensor_offset]", f"tracking.uri={scratch_store(tmp_path / 'store', mlflow_template)}"])
     out = capsys.readouterr().out
     assert "run 0:" in out and "median wall" in out
     rows = json.loads((tmp_path / "bench.json").read_text())
