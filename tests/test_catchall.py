@@ -110,6 +110,7 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
     asked only of an effect significant beside the generic terms that keeps less than ``catch_all_keep``); not given,
     the check runs without it."""
     theta = extend(ASSIGNED)[0]
+    theta[ALL_INDEX["a_cog"]] = 0.01  # the accepted cogging torque's size
     current = Fit(theta, ("K_t", "F_load", "a_cog"), 10.0)
     fitted = []
 
@@ -143,7 +144,13 @@ def _run(monkeypatch, generic_sse: float, without_sse: dict[str, float], alone_s
     asked: list[str] = []
 
     def share_if_true(model, fit, a, knots, weights, settings):
-        assert fit is current and knots == catchall.knots_of(STATES, model.record.x_B)
+        assert knots == catchall.knots_of(STATES, model.record.x_B)
+        if fit is not current:  # a tied rival: the final model with it in its effect's place
+            tied = next(b for b in added if a in b.get("indistinguishable_from", ()))
+            names = EFFECTS_BY_NAME[tied["name"]].names
+            assert fit.free == tuple(nm for nm in current.free if nm not in names)
+            assert all(fit.theta[ALL_INDEX[k]] == v for k, v in a["params"].items())
+            assert fit.theta[ALL_INDEX["a_cog"]] == 0.0  # switched off
         asked.append(a["name"])
         return share[a["name"]]
 
@@ -226,6 +233,25 @@ def test_a_tie_of_a_kept_effect_is_judged_beside_the_generic_terms(monkeypatch, 
     else:
         assert [r["name"] for r in cog["indistinguishable_from"]] == ["stribeck_friction"]
         assert "ties_resolved" not in cog and said[-1].endswith("still needed: the tie stays")
+
+
+@pytest.mark.parametrize("share, resolved", [(0.5, False), (0.9, True), (None, True)])
+def test_a_rival_under_the_floor_is_read_against_what_a_true_rival_would_keep(monkeypatch, share, resolved):
+    """The rival of the case above keeps 7 % beside the generic terms, significant: under catch_all_keep, so it is
+    held to the calibrated rule the kept effect would be. A true rival of its size keeping 50 % there would keep
+    less than it does beyond a tenth of that (5 %): the tie stays; 90 % (floor 9 %) or a twin that failed (None): the
+    plain floor, and the tie is resolved."""
+    rival = {"name": "stribeck_friction", "params": {"F_s": 4.5, "v_s": 0.018}}
+    kept, _, report, said = _run(monkeypatch, 2.0, {"constant_load_force": 2.1, "cogging_torque": 9.0},
+                                 {"constant_load_force": 30.0, "cogging_torque": 11.0}, margin=0.05,
+                                 rivals={"cogging_torque": [rival]},
+                                 with_rival=lambda fit, rv: Fit(fit.theta, fit.free + ("F_s", "v_s"), 8.93),
+                                 share={"stribeck_friction": share, "constant_load_force": None})
+    case = report["effects"]["cogging_torque"]["rivals"]["stribeck_friction"]
+    assert case["share_if_true"] == share and case["needed"] is (not resolved)
+    assert report["effects"]["cogging_torque"]["share_if_true"] is None  # kept by the plain floor, never asked
+    assert (kept[0]["indistinguishable_from"] == []) is resolved
+    assert ("a true one of its size" in said[-1]) is (share is not None)
 
 
 def test_without_with_rival_the_ties_stay_as_they_are(monkeypatch):

@@ -90,6 +90,26 @@ def _needed(ev, kept_fraction: float, settings: DiscoverSettings, share: float =
     return _supports(ev) and kept_fraction >= settings.catch_all_keep * min(1.0, max(share, 0.0))
 
 
+def _judged(ev, kept_fraction: float, settings: DiscoverSettings,
+            share: Callable[[], float | None]) -> tuple[bool, float | None]:
+    """(needed, the calibrated share or None) of an effect or a tied rival beside the generic terms: needed by the
+    plain floor, or — significant there but under it, with ``catch_all_calibrated`` — by the share a true one of its
+    size keeps there (``share()``, asked only then: it fits a noise-free twin)."""
+    if _needed(ev, kept_fraction, settings) or not (_supports(ev) and settings.catch_all_calibrated):
+        return _needed(ev, kept_fraction, settings), None
+    calibrated = share()
+    return calibrated is not None and _needed(ev, kept_fraction, settings, calibrated), calibrated
+
+
+def _in_place(current: Fit, a: dict, rival: dict) -> Fit:
+    """The final model ``current`` with effect ``a`` switched off and its tied ``rival`` on at the rival's values
+    (the model a true rival of that size would be; its other parameters as fitted with ``a``), free as ``current``
+    less ``a``'s parameters."""
+    theta = _with(_with(current.theta, _off_values(EFFECTS_BY_NAME[a["name"]])), rival["params"])
+    names = EFFECTS_BY_NAME[a["name"]].names
+    return replace(current, theta=theta, free=tuple(nm for nm in current.free if nm not in names))
+
+
 def _generic_fit(model: Model, start: np.ndarray, free: Sequence[str], shaping: tuple[str, ...],
                  weights: tuple[str, ...], settings: DiscoverSettings) -> Fit:
     """The generic terms ``weights`` fitted on ``model`` from ``start``: ``shaping`` alone first (their shape, the
@@ -299,12 +319,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
         alone = a.get("_reduced") or without(current, a)
         gain = alone.sse - current.sse
         kept_fraction = float((small.sse - generic.sse) / gain) if gain > 0 else 0.0
-        needed = _needed(ev_a, kept_fraction, settings)
-        share = None
-        if not needed and _supports(ev_a) and settings.catch_all_calibrated:
-            # significant beside the generic terms but a small share: is that all a true effect would keep there?
-            share = share_if_true(model, current, a, knots, weights, settings)
-            needed = share is not None and _needed(ev_a, kept_fraction, settings, share)
+        needed, share = _judged(ev_a, kept_fraction, settings, lambda: share_if_true(model, current, a, knots,
+                                                                                      weights, settings))
         # its values beside the generic terms: where the final model leaves structure, its own values may stand in
         # for part of what is missing (rec38: a_cog 0.0106 N·m in its final model, 0.0058 when first fitted beside
         # the generic terms; truth 0.0052)
@@ -321,7 +337,9 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
             kept.append(a)
             if with_rival is not None and a.get("indistinguishable_from"):
                 _ties_beside(a, small, gain, judge, with_rival, settings, n, terms, say,
-                             report["effects"][a["name"]])
+                             report["effects"][a["name"]],
+                             lambda rv, a=a: share_if_true(model, _in_place(current, a, rv), rv, knots, weights,
+                                                           settings))
         else:
             compensating.append(dict(a, reason=(
                 f"lowers the error, but {GENERIC_FORCE_TEXT}" + (f" or {GENERIC_READING_TEXT}" if reading else "")
@@ -335,7 +353,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
 
 def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
                  with_rival: Callable[[Fit, dict], Fit], settings: DiscoverSettings, n: int, terms: str,
-                 say: Callable[[str], None], entry: dict) -> None:
+                 say: Callable[[str], None], entry: dict,
+                 share_of: Callable[[dict], float | None] | None = None) -> None:
     """The ties of an effect ``a`` the catch-all check keeps, judged beside the generic terms as ``a`` was.
 
     ``small``: the fit with the generic terms (``terms``, for the reason) and without ``a``; ``gain_a``: what ``a``
@@ -348,20 +367,24 @@ def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
     reading of unknown shape does: it stood in for part of what the library lacks, which also hid the difference
     between the two (rec38 of the adversarial set: a Stribeck friction tied with the cogging torque beside a
     quadratic drag). It moves to ``a``'s ``ties_resolved``; a rival still needed stays tied. Edits ``a`` in place;
-    ``entry`` (``a``'s entry in the report) receives each rival's case under ``rivals``. The rival's floor is the
-    plain ``catch_all_keep``, not calibrated as ``a``'s may be (:func:`share_if_true`): where ``a`` was kept by its
-    calibrated share, a rival of the same kind significant but under the floor resolves the tie for ``a`` — not yet
-    measured on a record (docs/discovery.md, *Open problems*, item 11)."""
+    ``entry`` (``a``'s entry in the report) receives each rival's case under ``rivals``. A rival significant there
+    but under the floor is held to the rule ``a`` was (:func:`_judged`): ``share_of(rival)``, the share a true rival
+    of its size keeps beside the generic terms (:func:`share_if_true` on the final model with the rival in ``a``'s
+    place, :func:`_in_place`), so the floor that kept ``a`` by its calibrated share cannot resolve the tie against
+    a rival the generic terms span as much."""
     keep, resolved = [], []
     for rv in a["indistinguishable_from"]:
         big = with_rival(small, rv)
         ev = judge.judge_pair(small, big)
         frac = float((small.sse - big.sse) / gain_a) if gain_a > 0 else 0.0
-        needed = _needed(ev, frac, settings)
-        case = {"rmse_with_it_m": big.rmse(n), "kept_fraction": frac, "evidence": ev.to_dict(), "needed": needed}
+        needed, share = _judged(ev, frac, settings, (lambda rv=rv: share_of(rv)) if share_of else lambda: None)
+        case = {"rmse_with_it_m": big.rmse(n), "kept_fraction": frac, "share_if_true": share,
+                "evidence": ev.to_dict(), "needed": needed}
         entry.setdefault("rivals", {})[rv["name"]] = case
         say(f"  its rival {rv['name']} in its place beside the generic terms: rms {small.rmse(n) * 1e6:.4g} → "
-            f"{big.rmse(n) * 1e6:.4g} µm (it keeps {frac:.1%} of what it explains without them; {ev.reason}) → "
+            f"{big.rmse(n) * 1e6:.4g} µm (it keeps {frac:.1%} of what it explains without them"
+            + ("" if share is None else f", and a true one of its size {share:.1%} there, noise-free")
+            + f"; {ev.reason}) → "
             + ("still needed: the tie stays" if needed else f"not needed: the tie is resolved for {a['name']}"))
         if needed:
             keep.append(rv)
