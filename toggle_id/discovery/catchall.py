@@ -95,8 +95,9 @@ def _judged(ev, kept_fraction: float, settings: DiscoverSettings,
     """(needed, the calibrated share or None) of an effect or a tied rival beside the generic terms: needed by the
     plain floor, or — significant there but under it, with ``catch_all_calibrated`` — by the share a true one of its
     size keeps there (``share()``, asked only then: it fits a noise-free twin)."""
-    if _needed(ev, kept_fraction, settings) or not (_supports(ev) and settings.catch_all_calibrated):
-        return _needed(ev, kept_fraction, settings), None
+    plain = _needed(ev, kept_fraction, settings)
+    if plain or not (_supports(ev) and settings.catch_all_calibrated):
+        return plain, None
     calibrated = share()
     return calibrated is not None and _needed(ev, kept_fraction, settings, calibrated), calibrated
 
