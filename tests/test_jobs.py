@@ -50,8 +50,11 @@ def test_simulate_job_rejects_bad_arguments_in_one_line(tmp_path, args, needle):
     assert not (tmp_path / "a.csv").exists()
 
 
-def test_identify_job_two_stage_end_to_end(two_stage_job):
+def test_identify_job_two_stage_end_to_end(two_stage_job, request):
     job = two_stage_job  # `python -m jobs.run +experiment=two_stage` on a 1-s record, a tiny GA (conftest)
+    if getattr(request.config.option, "loadgroup", False):
+        # on a pytest-xdist worker: the tests sharing the job run on this one (built once for the suite)
+        assert request.node.nodeid.endswith("@two_stage_job")
     report = Path(_last_line(job.proc).removeprefix("report: "))
     assert report == (job.tmp / "run" / "result.json").resolve()
     res = json.loads(report.read_text())
