@@ -278,6 +278,7 @@ def test_the_named_effects_values_beside_the_generic_terms_are_reported(monkeypa
                        catch={**report, "rmse_m": 1.0e-6})
     assert f"named effects' values are cogging_torque a_cog {got['a_cog']:.4g}, n_cog {got['n_cog']:.4g}" in text
     assert "constant_load_force F_load" not in text  # compensating: not named, its values not given
+    assert "neither is the effect's size" in text and "range" not in text  # not a range for the truth (rec38_d1)
     assert "named effects' values" not in _conclusion([], {"rms_m": 3.25e-6}, after, True, DiscoverSettings(), comp,
                                                       catch={**report, "rmse_m": 1.0e-6})
 
