@@ -30,6 +30,7 @@ def test_settings_validate_and_reject_bad_values():
                         ({"bogus": 1}, "bogus"), ({"max_effects": -1}, "max_effects"),
                         ({"noise_std": -1.0}, "noise_std"), ({"catch_all_keep": 1.0}, "catch_all_keep"),
                         ({"catch_all": "yes"}, "catch_all"), ({"catch_all_calibrated": 1}, "catch_all_calibrated"),
+                        ({"catch_all_share_min": 1.5}, "catch_all_share_min"),
                         ({"fd_tier": "loose"}, "fd_tier"),
                         ({"jacobian_reuse": -1}, "jacobian_reuse"), ({"jacobian_reuse": True}, "jacobian_reuse"),
                         ({"stronger_starts": [0.5]}, "stronger_starts"), ({"stronger_starts": 3}, "stronger_starts"),

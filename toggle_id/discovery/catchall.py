@@ -23,7 +23,8 @@ read against what the effect would keep were it true (:func:`share_if_true`): th
 own signature (on the paper's sweep the motor angle is a function of x_B, so the position error of a cogging ripple
 the servo holds is one too, which the reading error's 40 knots follow), and a true effect then keeps little beside
 them by construction; an effect significant beside them that keeps less than ``catch_all_keep`` is still needed when
-it keeps at least ``catch_all_keep`` of that calibrated share.
+it keeps at least ``catch_all_keep`` of that calibrated share — where the share is at least ``catch_all_share_min``
+(under it the generic terms span a true one too, and the plain floor rules).
 An effect of another kind (a cogging torque, a dead time, a backlash) keeps its place, as does any effect when
 the generic terms explain nothing more — the missing physics is then neither a force on slider B nor an error of
 the reading, and the check decides nothing. The generic terms are never part of the reported model. An effect
@@ -94,12 +95,15 @@ def _judged(ev, kept_fraction: float, settings: DiscoverSettings,
             share: Callable[[], float | None]) -> tuple[bool, float | None]:
     """(needed, the calibrated share or None) of an effect or a tied rival beside the generic terms: needed by the
     plain floor, or — significant there but under it, with ``catch_all_calibrated`` — by the share a true one of its
-    size keeps there (``share()``, asked only then: it fits a noise-free twin)."""
+    size keeps there (``share()``, asked only then: it fits a noise-free twin) — unless that share is under
+    ``catch_all_share_min``: the generic terms then span a true one too, and keeping it would rest on significance
+    alone (rec25_d1: a scale error's constant part named as a sensor offset, 0.2 % kept against 0.3 %)."""
     plain = _needed(ev, kept_fraction, settings)
     if plain or not (_supports(ev) and settings.catch_all_calibrated):
         return plain, None
     calibrated = share()
-    return calibrated is not None and _needed(ev, kept_fraction, settings, calibrated), calibrated
+    seen = calibrated is not None and calibrated >= settings.catch_all_share_min  # else the generic terms span it
+    return seen and _needed(ev, kept_fraction, settings, calibrated), calibrated
 
 
 def _in_place(current: Fit, a: dict, rival: dict) -> Fit:

@@ -87,6 +87,8 @@ class DiscoverSettings:
       catch_all_calibrated: an effect significant beside them that keeps less than catch_all_keep is still needed
       if it keeps catch_all_keep of what it would keep were it true (the final model simulated noise-free and
       refitted without it, then with the generic terms: :func:`.catchall.share_if_true`).
+      catch_all_share_min: where a true one would keep less than this share there, the generic terms span it and
+      the check cannot see it: the plain floor rules (rec25_d1, a scale error's offset part kept 0.2 % against 0.3 %).
       cogging_whole_tol: an accepted cogging torque whose n_cog lies farther than this from a whole number is
       compensating, whether structure is left or not: a motor's cogging repeats a whole number of times per
       revolution (its slots and poles), so a fitted fraction stands in for something else that repeats with a
@@ -262,6 +264,7 @@ class DiscoverSettings:
     catch_all: bool = True
     catch_all_keep: float = 0.1
     catch_all_calibrated: bool = True
+    catch_all_share_min: float = 0.02
     cogging_whole_tol: float = 0.1
     signature_min_periods: float = 10.0
     cogging_min_periods: float = 10.0
@@ -374,6 +377,9 @@ class DiscoverSettings:
         if not (isinstance(self.catch_all_keep, (int, float)) and not isinstance(self.catch_all_keep, bool)
                 and 0.0 <= float(self.catch_all_keep) < 1.0):
             raise ConfigError(f"discover.catch_all_keep must lie in [0, 1), got {self.catch_all_keep!r}")
+        if not (isinstance(self.catch_all_share_min, (int, float)) and not isinstance(self.catch_all_share_min, bool)
+                and 0.0 <= float(self.catch_all_share_min) < 1.0):
+            raise ConfigError(f"discover.catch_all_share_min must lie in [0, 1), got {self.catch_all_share_min!r}")
         if not (isinstance(self.cogging_whole_tol, (int, float)) and not isinstance(self.cogging_whole_tol, bool)
                 and 0.0 <= float(self.cogging_whole_tol) <= 0.5):
             raise ConfigError(f"discover.cogging_whole_tol must lie in [0, 0.5], got {self.cogging_whole_tol!r}")
