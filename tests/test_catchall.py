@@ -327,6 +327,7 @@ def test_a_small_share_is_read_against_what_a_true_effect_would_keep(monkeypatch
     assert report["effects"]["cogging_torque"]["share_if_true"] is None
     line = next(ln for ln in said if "without constant_load_force" in ln)
     assert ("a true one of its size" in line) is (share is not None)
+    assert ("they span it, too little to tell" in line) is (share == 0.01)
     assert line.endswith("not needed" if demoted else "still needed")
 
 

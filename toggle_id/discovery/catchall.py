@@ -106,6 +106,14 @@ def _judged(ev, kept_fraction: float, settings: DiscoverSettings,
     return seen and _needed(ev, kept_fraction, settings, calibrated), calibrated
 
 
+def _share_text(share: float | None, settings: DiscoverSettings) -> str:
+    """The calibrated share's clause of a catch-all log line (empty when none was asked)."""
+    if share is None:
+        return ""
+    return (f", and a true one of its size {share:.1%} there, noise-free"
+            + (": they span it, too little to tell" if share < settings.catch_all_share_min else ""))
+
+
 def _in_place(current: Fit, a: dict, rival: dict) -> Fit:
     """The final model ``current`` with effect ``a`` switched off and its tied ``rival`` on at the rival's values
     (the model a true rival of that size would be; its other parameters as fitted with ``a``), free as ``current``
@@ -335,9 +343,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
                                         "evidence": ev_a.to_dict(),
                                         "needed": needed, "values_with_generic": values}
         say(f"  without {a['name']}: rms {small.rmse(n) * 1e6:.4g} µm (it keeps {kept_fraction:.1%} of what it "
-            f"explains without the generic force" + ("" if share is None else f", and a true one of its size "
-                                                      f"{share:.1%} there, noise-free")
-            + f"; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
+            f"explains without the generic force" + _share_text(share, settings) + f"; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
         if needed:
             kept.append(a)
             if with_rival is not None and a.get("indistinguishable_from"):
@@ -388,8 +394,7 @@ def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
         entry.setdefault("rivals", {})[rv["name"]] = case
         say(f"  its rival {rv['name']} in its place beside the generic terms: rms {small.rmse(n) * 1e6:.4g} → "
             f"{big.rmse(n) * 1e6:.4g} µm (it keeps {frac:.1%} of what it explains without them"
-            + ("" if share is None else f", and a true one of its size {share:.1%} there, noise-free")
-            + f"; {ev.reason}) → "
+            + _share_text(share, settings) + f"; {ev.reason}) → "
             + ("still needed: the tie stays" if needed else f"not needed: the tie is resolved for {a['name']}"))
         if needed:
             keep.append(rv)
