@@ -315,8 +315,8 @@ def test_a_small_share_is_read_against_what_a_true_effect_would_keep(monkeypatch
     # the load force keeps 5 % of its gain (1 of 20), significant: below catch_all_keep, so the share a true load
     # force would keep beside the generic terms is asked. 4 %: they span its signature and 5 % is what a true one
     # keeps — needed; 60 %: a true one would keep twelve times more, and 5 % is below a tenth of it (catch_all_keep
-    # of the share) — compensating; the twin failed (None) — the plain rule; 1 %: under catch_all_share_min (2 %), the
-    # generic terms span a true one too and 5 % would pass on significance alone — the plain rule. The cogging
+    # of the share) — compensating; the twin failed (None) — the plain rule; 1 %: under catch_all_share_min (2 %),
+    # the generic terms span a true one too and 5 % would pass on significance alone — the plain rule. The cogging
     # torque keeps 70 %, never asked.
     kept, comp, report, said = _run(monkeypatch, 2.0, {"constant_load_force": 3.0, "cogging_torque": 9.0},
                                     {"constant_load_force": 30.0, "cogging_torque": 20.0}, margin=0.5,

@@ -343,7 +343,8 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
                                         "evidence": ev_a.to_dict(),
                                         "needed": needed, "values_with_generic": values}
         say(f"  without {a['name']}: rms {small.rmse(n) * 1e6:.4g} µm (it keeps {kept_fraction:.1%} of what it "
-            f"explains without the generic force" + _share_text(share, settings) + f"; {ev_a.reason}) → " + ("still needed" if needed else "not needed"))
+            f"explains without the generic force" + _share_text(share, settings) + f"; {ev_a.reason}) → "
+            + ("still needed" if needed else "not needed"))
         if needed:
             kept.append(a)
             if with_rival is not None and a.get("indistinguishable_from"):
@@ -364,8 +365,7 @@ def catch_all(model: Model, judge: Judge, current: Fit, added: Sequence[dict], s
 
 def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
                  with_rival: Callable[[Fit, dict], Fit], settings: DiscoverSettings, n: int, terms: str,
-                 say: Callable[[str], None], entry: dict,
-                 share_of: Callable[[dict], float | None] | None = None) -> None:
+                 say: Callable[[str], None], entry: dict, share_of: Callable[[dict], float | None]) -> None:
     """The ties of an effect ``a`` the catch-all check keeps, judged beside the generic terms as ``a`` was.
 
     ``small``: the fit with the generic terms (``terms``, for the reason) and without ``a``; ``gain_a``: what ``a``
@@ -388,7 +388,7 @@ def _ties_beside(a: dict, small: Fit, gain_a: float, judge: Judge,
         big = with_rival(small, rv)
         ev = judge.judge_pair(small, big)
         frac = float((small.sse - big.sse) / gain_a) if gain_a > 0 else 0.0
-        needed, share = _judged(ev, frac, settings, (lambda rv=rv: share_of(rv)) if share_of else lambda: None)
+        needed, share = _judged(ev, frac, settings, lambda: share_of(rv))  # asked, if at all, in this iteration
         case = {"rmse_with_it_m": big.rmse(n), "kept_fraction": frac, "share_if_true": share,
                 "evidence": ev.to_dict(), "needed": needed}
         entry.setdefault("rivals", {})[rv["name"]] = case

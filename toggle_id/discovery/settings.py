@@ -374,12 +374,10 @@ class DiscoverSettings:
         if not (isinstance(self.validation_material, (int, float)) and not isinstance(self.validation_material, bool)
                 and float(self.validation_material) >= 1.0):
             raise ConfigError(f"discover.validation_material must be a number ≥ 1, got {self.validation_material!r}")
-        if not (isinstance(self.catch_all_keep, (int, float)) and not isinstance(self.catch_all_keep, bool)
-                and 0.0 <= float(self.catch_all_keep) < 1.0):
-            raise ConfigError(f"discover.catch_all_keep must lie in [0, 1), got {self.catch_all_keep!r}")
-        if not (isinstance(self.catch_all_share_min, (int, float)) and not isinstance(self.catch_all_share_min, bool)
-                and 0.0 <= float(self.catch_all_share_min) < 1.0):
-            raise ConfigError(f"discover.catch_all_share_min must lie in [0, 1), got {self.catch_all_share_min!r}")
+        for name in ("catch_all_keep", "catch_all_share_min"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0.0 <= float(value) < 1.0):
+                raise ConfigError(f"discover.{name} must lie in [0, 1), got {value!r}")
         if not (isinstance(self.cogging_whole_tol, (int, float)) and not isinstance(self.cogging_whole_tol, bool)
                 and 0.0 <= float(self.cogging_whole_tol) <= 0.5):
             raise ConfigError(f"discover.cogging_whole_tol must lie in [0, 0.5], got {self.cogging_whole_tol!r}")
