@@ -122,13 +122,14 @@ def test_burg_recovers_a_sharp_spectral_peak_that_yule_walker_flattens():
         fit_noise(e, method="levinson")
 
 
-def test_whitening_leaves_out_the_filters_transient_so_an_offset_is_not_fitted_to_it():
-    """With zero initial conditions the first p whitened samples are r(0), r(1) − a₁r(0), …: under resonant AR(2)
-    noise each outweighs hundreds of innovations and a constant regressor fits them (the prewhitened F-test of an
-    offset fired on 92 % of draws at 1 %). They are left out: the F-test keeps its level."""
+def test_whitening_starts_from_the_stationary_law_so_an_offset_is_not_fitted_to_the_filters_transient():
+    """With zero initial conditions the first p whitened samples were r(0), r(1) − a₁r(0), …: under resonant AR(2)
+    noise each outweighed hundreds of innovations and a constant regressor fitted them (the prewhitened F-test of an
+    offset fired on 92 % of draws at 1 %). Whitened by their stationary covariance (the exact likelihood) each has
+    the innovations' variance: the F-test keeps its level, and no sample is left out."""
     r2, th = 0.97, 2 * np.pi * 0.02
     rng = np.random.default_rng(12)
-    fired = 0
+    fired, heads = 0, []
     for _ in range(40):
         e = signal.lfilter([1.0], [1.0, -2 * r2 * np.cos(th), r2 * r2], rng.standard_normal(N + 2000))[2000:]
         nm = fit_noise(e)
@@ -136,9 +137,47 @@ def test_whitening_leaves_out_the_filters_transient_so_an_offset_is_not_fitted_t
         beta = float(J[:, 0] @ rw) / float(J[:, 0] @ J[:, 0])
         sse0, sse1 = whitened_sse(nm, np.vstack([e, e - beta]))
         fired += f_test(float(sse0), float(sse1), 1, N, 1 + nm.order)[1] < 0.01
-    assert fired <= 4  # 10 % of 40 draws at most (Yule-Walker's bias leaves 2-4 %; with the transient in: 92 %)
+        heads.append(nm.whiten(e)[0] / np.sqrt(nm.sigma2_e))
+    assert fired <= 4  # 10 % of 40 draws at most (Yule-Walker's bias leaves 2-4 %; with the raw transient in: 92 %)
+    # the first whitened sample is a standardised innovation, not r(0) (≈ 21 innovations' standard deviations)
+    assert np.std(heads) == pytest.approx(1.0, abs=0.35)
     w = nm.whiten(e)
-    assert nm.order >= 2 and np.all(w[:nm.order] == 0.0) and np.all(w[nm.order:] != 0.0)
+    assert nm.order >= 2 and np.all(w != 0.0)
+
+
+def _acov_by_impulse_response(a, lags: int, n: int = 60_000) -> np.ndarray:
+    """γ(0 … lags) of AR noise with unit innovations, independently: Σ ψⱼψⱼ₊ₖ over the impulse response ψ of 1/A."""
+    psi = signal.lfilter([1.0], np.r_[1.0, -np.asarray(a, float)], np.r_[1.0, np.zeros(n - 1)])
+    return np.array([psi[: n - k] @ psi[k:] for k in range(lags + 1)])
+
+
+@pytest.mark.parametrize("a", [(0.9,), (0.6, 0.25), (2 * 0.97 * np.cos(2 * np.pi * 0.02), -0.97 ** 2),
+                               (0.433, -0.0792, 0.267, 0.23, -0.0525, 0.0422, 0.0942)])
+def test_whitening_is_the_exact_gaussian_likelihood(a):
+    """Whitening W (r ↦ e) of an AR(p) noise model satisfies WᵀW = σ_e²·Σ⁻¹, Σ the noise's covariance — checked
+    against Σ from the impulse response of 1/A(q) (an independent reference); AR(1)'s first sample is
+    Prais–Winsten's √(1 − ρ²)·r(0)."""
+    from scipy import linalg
+
+    from toggle_id.discovery.noise import stationary_autocovariance
+
+    n = 30
+    nm = NoiseModel(a=tuple(a), sigma2_e=1.0, sigma2=1.0, n=n)
+    gamma = _acov_by_impulse_response(a, n - 1)
+    np.testing.assert_allclose(stationary_autocovariance(a), gamma[: len(a) + 1], rtol=1e-9)
+    Wt = nm.whiten(np.eye(n))  # row i: W applied to the i-th unit vector, i.e. Wᵀ
+    np.testing.assert_allclose(Wt @ Wt.T @ linalg.toeplitz(gamma), np.eye(n), atol=1e-8)
+    if len(a) == 1:
+        assert nm.whiten(np.r_[2.0, np.zeros(n - 1)])[0] == pytest.approx(2.0 * np.sqrt(1 - a[0] ** 2))
+
+
+def test_a_noise_model_that_is_not_stationary_whitens_without_its_first_samples():
+    """No stationary law to start from (a unit root): the conditional likelihood, the first p samples at 0."""
+    from toggle_id.discovery.noise import start_factor, stationary_autocovariance
+
+    assert stationary_autocovariance((1.0,)) is None and start_factor((0.5, 0.6)) is None
+    w = NoiseModel(a=(1.0,), sigma2_e=1.0, sigma2=1.0, n=5).whiten(np.arange(1.0, 6.0))
+    np.testing.assert_array_equal(w, [0.0, 1.0, 1.0, 1.0, 1.0])
 
 
 def test_the_noise_benchmark_prints_each_estimators_whitening_and_false_alarms(capsys, tmp_path):

@@ -20,6 +20,7 @@ The order-0 model is white noise (A = 1), so a record with white noise is judged
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -55,20 +56,34 @@ class NoiseModel:
         return np.r_[1.0, -np.asarray(self.a, float)]
 
     def whiten(self, x: np.ndarray) -> np.ndarray:
-        """A(q) applied along the last axis, the first p samples set to 0 (the conditional likelihood).
+        """A(q) applied along the last axis, the first p samples whitened by their stationary covariance: the exact
+        Gaussian likelihood (Prais–Winsten's first sample, √(1 − ρ²)·r(0), for AR(1); Box, Jenkins & Reinsel, *Time
+        Series Analysis*, 7.1, for AR(p)), so every sample has innovation variance and none is ignored.
 
-        Their whitened values would need the p samples before the record; with zero initial conditions they are
-        r(0), r(1) − a₁r(0), … — barely filtered, so under noise with a strong low-frequency gain one of them
-        outweighs hundreds of innovations, and a regressor that is large there (a constant: a sensor offset) fits
-        it. Measured before they were left out (2026-12-03): the prewhitened F-test of a constant on resonant
-        AR(2) noise (pole radius 0.97, 5001 samples) fired on 92 % of the draws at the 1 % level, 2–4 % without
-        them; on AR(1) ρ = 0.9 noise 2 % against 1 %. Statistics keep counting N samples (p ≤ 8 of thousands)."""
+        History: with zero initial conditions the first samples were r(0), r(1) − a₁r(0), … — barely filtered, so under
+        noise with a strong low-frequency gain one of them outweighed hundreds of innovations (the prewhitened F-test
+        of a constant fired on 92 % of resonant AR(2) draws at the 1 % level); from 2026-12-03 to 2026-12-07 they
+        were set to 0 (the conditional likelihood), which made a parameter seen only by them free: the catch-all's
+        reading error at a record's starting position took any value there (rec25_d1: 33 µm of raw error at the
+        first sample, its fit ending far above the model it started from). Measured by ``python -m jobs.bench_noise``
+        (the tests' false alarms). Statistics that work on the lags' regression still drop the first p samples."""
         x = np.asarray(x, float)
         if self.white:
             return x
         y = signal.lfilter(self.filter, [1.0], x, axis=-1)
-        y[..., :self.order] = 0.0
+        p = self.order
+        L = self._start_factor
+        if L is None:  # no stationary start (not expected of Yule–Walker or Burg): the conditional likelihood
+            y[..., :p] = 0.0
+        else:
+            head = x[..., :p].reshape(-1, p)
+            y[..., :p] = linalg.solve_triangular(L, head.T, lower=True).T.reshape(x[..., :p].shape)
         return y
+
+    @cached_property
+    def _start_factor(self) -> np.ndarray | None:
+        """Lower Cholesky factor of the first p samples' covariance in units of σ_e² (None: not stationary)."""
+        return start_factor(self.a)
 
     def whiten_columns(self, J: np.ndarray) -> np.ndarray:
         """A(q) applied to every column of an (N, p) matrix."""
@@ -127,6 +142,36 @@ class NoiseModel:
         return (f"AR({self.order}) noise (a = {coeffs}), σ = {np.sqrt(self.sigma2) * 1e6:.3g} µm, innovation "
                 f"σ_e = {np.sqrt(self.sigma2_e) * 1e6:.3g} µm, ≈{self.effective_fraction * self.n:.0f} "
                 f"independent samples of {self.n}")
+
+
+def stationary_autocovariance(a: tuple[float, ...] | np.ndarray) -> np.ndarray | None:
+    """γ(0), …, γ(p) of the AR(p) process r(t) = Σ aₖ r(t − k) + e(t) with unit innovation variance, from the
+    Yule–Walker equations read the other way (γ(k) − Σ aⱼ γ(|k − j|) = δₖ, k = 0 … p); None when the process is
+    not stationary (a root of A on or outside the unit circle's inside, or γ(0) not positive)."""
+    a = np.asarray(a, float)
+    p = a.size
+    if p == 0:
+        return np.ones(1)
+    if np.any(np.abs(np.roots(np.r_[1.0, -a])) >= 1.0):
+        return None
+    M = np.eye(p + 1)
+    for k in range(p + 1):
+        for j in range(1, p + 1):
+            M[k, abs(k - j)] -= a[j - 1]
+    g = np.linalg.solve(M, np.eye(p + 1)[0])
+    return g if g[0] > 0 else None
+
+
+def start_factor(a: tuple[float, ...] | np.ndarray) -> np.ndarray | None:
+    """Lower Cholesky factor L of the p × p covariance (unit innovations) of an AR(p) process's first p samples:
+    L⁻¹·r(0 … p−1) has the innovations' variance (:meth:`NoiseModel.whiten`). None when not stationary."""
+    g = stationary_autocovariance(a)
+    if g is None or np.asarray(a).size == 0:
+        return None
+    try:
+        return linalg.cholesky(linalg.toeplitz(g[:-1]), lower=True)
+    except linalg.LinAlgError:
+        return None
 
 
 WHITE = NoiseModel(note="assumed white (no residual to estimate from)")
