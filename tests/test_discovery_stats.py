@@ -169,6 +169,11 @@ def test_whitening_is_the_exact_gaussian_likelihood(a):
     np.testing.assert_allclose(Wt @ Wt.T @ linalg.toeplitz(gamma), np.eye(n), atol=1e-8)
     if len(a) == 1:
         assert nm.whiten(np.r_[2.0, np.zeros(n - 1)])[0] == pytest.approx(2.0 * np.sqrt(1 - a[0] ** 2))
+    # a failed simulation's residual (not finite) stays not finite, row by row, and raises nothing
+    bad = np.vstack([np.ones(n), np.r_[np.nan, np.ones(n - 1)], np.r_[np.ones(n - 1), np.inf]])
+    w = nm.whiten(bad)
+    assert np.all(np.isfinite(w[0])) and not np.all(np.isfinite(w[1])) and not np.all(np.isfinite(w[2]))
+    assert not np.isfinite(whitened_sse(nm, bad)[1])
 
 
 def test_a_noise_model_that_is_not_stationary_whitens_without_its_first_samples():

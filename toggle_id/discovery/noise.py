@@ -77,7 +77,9 @@ class NoiseModel:
             y[..., :p] = 0.0
         else:
             head = x[..., :p].reshape(-1, p)
-            y[..., :p] = linalg.solve_triangular(L, head.T, lower=True).T.reshape(x[..., :p].shape)
+            # a failed simulation's residual is not finite: it stays so (a status, never an error)
+            y[..., :p] = linalg.solve_triangular(L, head.T, lower=True, check_finite=False).T.reshape(
+                x[..., :p].shape)
         return y
 
     @cached_property
