@@ -174,6 +174,9 @@ def test_whitening_is_the_exact_gaussian_likelihood(a):
     w = nm.whiten(bad)
     assert np.all(np.isfinite(w[0])) and not np.all(np.isfinite(w[1])) and not np.all(np.isfinite(w[2]))
     assert not np.isfinite(whitened_sse(nm, bad)[1])
+    # a record shorter than the model's order: its samples whitened by the leading block of the start's factor
+    short = nm.whiten(np.eye(n)[:1, :1])
+    assert short.shape == (1, 1) and short[0, 0] == pytest.approx(1.0 / np.sqrt(gamma[0]))
 
 
 def test_a_noise_model_that_is_not_stationary_whitens_without_its_first_samples():

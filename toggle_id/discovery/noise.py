@@ -57,8 +57,9 @@ class NoiseModel:
 
     def whiten(self, x: np.ndarray) -> np.ndarray:
         """A(q) applied along the last axis, the first p samples whitened by their stationary covariance: the exact
-        Gaussian likelihood (Prais–Winsten's first sample, √(1 − ρ²)·r(0), for AR(1); Box, Jenkins & Reinsel, *Time
-        Series Analysis*, 7.1, for AR(p)), so every sample has innovation variance and none is ignored.
+        Gaussian likelihood (Prais–Winsten's first sample, √(1 − ρ²)·r(0), for AR(1); the exact likelihood of an AR(p)
+        model in Box, Jenkins & Reinsel, *Time Series Analysis*), so every sample has innovation variance and none is
+        ignored.
 
         History: with zero initial conditions the first samples were r(0), r(1) − a₁r(0), … — barely filtered, so under
         noise with a strong low-frequency gain one of them outweighed hundreds of innovations (the prewhitened F-test
@@ -75,11 +76,12 @@ class NoiseModel:
         L = self._start_factor
         if L is None:  # no stationary start (not expected of Yule–Walker or Burg): the conditional likelihood
             y[..., :p] = 0.0
-        else:
-            head = x[..., :p].reshape(-1, p)
+        elif x.shape[-1]:
+            k = min(p, x.shape[-1])  # a record shorter than p: the leading block of L is the factor of its samples
+            head = x[..., :k].reshape(-1, k)
             # a failed simulation's residual is not finite: it stays so (a status, never an error)
-            y[..., :p] = linalg.solve_triangular(L, head.T, lower=True, check_finite=False).T.reshape(
-                x[..., :p].shape)
+            y[..., :k] = linalg.solve_triangular(L[:k, :k], head.T, lower=True, check_finite=False).T.reshape(
+                x[..., :k].shape)
         return y
 
     @cached_property
@@ -149,7 +151,7 @@ class NoiseModel:
 def stationary_autocovariance(a: tuple[float, ...] | np.ndarray) -> np.ndarray | None:
     """γ(0), …, γ(p) of the AR(p) process r(t) = Σ aₖ r(t − k) + e(t) with unit innovation variance, from the
     Yule–Walker equations read the other way (γ(k) − Σ aⱼ γ(|k − j|) = δₖ, k = 0 … p); None when the process is
-    not stationary (a root of A on or outside the unit circle's inside, or γ(0) not positive)."""
+    not stationary (a pole of 1/A(q) on or outside the unit circle, or γ(0) not positive)."""
     a = np.asarray(a, float)
     p = a.size
     if p == 0:
