@@ -6,10 +6,11 @@ import json
 
 import numpy as np
 import pytest
-from scipy import signal, stats
+from scipy import linalg, signal, stats
 
 from toggle_id.discovery.localise import level_basis, locate, noise_level
-from toggle_id.discovery.noise import NoiseModel, autocovariance, fit_noise, whitened_sse
+from toggle_id.discovery.noise import (NoiseModel, autocovariance, fit_noise, start_factor,
+                                      stationary_autocovariance, whitened_sse)
 from toggle_id.discovery.stats import (
     block_cv,
     compare,
@@ -157,10 +158,6 @@ def test_whitening_is_the_exact_gaussian_likelihood(a):
     """Whitening W (r ↦ e) of an AR(p) noise model satisfies WᵀW = σ_e²·Σ⁻¹, Σ the noise's covariance — checked
     against Σ from the impulse response of 1/A(q) (an independent reference); AR(1)'s first sample is
     Prais–Winsten's √(1 − ρ²)·r(0)."""
-    from scipy import linalg
-
-    from toggle_id.discovery.noise import stationary_autocovariance
-
     n = 30
     nm = NoiseModel(a=tuple(a), sigma2_e=1.0, sigma2=1.0, n=n)
     gamma = _acov_by_impulse_response(a, n - 1)
@@ -181,8 +178,6 @@ def test_whitening_is_the_exact_gaussian_likelihood(a):
 
 def test_a_noise_model_that_is_not_stationary_whitens_without_its_first_samples():
     """No stationary law to start from (a unit root): the conditional likelihood, the first p samples at 0."""
-    from toggle_id.discovery.noise import start_factor, stationary_autocovariance
-
     assert stationary_autocovariance((1.0,)) is None and start_factor((0.5, 0.6)) is None
     w = NoiseModel(a=(1.0,), sigma2_e=1.0, sigma2=1.0, n=5).whiten(np.arange(1.0, 6.0))
     np.testing.assert_array_equal(w, [0.0, 1.0, 1.0, 1.0, 1.0])

@@ -151,7 +151,7 @@ class NoiseModel:
 def stationary_autocovariance(a: tuple[float, ...] | np.ndarray) -> np.ndarray | None:
     """γ(0), …, γ(p) of the AR(p) process r(t) = Σ aₖ r(t − k) + e(t) with unit innovation variance, from the
     Yule–Walker equations read the other way (γ(k) − Σ aⱼ γ(|k − j|) = δₖ, k = 0 … p); None when the process is
-    not stationary (a pole of 1/A(q) on or outside the unit circle, or γ(0) not positive)."""
+    not stationary (a pole of 1/A(q) on or outside the unit circle)."""
     a = np.asarray(a, float)
     p = a.size
     if p == 0:
@@ -162,17 +162,16 @@ def stationary_autocovariance(a: tuple[float, ...] | np.ndarray) -> np.ndarray |
     for k in range(p + 1):
         for j in range(1, p + 1):
             M[k, abs(k - j)] -= a[j - 1]
-    g = np.linalg.solve(M, np.eye(p + 1)[0])
-    return g if g[0] > 0 else None
+    return np.linalg.solve(M, np.eye(p + 1)[0])
 
 
 def start_factor(a: tuple[float, ...] | np.ndarray) -> np.ndarray | None:
     """Lower Cholesky factor L of the p × p covariance (unit innovations) of an AR(p) process's first p samples:
     L⁻¹·r(0 … p−1) has the innovations' variance (:meth:`NoiseModel.whiten`). None when not stationary."""
-    g = stationary_autocovariance(a)
-    if g is None or np.asarray(a).size == 0:
+    g = stationary_autocovariance(a) if np.size(a) else None
+    if g is None:
         return None
-    try:
+    try:  # positive definite for a stationary model; near a unit root rounding may say otherwise
         return linalg.cholesky(linalg.toeplitz(g[:-1]), lower=True)
     except linalg.LinAlgError:
         return None
