@@ -1,7 +1,8 @@
 """An adversarial set of records on which the discovery loop is judged.
 
 ``python -m jobs.bench_adversarial --out DIR [--only NAME,...] [--duration S] [--calibrate] [--validation]
-[--replicates K] [--draw K] [--run] [--jobs N] [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]``
+[--replicates K] [--draw K] [--run] [--jobs N] [--timeout S] [--mlflow-uri URI] [--override KEY=VALUE ...]
+[--ledger PATH]``
 
 Writes CSV records (docs/model.md §8, via :func:`toggle_id.data.write_csv`) and ``manifest.json`` (the truth of each:
 parameters, effects, noise model, command) into DIR. A record's name (``rec01`` …) says nothing about what is in
@@ -28,6 +29,7 @@ data.path=… seed=0 progress=false``; MLflow off unless ``--mlflow-uri``; ``--o
 ``--jobs`` at a time, and writes ``results.json`` and ``results.md``: truth, accepted effects, compensating ones,
 RMS before → after (µm and multiples of σ), the verdict (exact / spurious / missed / unexplained-correct) and the
 wall time, with a summary. A record whose run already succeeded (on the same CSV) is not run again.
+``--ledger PATH`` also appends each run made to the ledger of the set's runs (:mod:`jobs.adversarial_ledger`).
 """
 from __future__ import annotations
 
@@ -49,9 +51,10 @@ from toggle_id.simulate import share_cores
 
 
 def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, timeout: float, log=print, *,
-            shared_cores: bool = False) -> dict:
+            shared_cores: bool = False, ledger: Path | None = None, jobs: int = 1) -> dict:
     """Run the discover job on one record (skipped if it already succeeded on the same CSV with the same
-    overrides); its result row. ``shared_cores``: other jobs run beside it (``--jobs`` > 1)."""
+    overrides); its result row. ``shared_cores``: other jobs run beside it (``--jobs`` > 1). ``ledger``: a run
+    made here is also appended there (:mod:`jobs.adversarial_ledger`), with ``jobs`` side by side."""
     if entry.get("validation"):  # the machine's second record: predicted, never fitted
         extra = [*extra, f"validation.path={(out / entry['validation']['file']).resolve()}"]
     run_dir = out / "runs" / entry["name"]
@@ -103,21 +106,25 @@ def run_one(entry: dict, out: Path, extra: list[str], mlflow_uri: str | None, ti
     from toggle_id.checkpoint import atomic_write_json
 
     atomic_write_json(row_path, row)
+    if ledger is not None:
+        from jobs.adversarial_ledger import append, ledger_row
+
+        append(ledger, [ledger_row(row, jobs=jobs)])
     log(f"{entry['name']}: {row['verdict']} ({wall:.0f} s)")
     return row
 
 
 def run_all(out: Path, manifest: dict, names: list[str], extra: list[str], mlflow_uri: str | None, jobs: int,
-            timeout: float, log=print) -> tuple[list[dict], dict]:
+            timeout: float, log=print, ledger: Path | None = None) -> tuple[list[dict], dict]:
     from toggle_id.checkpoint import atomic_write_json
 
     entries = [r for r in manifest["records"] if r["name"] in names]
     if jobs <= 1:
-        rows = [run_one(e, out, extra, mlflow_uri, timeout, log) for e in entries]
+        rows = [run_one(e, out, extra, mlflow_uri, timeout, log, ledger=ledger) for e in entries]
     else:
         with ThreadPoolExecutor(max_workers=jobs) as pool:
-            rows = list(pool.map(lambda e: run_one(e, out, extra, mlflow_uri, timeout, log, shared_cores=True),
-                                 entries))
+            rows = list(pool.map(lambda e: run_one(e, out, extra, mlflow_uri, timeout, log, shared_cores=True,
+                                                   ledger=ledger, jobs=jobs), entries))
     done = {}
     for r in manifest["records"]:  # every record with a result so far, this run's or an earlier one's
         p = out / "runs" / r["name"] / "result_row.json"
@@ -144,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=7200.0, help="seconds per discover job")
     ap.add_argument("--mlflow-uri", default=None, help="track the runs in this MLflow store (default: no tracking)")
     ap.add_argument("--override", action="append", default=[], help="extra Hydra override of every run (repeatable)")
+    ap.add_argument("--ledger", default=None,
+                    help="also append each run made here to this ledger (docs/adversarial_ledger.jsonl: "
+                         "python -m jobs.adversarial_ledger)")
     ap.add_argument("--validation", action="store_true",
                     help="also write each machine's second record (the other command, independent noise) and give it "
                          "to the discover job as validation.path: predicted, never fitted")
@@ -182,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.run:
         names = [replicate_name(NAMES[s.key], k, args.draw) for s in specs
                  for k in range(replicate_count(s, args.replicates))]
-        _, summary = run_all(out, manifest, names, args.override, args.mlflow_uri, args.jobs, args.timeout)
+        _, summary = run_all(out, manifest, names, args.override, args.mlflow_uri, args.jobs, args.timeout,
+                             ledger=Path(args.ledger).expanduser().resolve() if args.ledger else None)
         if summary["errors"]:
             return 1
     return 0
