@@ -65,11 +65,11 @@ def test_the_gauge_holds_a_widened_magnitude_to_its_side_not_to_the_librarys_dom
 
 
 def test_broyden_update_meets_the_secant_condition_and_changes_the_jacobian_least_in_scaled_coordinates():
-    """discover.jacobian_reuse's update (model.broyden), against its definition: the updated Jacobian maps the step
-    onto the residual's change; it differs from the old one by a rank-one term whose row space is the scaled step,
+    """discover.jacobian_reuse's update (derivatives.broyden), against its definition: the updated Jacobian maps
+    the step onto the residual's change; it differs from the old one by a rank-one term whose row space is the scaled step,
     so a direction orthogonal to the step (scaled) is mapped as before; on a linear residual started from the true
     Jacobian it stays exact; a zero step gives None."""
-    from toggle_id.discovery.model import broyden
+    from toggle_id.discovery.derivatives import broyden
 
     rng = np.random.default_rng(3)
     m, k = 40, 5
@@ -88,6 +88,40 @@ def test_broyden_update_meets_the_secant_condition_and_changes_the_jacobian_leas
     assert np.allclose((J1 * scale) @ w, (J0 * scale) @ w)
     assert np.allclose(broyden(A, x0, r0, x1, r1, scale), A)
     assert broyden(J0, x0, r0, x0.copy(), r0, scale) is None
+
+
+def test_a_screening_fit_runs_in_its_tier_and_reports_the_sse_of_the_residuals_own(monkeypatch):
+    """discover.screen_tier=jacobian: a scout's polish simulates every residual and difference in the screening
+    integrator (one consistent problem), then its end point once in the model's own tier, whose whitened SSE the
+    fit reports (comparable with every other fit's) beside the screening tier's; an unknown tier is one line."""
+    from discovery_cases import make_record
+    from toggle_id.discovery import DiscoverSettings, Model, fit_free
+    from toggle_id.simulate import JACOBIAN, PRECISE
+
+    rec, truth, start = make_record({"x_off": 3e-5}, 0.5)
+    model, start = Model(rec), extend(start)[0]
+    seen = []
+    real = Model._simulated
+
+    def spy(self, plant, settings):
+        seen.append((settings.rtol, plant.shape[0]))
+        return real(self, plant, settings)
+
+    monkeypatch.setattr(Model, "_simulated", spy)
+    screen = DiscoverSettings(screen_tier="jacobian").screen
+    assert screen[0] is JACOBIAN and DiscoverSettings().screen is None
+    free = ("K_t", "x_off")
+    fit = fit_free(model, start, free, 8, screen=screen)
+    tiers = [rtol for rtol, _ in seen]
+    assert set(tiers[:-1]) <= {JACOBIAN.rtol, JACOBIAN.fallback.rtol} and tiers[-1] == PRECISE.rtol
+    assert fit.sse == pytest.approx(float(np.sum(model.fit_residuals(fit.theta[None, :])[0] ** 2)), rel=1e-12)
+    assert fit.info["screen_tier_sse"] != fit.sse and fit.sse < fit.info["sse_before"]
+    assert fit.sse == pytest.approx(fit.info["screen_tier_sse"], rel=1e-3)  # the tiers differ by integration error
+    seen.clear()
+    plain = fit_free(model, start, free, 8, coarse=False)
+    assert {rtol for rtol, _ in seen} == {PRECISE.rtol} and plain.sse == pytest.approx(fit.sse, rel=0.05)
+    with pytest.raises(ConfigError, match="discover.screen_tier must be one of jacobian, precise, got 'fast'"):
+        DiscoverSettings(screen_tier="fast").validate()
 
 
 def test_model_sends_an_effect_set_whose_rows_fell_back_straight_to_the_fallback():

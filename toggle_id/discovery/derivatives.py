@@ -133,3 +133,18 @@ def _differenced(model: Model, theta: np.ndarray, names: Sequence[str], rel_step
     J = ((Y[0::2] - Y[1::2]) / (2.0 * steps[:, None])).T
     J[:, ~np.all(np.isfinite(J), axis=0)] = 0.0
     return J
+
+
+def broyden(J: np.ndarray, x0: np.ndarray, r0: np.ndarray, x1: np.ndarray, r1: np.ndarray, scale: np.ndarray
+            ) -> np.ndarray | None:
+    """Broyden's rank-one update of the Jacobian ``J`` = dr/dx at ``x0`` to ``x1`` (residuals ``r0``, ``r1``), in
+    the coordinates x/``scale``: the least change of J (Frobenius norm, scaled) that maps the step onto the change of
+    the residual, so the columns of parameters of very different sizes are corrected in proportion. None for a zero
+    step."""
+    dz = (x1 - x0) / scale
+    nz = float(dz @ dz)
+    if not nz > 0.0:
+        return None
+    Jz = J * scale[None, :]
+    Jz = Jz + np.outer(r1 - r0 - Jz @ dz, dz) / nz
+    return Jz / scale[None, :]

@@ -19,7 +19,7 @@ from ..kernels.slots import GS_LO
 from ..polish import polish
 from ..record import Record
 from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
-from .derivatives import DERIVATIVES, _coords, _typical, output_derivatives, sensitivities
+from .derivatives import DERIVATIVES, _coords, _typical, broyden, output_derivatives, sensitivities
 from .noise import NoiseModel
 from .settings import DiscoverSettings
 
@@ -316,7 +316,7 @@ def inside_bounds(theta: np.ndarray, free: Sequence[str], rtol: float = 1e-6) ->
 
 def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float = 1e-4,
              bounds: Mapping[str, Sequence[float]] | None = None, rounds: int = 1, round_rtol: float = 1e-4,
-             coarse: bool = True) -> Fit:
+             coarse: bool = True, screen: tuple[SolverSettings, float] | None = None) -> Fit:
     """Polish ``free`` parameters of ``theta`` on the whole record (PRECISE, bounded least squares in log
     space for positive parameters). Keeps ``theta`` when nothing improves; never raises for a failed trial.
 
@@ -330,8 +330,15 @@ def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int
     point of an approximate Jacobian is biased along the sloppy directions (measured: ~3 σ² of SSE on a 5-s
     record), which an exact round removes in a few steps. Without ``coarse`` every round is PRECISE (a scout:
     8 evaluations, too few for the coarse rounds to get as far; measured on a dead-time record, 5.63 against
-    5.12 µm, which reordered the candidates).
+    5.12 µm, which reordered the candidates). ``screen`` = (integrator, step): one round with residuals and
+    Jacobians both in it (one consistent problem), the end point's SSE then in the residuals' own tier.
     """
+    if screen is not None:  # a screening fit, comparable with every other fit by its SSE
+        fit = _fit_once(model, theta, free, max_nfev, screen[1], bounds, coarse=False, tier=screen[0])
+        sse = float(_sse(model.fit_residuals(fit.theta[None, :]))[0])
+        raw = sse if model.noise.white else float(_sse(model.residuals(fit.theta[None, :]))[0])
+        return Fit(fit.theta, fit.free, sse, {**fit.info, "screen_tier_sse": fit.sse, "sse_after": sse}, fit.jac_u,
+                   fit.scaling, raw, fit.noise)
     fit = _fit_once(model, theta, free, max_nfev, fd_rel_step, bounds, coarse=coarse)
     info = dict(fit.info)
 
@@ -360,11 +367,13 @@ def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int
 
 
 def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float,
-              bounds: Mapping[str, Sequence[float]] | None, coarse: bool = True) -> Fit:
+              bounds: Mapping[str, Sequence[float]] | None, coarse: bool = True,
+              tier: SolverSettings | None = None) -> Fit:
     """One bounded least-squares run; ``coarse``: finite differences in :attr:`Model.jacobian` (else in the
-    residuals' own tier at ``fd_rel_step``)."""
+    residuals' own tier at ``fd_rel_step``); ``tier``: residuals and differences both in it (a screening fit)."""
     free = tuple(free)
-    tier, step = (model.jacobian, model.jacobian_step or fd_rel_step) if coarse else (model.settings, fd_rel_step)
+    own = tier if tier is not None else model.settings
+    tier, step = (model.jacobian, model.jacobian_step or fd_rel_step) if coarse else (own, fd_rel_step)
     idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
     lo, hi = stage_bounds(list(free), {**model.domains(), **(bounds or {})})
     x0 = np.clip(theta[idx].astype(float), lo, hi)
@@ -383,7 +392,7 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
     held: dict = {}  # the latest Jacobian, where it was taken, the residual there, Broyden updates since a fresh one
 
     def resid(x: np.ndarray) -> np.ndarray:
-        r = model.fit_residuals(thetas_of(x[None, :]))[0]
+        r = model.fit_residuals(thetas_of(x[None, :]), own)[0]
         last[:] = [(x.copy(), r)]
         return r
 
@@ -396,7 +405,7 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
                 return J
         h = step * np.maximum(np.abs(x), typ)
         h = np.where(x + h > hi, -h, h)
-        if model.derivatives == "analytic":
+        if model.derivatives == "analytic" and own is model.settings:
             D = output_derivatives(model, thetas_of(x[None, :])[0], idx)
             if D is not None:  # residual = measured − model, prewhitened: J = −A(q) ∂x/∂θ
                 J = -model.noise.whiten_columns(np.nan_to_num(D))
@@ -409,8 +418,8 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
                     held.update(J=J, x=x.copy(), r=here, age=0)
                 return J
         X = x[None, :] + np.diag(h)
-        if tier is model.settings and here is not None:
-            r0, Rr = here, model.fit_residuals(thetas_of(X))
+        if tier is own and here is not None:
+            r0, Rr = here, model.fit_residuals(thetas_of(X), own)
         else:  # the point itself in the Jacobian's tier too: both ends of every difference from one integrator
             R = model.fit_residuals(thetas_of(np.vstack([x[None, :], X])), tier)
             r0, Rr = R[0], R[1:]
@@ -426,21 +435,6 @@ def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: in
             "nfev": int(res.nfev), "message": str(res.message), "seconds": time.perf_counter() - t0}
     raw = float(_sse(model.residuals(out[None, :]))[0]) if not model.noise.white else float(res.sse)
     return Fit(out, free, float(res.sse), info, res.jac, res.scaling, raw, model.noise)
-
-
-def broyden(J: np.ndarray, x0: np.ndarray, r0: np.ndarray, x1: np.ndarray, r1: np.ndarray, scale: np.ndarray
-            ) -> np.ndarray | None:
-    """Broyden's rank-one update of the Jacobian ``J`` = dr/dx at ``x0`` to ``x1`` (residuals ``r0``, ``r1``), in
-    the coordinates x/``scale``: the least change of J (Frobenius norm, scaled) that maps the step onto the change of
-    the residual, so the columns of parameters of very different sizes are corrected in proportion. None for a zero
-    step."""
-    dz = (x1 - x0) / scale
-    nz = float(dz @ dz)
-    if not nz > 0.0:
-        return None
-    Jz = J * scale[None, :]
-    Jz = Jz + np.outer(r1 - r0 - Jz @ dz, dz) / nz
-    return Jz / scale[None, :]
 
 
 def parameter_uncertainty(model: Model, fit: Fit, settings: DiscoverSettings, held: Sequence[str] = (),

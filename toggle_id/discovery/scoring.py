@@ -19,6 +19,7 @@ from scipy import stats
 
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..identify import stage_bounds
+from ..simulate import SolverSettings
 from .derivatives import _coords, sensitivities
 from .model import Model, Projector, _off_values, _sse, _with
 from .noise import WHITE, NoiseModel
@@ -163,8 +164,10 @@ class Profile:
 
 
 def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Projector, effect: Effect,
-                   cand: CandidateScore, points: int = 14, noise: NoiseModel = WHITE) -> Profile:
-    """Grid search of ``effect`` at the current fit ``theta`` (residual ``r``) — see :class:`Profile`."""
+                   cand: CandidateScore, points: int = 14, noise: NoiseModel = WHITE,
+                   tier: SolverSettings | None = None) -> Profile:
+    """Grid search of ``effect`` at the current fit ``theta`` (residual ``r``) — see :class:`Profile`; its grid
+    simulated in ``tier`` (default: the model's Jacobian tier)."""
     base = _with(theta, _off_values(effect))
     mag = effect.magnitude
     rows, labels = [], []
@@ -187,7 +190,7 @@ def profile_effect(model: Model, theta: np.ndarray, r: np.ndarray, proj: Project
     if not rows:
         return Profile(effect.name, 0.0, {}, [], np.zeros((0, n)), [], 0, "no grid")
     # a screening grid: in the Jacobian's tier (its ~1e-9-m integration error is ~1e-3 of a σ² in the score)
-    Rr = noise.whiten(model.residuals(np.array(rows), model.jacobian))
+    Rr = noise.whiten(model.residuals(np.array(rows), tier if tier is not None else model.jacobian))
     ok = np.all(np.isfinite(Rr), axis=1)
     perp = np.full(len(rows), np.inf)
     if ok.any():
@@ -278,8 +281,9 @@ def assess(model: Model, label: str, theta: np.ndarray, free: Sequence[str], eff
     scores = score_candidates(model, theta, r, proj, effects, settings.absorbed_ratio, y0, noise)
     # global screening: every candidate gets its grid (a threshold effect is silent at a small probe and a
     # periodic one may be absorbed there, yet either can explain much at a larger magnitude)
+    screen = settings.screen
     profiles = {c.name: profile_effect(model, theta, r, proj, EFFECTS_BY_NAME[c.name], c, settings.grid_points,
-                                       noise)
+                                       noise, screen[0] if screen else None)
                 for c in scores if c.score > 0.0 or settings.scout_all}
     for c in scores:
         if c.name in profiles:

@@ -42,7 +42,11 @@ class DiscoverSettings:
       jacobian_reuse: k > 0 lets the long polishes' rounds follow each finite-difference Jacobian by up to k
       Broyden updates (the secant update in coordinates scaled by the parameters' sizes, from the residuals scipy
       evaluated anyway: no simulation), each polish then finished by a round with fresh Jacobians throughout; 0
-      (the default) is every Jacobian by finite differences — an experiment towards issue 14, not yet judged
+      (the default) is every Jacobian by finite differences — an experiment towards issue 14, not yet judged;
+      screen_tier: the integrator of the screening — the score tests' magnitude profiles and the scouts' short
+      polishes, residuals and Jacobians alike, each scout's end point simulated once more in the residuals' tier
+      for its SSE: ``precise`` (the default: profiles in the Jacobians' tier, scouts PRECISE) or ``jacobian``
+      (:data:`toggle_id.simulate.JACOBIAN` at its step: a third of the stiff tier's steps; docs/performance.md)
       on the adversarial set; derivatives: ``fd`` (the default: finite differences as above) or ``analytic``
       (:mod:`.derivatives`: forward sensitivities of the PRECISE steps, one simulation for every column, for the
       polishes' Jacobians and the sensitivities; differences where they do not apply — backlash, dead time):
@@ -242,6 +246,7 @@ class DiscoverSettings:
     grid_points: int = 10
     fd_tier: str = "precise"
     jacobian_reuse: int = 0
+    screen_tier: str = "precise"
     derivatives: str = "fd"
     fd_rel_step: float = 1e-4
     jac_rel_step: float = 1e-4
@@ -299,6 +304,11 @@ class DiscoverSettings:
         """The integrator and relative step of the polishes' finite-difference Jacobians (``fd_tier``)."""
         return precise_jacobian(self.fd_tier, self.fd_rel_step)
 
+    @property
+    def screen(self) -> tuple[SolverSettings, float] | None:
+        """The integrator and relative step of the screening (``screen_tier``); None: as the loop's own."""
+        return None if self.screen_tier == "precise" else precise_jacobian(self.screen_tier, self.fd_rel_step)
+
     def validate(self) -> DiscoverSettings:
         """Raise ConfigError naming the first bad value; normalise ``candidates``."""
         for name in ("alpha", "screen_alpha", "alpha_diag", "fd_rel_step", "jac_rel_step", "rank_rtol",
@@ -337,8 +347,9 @@ class DiscoverSettings:
         if self.derivatives not in DERIVATIVES:
             raise ConfigError(f"discover.derivatives must be one of {', '.join(DERIVATIVES)}, "
                               f"got {self.derivatives!r}")
-        if self.fd_tier not in FD_TIERS:
-            raise ConfigError(f"discover.fd_tier must be one of {', '.join(FD_TIERS)}, got {self.fd_tier!r}")
+        for name in ("fd_tier", "screen_tier"):
+            if getattr(self, name) not in FD_TIERS:
+                raise ConfigError(f"discover.{name} must be one of {', '.join(FD_TIERS)}, got {getattr(self, name)!r}")
         if not isinstance(self.noise_max_order, int) or isinstance(self.noise_max_order, bool) or \
                 self.noise_max_order < 0:
             raise ConfigError(f"discover.noise_max_order must be a non-negative integer, got {self.noise_max_order!r}")
