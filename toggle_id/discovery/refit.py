@@ -109,7 +109,7 @@ def scout_candidate(model: Model, base: Fit, points: Sequence[Point], effect: Ef
         if st is None:
             continue
         fit = fit_free(model, st, freed_with(base.free, effect, held), settings.scout_nfev, settings.fd_rel_step,
-                       coarse=False, screen=settings.screen)  # a scout's 8 evaluations: PRECISE Jacobians
+                       coarse=False, screen=settings.screen)  # 8 evaluations: PRECISE (or the screening tier)
         info["scout_sse_m2"] = fit.sse
         results.append((fit.sse, fit.theta, info))
     if not results:

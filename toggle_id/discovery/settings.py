@@ -42,12 +42,12 @@ class DiscoverSettings:
       jacobian_reuse: k > 0 lets the long polishes' rounds follow each finite-difference Jacobian by up to k
       Broyden updates (the secant update in coordinates scaled by the parameters' sizes, from the residuals scipy
       evaluated anyway: no simulation), each polish then finished by a round with fresh Jacobians throughout; 0
-      (the default) is every Jacobian by finite differences — an experiment towards issue 14, not yet judged;
-      screen_tier: the integrator of the screening — the score tests' magnitude profiles and the scouts' short
-      polishes, residuals and Jacobians alike, each scout's end point simulated once more in the residuals' tier
-      for its SSE: ``precise`` (the default: profiles in the Jacobians' tier, scouts PRECISE) or ``jacobian``
-      (:data:`toggle_id.simulate.JACOBIAN` at its step: a third of the stiff tier's steps; docs/performance.md)
-      on the adversarial set; derivatives: ``fd`` (the default: finite differences as above) or ``analytic``
+      (the default) is every Jacobian by finite differences — an experiment towards issue 14, not yet judged
+      on the adversarial set; screen_tier: the integrator of the screening — the score tests' magnitude profiles
+      and the scouts' short polishes, residuals and Jacobians alike, each scout's end point simulated once more in
+      the residuals' tier for its SSE: ``precise`` (the default: profiles in the Jacobians' tier, scouts PRECISE)
+      or ``jacobian`` (:data:`toggle_id.simulate.JACOBIAN` at its step: a third of the stiff tier's steps;
+      docs/performance.md); derivatives: ``fd`` (the default: finite differences as above) or ``analytic``
       (:mod:`.derivatives`: forward sensitivities of the PRECISE steps, one simulation for every column, for the
       polishes' Jacobians and the sensitivities; differences where they do not apply — backlash, dead time):
       two to four orders more accurate than the differences, but measured no faster on two cores (the retrace's
