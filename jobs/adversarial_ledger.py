@@ -43,8 +43,9 @@ class LedgerError(ValueError):
 
 
 def draw_of(record: str) -> int:
-    """The held-out draw a record's name says (``rec15_d1`` → 1; ``rec15`` and its replicates → 0)."""
-    m = re.search(r"_d(\d+)$", record)
+    """The held-out draw a record's name says (:func:`jobs.adversarial_set.replicate_name`: ``rec15_d1`` and its
+    replicates ``rec15_d1_r2`` → 1; ``rec15`` and its replicates → 0)."""
+    m = re.search(r"_d(\d+)(?:_r\d+)?$", record)
     return int(m.group(1)) if m else 0
 
 
@@ -108,24 +109,11 @@ def latest(rows: Sequence[dict], overrides: Sequence[str] = (), draw: int | None
     return out
 
 
-def _sort_key(name: str) -> tuple:
-    m = re.match(r"rec(\d+)(.*)$", name)
-    return (int(m.group(1)), m.group(2)) if m else (10 ** 6, name)
-
-
 def show(rows: Sequence[dict], overrides: Sequence[str] = (), draw: int | None = None) -> str:
     """The README's table of the latest rows under ``overrides``, with its summary."""
     last = latest(rows, overrides, draw)
-    table = [_table_row(last[k]) for k in sorted(last, key=_sort_key)]
+    table = [last[k] for k in sorted(last)]  # record names are zero-padded: rec02 < rec02_d1 < rec10
     return results_markdown(table, summarise(table)) if table else "no rows with these overrides"
-
-
-def _table_row(r: dict) -> dict:
-    """A ledger line with the keys :func:`~jobs.adversarial_verdicts.results_markdown` reads."""
-    base = {"command": "", "truth": [], "noise": "", "accepted": [], "ambiguous": [], "compensating": [],
-            "unexplained": False, "noise_model": None, "rmse_before_um": None, "rmse_after_um": None,
-            "before_sigma": None, "after_sigma": None, "wall_s": 0.0}
-    return {**base, **{k: v for k, v in r.items() if v is not None}}
 
 
 def compare(rows: Sequence[dict], overrides: Sequence[str], draw: int | None = None) -> tuple[list[dict], dict]:
@@ -136,7 +124,7 @@ def compare(rows: Sequence[dict], overrides: Sequence[str], draw: int | None = N
         raise LedgerError("compare needs the overrides to set beside the defaults")
     mine, default = latest(rows, want, draw), latest(rows, (), draw)
     pairs = []
-    for rec in sorted(mine, key=_sort_key):
+    for rec in sorted(mine):
         d = default.get(rec)
         pairs.append({"record": rec, "category": mine[rec].get("category"), "default": d, "with": mine[rec],
                       "moved": None if d is None else d["verdict"] != mine[rec]["verdict"]})

@@ -25,6 +25,7 @@ def test_a_row_keeps_the_result_without_the_machines_paths_and_says_its_draw_and
     assert row["draw"] == 1 and row["overrides"] == ["a=1", "b=2"] and row["jobs"] == 2
     assert "report" not in row and row["verdict"] == "missed" and row["commit"] == "abc1234"
     assert L.draw_of("rec07") == 0 and L.draw_of("rec07_r2") == 0 and L.draw_of("rec07_d12") == 12
+    assert L.draw_of("rec07_d1_r2") == 1  # a held-out machine's replicate (adversarial_set.replicate_name)
     with pytest.raises(L.LedgerError, match="not a result row"):
         L.ledger_row({"wall_s": 1.0})
 

@@ -334,9 +334,9 @@ def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int
     Jacobians both in it (one consistent problem), the end point's SSE then in the residuals' own tier.
     """
     if screen is not None:  # a screening fit, comparable with every other fit by its SSE
-        fit = _fit_once(model, theta, free, max_nfev, screen[1], bounds, coarse=False, tier=screen[0])
-        sse = float(_sse(model.fit_residuals(fit.theta[None, :]))[0])
-        raw = sse if model.noise.white else float(_sse(model.residuals(fit.theta[None, :]))[0])
+        fit = _fit_once(model, theta, free, max_nfev, screen[1], bounds, coarse=False, residual_tier=screen[0])
+        r = model.residuals(fit.theta[None, :])
+        sse, raw = float(_sse(model.noise.whiten(r))[0]), float(_sse(r)[0])
         return Fit(fit.theta, fit.free, sse, {**fit.info, "screen_tier_sse": fit.sse, "sse_after": sse}, fit.jac_u,
                    fit.scaling, raw, fit.noise)
     fit = _fit_once(model, theta, free, max_nfev, fd_rel_step, bounds, coarse=coarse)
@@ -368,11 +368,11 @@ def fit_free(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int
 
 def _fit_once(model: Model, theta: np.ndarray, free: Sequence[str], max_nfev: int, fd_rel_step: float,
               bounds: Mapping[str, Sequence[float]] | None, coarse: bool = True,
-              tier: SolverSettings | None = None) -> Fit:
+              residual_tier: SolverSettings | None = None) -> Fit:
     """One bounded least-squares run; ``coarse``: finite differences in :attr:`Model.jacobian` (else in the
-    residuals' own tier at ``fd_rel_step``); ``tier``: residuals and differences both in it (a screening fit)."""
+    residuals' tier at ``fd_rel_step``); ``residual_tier``: the residuals' tier (default the model's own)."""
     free = tuple(free)
-    own = tier if tier is not None else model.settings
+    own = residual_tier if residual_tier is not None else model.settings
     tier, step = (model.jacobian, model.jacobian_step or fd_rel_step) if coarse else (own, fd_rel_step)
     idx = np.array([ALL_INDEX[n] for n in free], dtype=np.int64)
     lo, hi = stage_bounds(list(free), {**model.domains(), **(bounds or {})})
