@@ -128,10 +128,24 @@ def compare(rows: Sequence[dict], overrides: Sequence[str], draw: int | None = N
         d = default.get(rec)
         pairs.append({"record": rec, "category": mine[rec].get("category"), "default": d, "with": mine[rec],
                       "moved": None if d is None else d["verdict"] != mine[rec]["verdict"]})
+    moved = [p for p in pairs if p["moved"]]
     summary = {"records": len(pairs), "kept": sum(p["moved"] is False for p in pairs),
-               "moved": [p["record"] for p in pairs if p["moved"]],
-               "no_default": [p["record"] for p in pairs if p["moved"] is None]}
+               "moved": [p["record"] for p in moved],
+               "better": [p["record"] for p in moved if _rank(p["with"]) > _rank(p["default"])],
+               "worse": [p["record"] for p in moved if _rank(p["with"]) < _rank(p["default"])],
+               "no_default": [p["record"] for p in pairs if p["moved"] is None],
+               "not_run": sorted(set(default) - set(mine))}
     return pairs, summary
+
+
+#: How much a verdict is worth to a user, to say which way a moved one went: right (2); nothing named where
+#: something was due, or a true effect left unflagged beside the rest (1); something wrong named or offered (0).
+_RANKS = {"exact": 2, "unexplained-correct": 2, "ambiguous-correct": 2, "exact+outside-missed": 1, "missed": 1,
+          "spurious": 0, "ambiguous-wrong": 0}
+
+
+def _rank(row: dict) -> int:
+    return _RANKS.get(row["verdict"], 0)
 
 
 def _cell(r: dict | None) -> str:
@@ -151,8 +165,10 @@ def compare_markdown(pairs: list[dict], summary: dict, overrides: Sequence[str])
             f"{'–' if p['moved'] is None else ('**yes**' if p['moved'] else 'no')} |" for p in pairs]
     s = summary
     tail = (f"{s['kept']} of {s['records']} records kept their verdict"
-            + (f"; moved: {', '.join(s['moved'])}" if s["moved"] else "")
-            + (f"; not run at the defaults: {', '.join(s['no_default'])}" if s["no_default"] else "") + ".")
+            + (f"; moved: {', '.join(s['moved'])} (better: {', '.join(s['better']) or 'none'}; worse: "
+               f"{', '.join(s['worse']) or 'none'})" if s["moved"] else "")
+            + (f"; not run at the defaults: {', '.join(s['no_default'])}" if s["no_default"] else "") + "."
+            + (f"\nNot yet run with them ({len(s['not_run'])}): {', '.join(s['not_run'])}." if s["not_run"] else ""))
     return "\n".join([head, *body, "", tail])
 
 

@@ -65,10 +65,19 @@ def test_an_option_is_set_beside_the_defaults_record_by_record():
         _row("rec21_d1", "spurious", ["discover.level_min_count=100"], category="outside"))]
     pairs, summary = L.compare(rows, "discover.level_min_count=100")
     assert [p["record"] for p in pairs] == ["rec03", "rec15_d1", "rec21_d1"]
-    assert summary == {"records": 3, "kept": 1, "moved": ["rec15_d1"], "no_default": ["rec21_d1"]}
+    assert summary == {"records": 3, "kept": 1, "moved": ["rec15_d1"], "better": ["rec15_d1"], "worse": [],
+                       "no_default": ["rec21_d1"], "not_run": []}
     text = L.compare_markdown(pairs, summary, "discover.level_min_count=100")
     assert "| rec15_d1 | library | missed (dead_time, 2 → 1 µm, 300 s; abc1234) | exact (" in text
-    assert text.endswith("1 of 3 records kept their verdict; moved: rec15_d1; not run at the defaults: rec21_d1.")
+    assert text.endswith("1 of 3 records kept their verdict; moved: rec15_d1 (better: rec15_d1; worse: none); "
+                         "not run at the defaults: rec21_d1.")
+    # a verdict that went wrong, and the records the option has not met yet
+    rows += [L.ledger_row(r) for r in (_row("rec04", "exact"), _row("rec07", "exact"),
+                                       _row("rec04", "spurious", ["discover.level_min_count=100"]))]
+    pairs, summary = L.compare(rows, "discover.level_min_count=100")
+    assert summary["worse"] == ["rec04"] and summary["better"] == ["rec15_d1"] and summary["not_run"] == ["rec07"]
+    assert L.compare_markdown(pairs, summary, "discover.level_min_count=100").endswith(
+        "\nNot yet run with them (1): rec07.")
     with pytest.raises(L.LedgerError, match="needs the overrides"):
         L.compare(rows, "")
     with pytest.raises(L.LedgerError, match="KEY=VALUE"):
