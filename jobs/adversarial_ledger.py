@@ -19,6 +19,7 @@ import argparse
 import datetime as _dt
 import json
 import re
+import statistics
 import sys
 import threading
 from collections.abc import Iterable, Sequence
@@ -135,6 +136,9 @@ def compare(rows: Sequence[dict], overrides: Sequence[str], draw: int | None = N
                "worse": [p["record"] for p in moved if _rank(p["with"]) < _rank(p["default"])],
                "no_default": [p["record"] for p in pairs if p["moved"] is None],
                "not_run": sorted(set(default) - set(mine))}
+    ratios = [p["with"]["wall_s"] / p["default"]["wall_s"] for p in pairs
+              if p["default"] and (p["default"].get("wall_s") or 0) > 0 and p["with"].get("wall_s") is not None]
+    summary["wall_ratio_median"] = statistics.median(ratios) if ratios else None
     return pairs, summary
 
 
@@ -168,6 +172,9 @@ def compare_markdown(pairs: list[dict], summary: dict, overrides: Sequence[str])
             + (f"; moved: {', '.join(s['moved'])} (better: {', '.join(s['better']) or 'none'}; worse: "
                f"{', '.join(s['worse']) or 'none'})" if s["moved"] else "")
             + (f"; not run at the defaults: {', '.join(s['no_default'])}" if s["no_default"] else "") + "."
+            + ("" if s.get("wall_ratio_median") is None else
+               f" Wall time with them over the defaults' (median of the records; machines and loads differ): "
+               f"{s['wall_ratio_median']:.2f}.")
             + (f"\nNot yet run with them ({len(s['not_run'])}): {', '.join(s['not_run'])}." if s["not_run"] else ""))
     return "\n".join([head, *body, "", tail])
 

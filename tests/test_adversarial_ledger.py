@@ -59,18 +59,19 @@ def test_the_latest_row_per_record_is_taken_under_exactly_the_settings_asked():
 
 def test_an_option_is_set_beside_the_defaults_record_by_record():
     rows = [L.ledger_row(r) for r in (
-        _row("rec15_d1", "missed"), _row("rec15_d1", "exact", ["discover.level_min_count=100"]),
+        _row("rec15_d1", "missed"), _row("rec15_d1", "exact", ["discover.level_min_count=100"], wall_s=150.0),
         _row("rec03", "exact", category="noise", accepted=[]),
         _row("rec03", "exact", ["discover.level_min_count=100"], category="noise", accepted=[]),
         _row("rec21_d1", "spurious", ["discover.level_min_count=100"], category="outside"))]
     pairs, summary = L.compare(rows, "discover.level_min_count=100")
     assert [p["record"] for p in pairs] == ["rec03", "rec15_d1", "rec21_d1"]
     assert summary == {"records": 3, "kept": 1, "moved": ["rec15_d1"], "better": ["rec15_d1"], "worse": [],
-                       "no_default": ["rec21_d1"], "not_run": []}
+                       "no_default": ["rec21_d1"], "not_run": [], "wall_ratio_median": 0.75}
     text = L.compare_markdown(pairs, summary, "discover.level_min_count=100")
-    assert "| rec15_d1 | library | missed (dead_time, 2 → 1 µm, 300 s; abc1234) | exact (" in text
+    assert "| rec15_d1 | library | missed (dead_time, 2 → 1 µm, 300 s; abc1234) | exact (dead_time, 2 → 1 µm, 150 s" in text
     assert text.endswith("1 of 3 records kept their verdict; moved: rec15_d1 (better: rec15_d1; worse: none); "
-                         "not run at the defaults: rec21_d1.")
+                         "not run at the defaults: rec21_d1. Wall time with them over the defaults' (median of the "
+                         "records; machines and loads differ): 0.75.")
     # a verdict that went wrong, and the records the option has not met yet
     rows += [L.ledger_row(r) for r in (_row("rec04", "exact"), _row("rec07", "exact"),
                                        _row("rec04", "spurious", ["discover.level_min_count=100"]))]
