@@ -6,8 +6,9 @@
 results (``bench_adversarial --ledger PATH`` adds each run as it ends); ``show [--overrides "K=V ..."]`` prints the
 latest row of every record under exactly those overrides (none: the defaults of each row's commit) as the README's
 table; ``compare --overrides "K=V ..."`` sets each record's latest run with the overrides beside its latest run at
-the defaults and says which verdicts moved — what an option must show before it becomes a default (README, *the
-loop judged on records made outside its tests*).
+the defaults and says which verdicts moved and which way, which records the option has not met yet and the median
+ratio of wall times — what an option must show before it becomes a default (README, *the loop judged on records
+made outside its tests*).
 
 A row is a result row of :func:`jobs.adversarial_verdicts.result_row` without the paths of the machine that made
 it, plus ``overrides`` (sorted), ``draw`` (0: the set, K: the K-th held-out draw), ``jobs`` (discover jobs that ran
