@@ -118,6 +118,16 @@ def show(rows: Sequence[dict], overrides: Sequence[str] = (), draw: int | None =
     return results_markdown(table, summarise(table)) if table else "no rows with these overrides"
 
 
+#: How much a verdict is worth to a user, to say which way a moved one went: right (2); nothing named where
+#: something was due, or a true effect left unflagged beside the rest (1); something wrong named or offered (0).
+_RANKS = {"exact": 2, "unexplained-correct": 2, "ambiguous-correct": 2, "exact+outside-missed": 1, "missed": 1,
+          "spurious": 0, "ambiguous-wrong": 0}
+
+
+def _rank(row: dict) -> int:
+    return _RANKS.get(row["verdict"], 0)
+
+
 def compare(rows: Sequence[dict], overrides: Sequence[str], draw: int | None = None) -> tuple[list[dict], dict]:
     """Every record run with ``overrides``, beside its latest run at the defaults: (pairs, summary). A pair's
     ``moved`` is True where the verdict differs (a record never run at the defaults: None)."""
@@ -141,16 +151,6 @@ def compare(rows: Sequence[dict], overrides: Sequence[str], draw: int | None = N
               if p["default"] and (p["default"].get("wall_s") or 0) > 0 and p["with"].get("wall_s") is not None]
     summary["wall_ratio_median"] = statistics.median(ratios) if ratios else None
     return pairs, summary
-
-
-#: How much a verdict is worth to a user, to say which way a moved one went: right (2); nothing named where
-#: something was due, or a true effect left unflagged beside the rest (1); something wrong named or offered (0).
-_RANKS = {"exact": 2, "unexplained-correct": 2, "ambiguous-correct": 2, "exact+outside-missed": 1, "missed": 1,
-          "spurious": 0, "ambiguous-wrong": 0}
-
-
-def _rank(row: dict) -> int:
-    return _RANKS.get(row["verdict"], 0)
 
 
 def _cell(r: dict | None) -> str:

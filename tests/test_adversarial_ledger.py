@@ -68,7 +68,8 @@ def test_an_option_is_set_beside_the_defaults_record_by_record():
     assert summary == {"records": 3, "kept": 1, "moved": ["rec15_d1"], "better": ["rec15_d1"], "worse": [],
                        "no_default": ["rec21_d1"], "not_run": [], "wall_ratio_median": 0.75}
     text = L.compare_markdown(pairs, summary, "discover.level_min_count=100")
-    assert "| rec15_d1 | library | missed (dead_time, 2 → 1 µm, 300 s; abc1234) | exact (dead_time, 2 → 1 µm, 150 s" in text
+    assert ("| rec15_d1 | library | missed (dead_time, 2 → 1 µm, 300 s; abc1234) | exact (dead_time, 2 → 1 µm, "
+            "150 s") in text
     assert text.endswith("1 of 3 records kept their verdict; moved: rec15_d1 (better: rec15_d1; worse: none); "
                          "not run at the defaults: rec21_d1. Wall time with them over the defaults' (median of the "
                          "records; machines and loads differ): 0.75.")
