@@ -18,13 +18,14 @@ def fake_model(**attrs):
     feasible domains (no gauge of its own)."""
     from types import SimpleNamespace
 
+    from toggle_id.discovery.timing import PhaseClock
     from toggle_id.stages import stage_bounds
 
     def domain(name):
         lo, hi = stage_bounds([name])
         return float(lo[0]), float(hi[0])
 
-    return SimpleNamespace(domain=domain, domains=dict, gauge_bounds={}, **attrs)
+    return SimpleNamespace(domain=domain, domains=dict, gauge_bounds={}, clock=PhaseClock(), **attrs)
 
 
 def make_record(effects: dict, duration: float = 1.0, seed: int = 0, pert: float = 0.05, start_pert: float = 0.03,

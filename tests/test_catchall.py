@@ -12,6 +12,7 @@ import pytest
 from toggle_id.discovery import catchall
 from toggle_id.discovery.model import Fit
 from toggle_id.discovery.settings import DiscoverSettings
+from toggle_id.discovery.timing import PhaseClock
 from toggle_id.effects import ALL_INDEX, GENERIC_FORCE, EFFECTS_BY_NAME
 from toggle_id.kernels import slots as K
 from toggle_id.simulate import extend
@@ -71,6 +72,7 @@ class _Model:
     derivatives: str = "fd"
     stiff: set = field(default_factory=set)
     excluded: np.ndarray | None = None
+    clock: PhaseClock = field(default_factory=PhaseClock)
 
     def domains(self) -> dict:
         return {}
@@ -781,7 +783,7 @@ def test_a_cogging_torque_is_probed_and_fitted_only_at_counts_the_record_holds_e
     the mechanism's kinematics, θ_r = Z·x_C); the model's fits keep to it from a start below it, and the
     score tests and grids probe within it, each setting once."""
     from toggle_id.discovery.model import Model, fit_free
-    from toggle_id.discovery.toggle_plant import cogging_domain, cogging_floor
+    from toggle_id.discovery.periodic import cogging_domain, cogging_floor
     from toggle_id.plant import GEOMETRY, kinematics
     from toggle_id.record import Record
     from toggle_id.simulate import PRECISE, simulate

@@ -43,6 +43,13 @@ def test_no_effect_no_false_positive():
     assert d["fits_minimise_under"]["kind"] == "white" and "final fit: least squares" in summary_text(res)
     conv = d["residual_tests_after"]["localisation"]["convergence"]
     assert conv["converged"] and conv["dof"] >= 10 and "final fit converged" in summary_text(res)
+    # where the loop's time went: the phases add up to its seconds and simulations (exclusive, "other" the rest)
+    phases = {r["phase"]: r for r in d["time_by_phase"]}
+    assert {"baseline polish", "score tests", "scouts", "refits", "verdict rules"} <= set(phases)
+    assert sum(r["simulations"] for r in phases.values()) == res.n_simulations
+    assert sum(r["seconds"] for r in phases.values()) == pytest.approx(res.seconds, rel=1e-6)
+    assert phases["baseline polish"]["simulations"] > 0 and phases["refits"]["simulations"] > 0
+    assert "where the loop's time went: " in summary_text(res)
     json.dumps(d)
 
 
@@ -424,6 +431,9 @@ def test_discover_benchmark_runs_the_job_and_prints_the_median(tmp_path, capsys,
     assert len(rows) == 1 and rows[0]["effects_added"] == ["sensor_offset"] and rows[0]["wall_s"] > 0
     assert rows[0]["rmse_after_um"] < 1.1 and rows[0]["rmse_before_um"] > 5.0
     assert rows[0]["n_simulations"] > 0 and f"{rows[0]['n_simulations']} simulations" in out  # the load-free figure
+    # where the time went: the job's split and the loop's phases, whose simulations add up to the loop's
+    assert "where the time went (medians): nominal fit 0.0 s, loop" in out and "refits" in out
+    assert sum(p["simulations"] for p in rows[0]["phases"]) == rows[0]["n_simulations"]
 
 
 @pytest.mark.integration

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from toggle_id import discovery as D
+from toggle_id.discovery.timing import PhaseClock
 from toggle_id.effects import ALL_INDEX, EFFECTS, EFFECTS_BY_NAME
 from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED, PARAM_NAMES
@@ -211,7 +212,8 @@ def test_with_nothing_supported_the_catch_alls_kind_of_term_sends_its_untried_ef
     monkeypatch.setattr(TP, "scout_candidate", lambda model, base, points, eff, settings, held: Scout(
         eff.name, rms[eff.name], None, {}))
     monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
-    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)),
+                            clock=PhaseClock())
     asked = []
 
     def second_look(fit):

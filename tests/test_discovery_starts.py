@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from toggle_id import discovery as D
+from toggle_id.discovery.timing import PhaseClock
 from toggle_id.effects import ALL_INDEX, EFFECTS_BY_NAME
 from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED
@@ -64,7 +65,8 @@ def test_far_above_the_noise_the_dismissed_candidates_are_polished_again_from_th
     monkeypatch.setattr(TP, "from_other_starts", from_other_starts)
     monkeypatch.setattr(TP, "guard_null", lambda *a: None)
     monkeypatch.setattr(TP, "structure_left_at", lambda model, th, settings: (structure, ""))
-    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)),
+                            clock=PhaseClock())
     said = []
     st = DiscoverSettings(top_k=4, second_point=False, ambiguity_alpha=0.0)
     out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
@@ -117,7 +119,8 @@ def test_once_a_supported_refit_is_near_the_noise_the_rounds_other_refits_are_no
     monkeypatch.setattr(TP, "refit_candidate", refit_candidate)
     monkeypatch.setattr(TP, "guard_null", lambda *a: None)
     monkeypatch.setattr(TP, "structure_left_at", lambda model, th, settings: (True, ""))
-    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)),
+                            clock=PhaseClock())
     out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
                         [EFFECTS_BY_NAME[nm] for nm in names], DiscoverSettings(top_k=2, second_point=False,
                                                                                 ambiguity_alpha=0.0),
@@ -598,7 +601,8 @@ def test_pairs_are_looked_at_only_while_the_model_and_every_single_refit_lie_abo
     gated = []
     monkeypatch.setattr(TP, "structure_left_at", lambda model, th, settings: (
         gated.append(th) or structure, "structure left: …" if structure else "no structure left: …"))
-    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)))
+    model = SimpleNamespace(n=n, residuals=lambda th: np.random.default_rng(0).standard_normal((1, n)),
+                            clock=PhaseClock())
     st = DiscoverSettings(top_k=4, second_point=False, ambiguity_alpha=0.0, pair_look=4, other_starts_above=0.0)
     out = TP._iteration(model, None, Fit(theta, ("J_m",), base_sse), theta, ("J_m",),
                         [EFFECTS_BY_NAME[nm] for nm in names], st, 1, (), lambda s: None, None,

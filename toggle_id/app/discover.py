@@ -3,6 +3,7 @@ polish from the base values), the discovery loop (:func:`toggle_id.discovery.dis
 run per refit) and ``discovery.json``."""
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import asdict
@@ -151,7 +152,10 @@ def run_discover(cfg: Mapping, run_dir: str | Path, project_root: str | Path = "
                              "noise_level_varies": float(bool(level_varies(res.diagnostics_after))),
                              "ljung_box_p_before": res.diagnostics_before.get("whiteness", {}).get("p_value", np.nan),
                              "ljung_box_p_after": res.diagnostics_after.get("whiteness", {}).get("p_value", np.nan),
-                             **{f"score.{c['name']}": c["score"] for c in res.candidates}})
+                             **{f"score.{c['name']}": c["score"] for c in res.candidates},
+                             # where the loop's time went (toggle_id/discovery/timing.py), one metric per phase
+                             **{"seconds_loop." + re.sub(r"[^A-Za-z0-9]+", "_", r["phase"]).strip("_"): r["seconds"]
+                                for r in res.extra.get("time_by_phase", [])}})
         tracker.set_tags({"effects_added": ",".join(a["name"] for a in res.effects_added) or "none",
                           "route": next((r["label"] for r in res.extra.get("routes", []) if r["chosen"]), label)})
         for path in write_figures(run_dir, record, res, settings):

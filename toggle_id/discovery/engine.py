@@ -31,6 +31,7 @@ residual, prewhitened F-test and BIC, time-block cross-validation, validation re
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -214,12 +215,16 @@ class Plant(Protocol):
 
 
 def run_loop(plant: Plant, *, max_effects: int | None, backward: bool, ambiguity_alpha: float,
-             explain_fraction: float, noise_max_order: int, encompassing: bool = True) -> Outcome:
-    """The discovery loop over any plant: :func:`forward` steps, then the :func:`verdict_rules`."""
-    current, added = forward(plant, max_effects)
-    return verdict_rules(plant, current, added, backward=backward, ambiguity_alpha=ambiguity_alpha,
-                         explain_fraction=explain_fraction, noise_max_order=noise_max_order,
-                         encompassing=encompassing)
+             explain_fraction: float, noise_max_order: int, encompassing: bool = True,
+             clock: Callable[[str], AbstractContextManager] = lambda phase: nullcontext()) -> Outcome:
+    """The discovery loop over any plant: :func:`forward` steps, then the :func:`verdict_rules`; ``clock(phase)``
+    times each (:class:`.timing.PhaseClock`), the phases the plant marks inside them apart."""
+    with clock("forward steps, the rest"):
+        current, added = forward(plant, max_effects)
+    with clock("verdict rules"):
+        return verdict_rules(plant, current, added, backward=backward, ambiguity_alpha=ambiguity_alpha,
+                             explain_fraction=explain_fraction, noise_max_order=noise_max_order,
+                             encompassing=encompassing)
 
 
 def forward(plant: Plant, max_effects: int | None) -> tuple[Any, list[dict]]:

@@ -40,15 +40,17 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
     and, while no supported refit ends within ``other_starts_above`` times that noise, every dismissed candidate the
     score test ranks significant, strongest first, until one ends near it (:func:`.refit.from_other_starts`)."""
     n = model.n
-    noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
-    points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
-    # second linearisation point: the nominal fit as given, with the effects added so far — the polished fit may
-    # have bent the nominal parameters far towards the missing effect, where the local picture is distorted
-    alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effects_on(current.free, free)})
-    if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
-        second = assess(model, "nominal start", alt, current.free, remaining, settings, noise)
-        if second is not None:  # (None: the nominal start cannot be simulated with these effects)
-            points.append(second)
+    clock = model.clock
+    with clock("score tests"):
+        noise = fit_noise(model.residuals(current.theta[None, :])[0], settings.noise_max_order)
+        points = [assess(model, "current fit", current.theta, current.free, remaining, settings, noise)]
+        # second linearisation point: the nominal fit as given, with the effects added so far — the polished fit
+        # may have bent the nominal parameters far towards the missing effect, where the local picture is distorted
+        alt = _with(anchor, {nm: current.theta[ALL_INDEX[nm]] for nm in effects_on(current.free, free)})
+        if settings.second_point and not np.allclose(alt, current.theta, rtol=1e-3, atol=0.0):
+            second = assess(model, "nominal start", alt, current.free, remaining, settings, noise)
+            if second is not None:  # (None: the nominal start cannot be simulated with these effects)
+                points.append(second)
     scores = list(points[0].scores.values())  # the score tests proper: at the fitted point
     for c in scores:
         for pt in points[1:]:
@@ -64,8 +66,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
                     and (here[c.name].statistic > screen
                          or (c.name not in points[0].profiles
                              and any(pt.scores[c.name].profile_score > screen for pt in points[1:])))]
-    scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
-              for c in screened}
+    with clock("scouts"):
+        scouts = {c.name: scout_candidate(model, current, points, EFFECTS_BY_NAME[c.name], settings, held)
+                  for c in screened}
     for c in scores:
         c.scout_rmse_m = float(np.sqrt(scouts[c.name].sse / n)) if c.name in scouts else None
     order = sorted(scouts.values(), key=lambda sc: sc.sse)
@@ -92,17 +95,20 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         # named at 0.975 µm: the load force's refit, accepted at 10.58 µm, was then polished from four other
         # starts to 10.59–10.6 µm — 63 s of the loop's 127 s with the guard's null refit — and never chosen)
         near = any(rf.accepted and rf.fit.rmse(n) <= NEAR_NOISE * noise_m for rf in refits)
-        take(refit_candidate(model, base, EFFECTS_BY_NAME[sc.name], sc, settings, it, judge, held,
-                             anchor=_with(anchor, added),
-                             others=[] if near else [_with(st, carried(added, st, base.theta)) for st in others],
-                             noise_m=noise_m))
+        with clock("refits"):
+            rf = refit_candidate(model, base, EFFECTS_BY_NAME[sc.name], sc, settings, it, judge, held,
+                                 anchor=_with(anchor, added),
+                                 others=[] if near else [_with(st, carried(added, st, base.theta)) for st in others],
+                                 noise_m=noise_m)
+        take(rf)
 
     def take(rf: Refit, replaces: Refit | None = None) -> None:
         """``rf`` guarded, logged and kept (in the place of ``replaces``)."""
         nonlocal base, better_null
         eff = EFFECTS_BY_NAME[rf.name]
         if rf.accepted:
-            null = guard_null(model, base, rf, eff, settings, judge)
+            with clock("null re-polishes (guard)"):
+                null = guard_null(model, base, rf, eff, settings, judge)
             if null is not None and null.sse < base.sse:
                 say(f"  nominal re-polish from the {eff.name} refit lowered the baseline to "
                     f"{null.rmse(n) * 1e6:.4g} µm")
@@ -157,7 +163,8 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         # reading) of any shape explains what is left, every library effect of that kind is refitted before the
         # record is called unexplained — a scout's short polish from a model that absorbed a smooth effect shows
         # little of it (adversarial record rec33: a slider viscous friction scouted 8th, never refitted)
-        kinds = second_look(base)
+        with clock("catch-all's second look"):
+            kinds = second_look(base)
         untried = [sc for sc in untried if EFFECTS_BY_NAME[sc.name].acts_on in kinds]
         if untried:
             say("  nothing supported, and " + " or ".join(KIND_TEXT[k] for k in sorted(kinds)) + " of any shape "
@@ -165,7 +172,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         for sc in untried:
             refit(from_current(model, base, sc, settings))
     if beside is not None and not any(rf.accepted for rf in refits):
-        for rf in beside(base, [sc for sc in order if np.isfinite(sc.sse) and not EFFECTS_BY_NAME[sc.name].acts_on]):
+        with clock("refits beside the generic terms"):
+            besides = beside(base, [sc for sc in order if np.isfinite(sc.sse) and not EFFECTS_BY_NAME[sc.name].acts_on])
+        for rf in besides:
             refits.append(rf)
             if on_refit is not None:
                 on_refit(rf)
@@ -178,8 +187,9 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         added = so_far()
         for rf in sorted((rf for rf in refits if not rf.accepted and stat.get(rf.name, 0.0) > screen),
                          key=lambda rf: -stat[rf.name]):
-            again = from_other_starts(model, base, rf, settings, judge, [_with(st, added) for st in others],
-                                      noise_m)
+            with clock("refits from other starts"):
+                again = from_other_starts(model, base, rf, settings, judge, [_with(st, added) for st in others],
+                                          noise_m)
             if again is not None:
                 take(again, replaces=rf)
                 if again.accepted and again.fit.rmse(n) <= NEAR_NOISE * noise_m:
@@ -193,17 +203,19 @@ def _iteration(model: Model, judge: Judge, current: Fit, anchor: np.ndarray, fre
         # records of σ = 1 µm) and 0.015 σ under the resonant AR(2) noise, so the RMS gate alone opens there on
         # every step, a noise-only record's last one included
         near = settings.pair_above * (noise_m if noise_m > 0 else difference_noise([model.record]))
-        left, text = (structure_left_at(model, (chosen.fit if chosen else base).theta, settings)
-                      if base.rmse(n) > near and (chosen is None or chosen.fit.rmse(n) > near) else (False, ""))
-        if text and not left:
-            say(f"  no pair looked at: {chosen.name if chosen else 'the current model'} leaves {text}")
-        if left:
-            pair, pairs = pair_look(model, judge, base, refits, chosen, settings, it, held, say, near)
-            if pair is not None:
-                say(f"  {pair.name} and {pair.partner} together explain more than any one effect "
-                    f"({pair.fit.rmse(n) * 1e6:.4g} µm)")
-                chosen = pair
-    rivals = _rivals(judge, chosen, winners, settings) if chosen is not None and chosen.partner is None else []
+        with clock("pairs"):
+            left, text = (structure_left_at(model, (chosen.fit if chosen else base).theta, settings)
+                          if base.rmse(n) > near and (chosen is None or chosen.fit.rmse(n) > near) else (False, ""))
+            if text and not left:
+                say(f"  no pair looked at: {chosen.name if chosen else 'the current model'} leaves {text}")
+            pair, pairs = (pair_look(model, judge, base, refits, chosen, settings, it, held, say, near) if left
+                           else (None, pairs))
+        if pair is not None:
+            say(f"  {pair.name} and {pair.partner} together explain more than any one effect "
+                f"({pair.fit.rmse(n) * 1e6:.4g} µm)")
+            chosen = pair
+    with clock("ties"):
+        rivals = _rivals(judge, chosen, winners, settings) if chosen is not None and chosen.partner is None else []
     for rf in winners:
         if rf is not chosen and rf.name not in {r["name"] for r in rivals}:
             rf.reason = (f"supported, but {chosen.name}{' with ' + chosen.partner if chosen.partner else ''} explains "

@@ -20,7 +20,8 @@ from ..stages import stage_bounds
 from .gauge import GAUGE_HELD, _force_like, current_power, gauge_fix, gauge_symmetries
 from .model import Fit, Model, _with, parameter_uncertainty
 from .refit import NEAR_NOISE, Refit
-from .toggle_plant import TogglePlant, cogging_domain
+from .periodic import cogging_domain
+from .toggle_plant import TogglePlant
 from .report import DiscoveryResult, _conclusion, conclusion_notes
 from .settings import DiscoverSettings
 from .engine import run_loop
@@ -114,16 +115,18 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     def loop(p: TogglePlant):
         return run_loop(p, max_effects=settings.max_effects, backward=settings.backward,
                         ambiguity_alpha=settings.ambiguity_alpha, explain_fraction=settings.explain_fraction,
-                        noise_max_order=settings.noise_max_order, encompassing=settings.encompassing)
+                        noise_max_order=settings.noise_max_order, encompassing=settings.encompassing,
+                        clock=model.clock)
 
     out_of_time = OUT_OF_TIME.format(settings.max_seconds) if settings.max_seconds is not None else ""
     first = plant_from(theta, [_with(_nominal_theta(st), fixed) for st in starts])
     routes = [Route(label, first, loop(first), nominal)]
     if settings.routes == "always" or (settings.routes == "unexplained" and routes[0].structure_left):
-        more_routes(routes, alternatives, restarts, lambda th: plant_from(_with(_nominal_theta(th), fixed), []),
-                    loop, n, settings.route_rtol, say, max_ratio=settings.route_max_ratio,
-                    deadline=None if settings.max_seconds is None else t_start + settings.max_seconds,
-                    budget_text=out_of_time)
+        with model.clock.scope("other routes: "), model.clock("their nominal fits, the rest"):
+            more_routes(routes, alternatives, restarts, lambda th: plant_from(_with(_nominal_theta(th), fixed), []),
+                        loop, n, settings.route_rtol, say, max_ratio=settings.route_max_ratio,
+                        deadline=None if settings.max_seconds is None else t_start + settings.max_seconds,
+                        budget_text=out_of_time)
     pick, compared = choose(routes, judge.residual, n, settings.noise_max_order, settings.ambiguity_alpha)
     route_report = [r.to_dict(n, i == pick) for i, r in enumerate(routes)]
     if len(routes) > 1:
@@ -142,8 +145,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
 
     edge = at_the_edge(model, added, current)  # in the loop's gauge, before the report's representatives
     record_noise = difference_noise([record])  # the record's own noise, read off its third differences
-    rough = rough_profiles(model, added, current, settings, diag_after.get("verdict", {}).get("structure_left", False),
-                           record_noise)
+    with model.clock("profiles of the named effects"):
+        rough = rough_profiles(model, added, current, settings,
+                               diag_after.get("verdict", {}).get("structure_left", False), record_noise)
     gauge_before = gauge_after = {"applied": False}
     if settings.gauge:
         broken = {sym for a in added for sym in EFFECTS_BY_NAME[a["name"]].breaks}
@@ -157,16 +161,18 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
                                 current, domains, gauge_after.get("applied", False))
     r_final = model.residuals(current.theta[None, :])[0]
     noise_after = fit_noise(r_final, settings.noise_max_order)
-    uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ()), noise_after) \
-        if added else {}
+    with model.clock("intervals"):
+        uncertainty = parameter_uncertainty(model, current, settings, gauge_after.get("held", ()), noise_after) \
+            if added else {}
     _describe_added(added, current, uncertainty, gauge_after)
     # an effect the record cannot tell apart from another supported one is not named as added: the pair is
     # reported as ambiguous (the final model keeps the better-fitting one, for prediction)
     ambiguous = [a for a in added if a.get("indistinguishable_from")]
     added = [a for a in added if not a.get("indistinguishable_from")]
-    diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split,
-                                               judge.residual_and_jacobian(baseline)[1], baseline.free,
-                                               baseline.noise)
+    with model.clock("residual tests of the baseline"):
+        diag_before, r_before, _ = residual_report(model, baseline.theta, settings, split,
+                                                   judge.residual_and_jacobian(baseline)[1], baseline.free,
+                                                   baseline.noise)
     accepted_names = {a["name"] for a in added}
     ambiguous_names = {nm for a in ambiguous for nm in [a["name"]] + [r["name"] for r in a["indistinguishable_from"]]}
     cands = []
@@ -188,9 +194,9 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
     # an effect that is real predicts a record it was not fitted on to that record's noise: structure left in the
     # validation record's residual beyond what the parameters' sensitivities can take means the model still lacks
     # something, whatever the fitted record says (an error all in their span is reported, not called unexplained)
-    predicted = (prediction_report(judge.validation, current.theta, settings, (model, current.free, r_final,
-                                                                              noise_after))
-                 if judge.validation else None)
+    with model.clock("validation record's prediction"):
+        predicted = (prediction_report(judge.validation, current.theta, settings,
+                                       (model, current.free, r_final, noise_after)) if judge.validation else None)
     if predicted is not None and predicted_left(predicted):
         unexplained = True
     conclusion = _conclusion(added, diag_before, diag_after, unexplained, settings, compensating, predicted,
@@ -216,11 +222,14 @@ def discover(record: Record, *, nominal: IdentificationResult | np.ndarray | Map
              "landscape": [p.to_dict() for p in rough]}
     if with_compensating is not None:
         extra["rmse_with_compensating_m"] = with_compensating.rmse(n)
+    seconds = time.perf_counter() - t_start
+    # where the loop's time went (exclusive per phase; what no phase marks is "other")
+    extra["time_by_phase"] = model.clock.rows(seconds, model.n_sims)
     return DiscoveryResult(record=record.name, n=n, baseline=baseline, final=current, effects_added=added,
                            candidates=cands, iterations=iterations, diagnostics_before=diag_before,
                            diagnostics_after=diag_after, residual_before=r_before, residual_after=r_after,
                            nominal=nominal.to_dict() if isinstance(nominal, IdentificationResult) else None,
-                           conclusion=conclusion, unexplained=unexplained, seconds=time.perf_counter() - t_start,
+                           conclusion=conclusion, unexplained=unexplained, seconds=seconds,
                            n_simulations=model.n_sims, refits=all_refits, extra=extra)
 
 

@@ -22,6 +22,7 @@ from ..simulate import PRECISE, STATUS_OK, SolverSettings, simulate
 from .derivatives import DERIVATIVES, _coords, _typical, broyden, output_derivatives, sensitivities
 from .noise import NoiseModel
 from .settings import DiscoverSettings
+from .timing import PhaseClock
 
 #: Bytes of simulated x_B a :class:`Model` keeps for batches asked for again (:meth:`Model.outputs`).
 CACHE_BYTES = 64 * 2**20
@@ -81,6 +82,8 @@ class Model:
         self.n_derivative_runs = 0
         self.n_sims = 0
         self.n_cached = 0
+        #: seconds and simulations per phase of the loop (:mod:`.timing`): ``with model.clock("scouts"): …``
+        self.clock = PhaseClock(lambda: self.n_sims)
         self._cache: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
         self._cache_bytes = 0
         self.noise = WHITE_ASSUMED

@@ -22,17 +22,23 @@ beyond the best one's (the same test and scan correction, after that sinusoid), 
 may not tell which one the error follows. A count per motor revolution farther than ``whole_tol`` from a whole
 number is said to be none of the motor-side causes (each repeats a whole number of times per revolution), with the
 period along the slider's position when that one is significant too: on rec23 that points at the scale. The loop's
-verdict does not use it.
+verdict does not use it. The loop does use :func:`cogging_domain`: the cogging counts of which the record's
+motor-angle range holds enough periods to be told from a slow error.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..effects import ALL_INDEX, EFFECTS_BY_NAME
+from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
+from ..residuals import plant_states
 from .noise import NoiseModel, fit_noise
 from .stats import structure_test
+
+if TYPE_CHECKING:
+    from .model import Model
 
 #: Positions scanned: state key → (label, display scale, display unit, the period also said per motor revolution).
 POSITIONS = {"x_B": ("slider B position", 1e3, "mm", False),
@@ -217,3 +223,31 @@ def _beyond(r: np.ndarray, B: np.ndarray, best: np.ndarray, J: np.ndarray | None
     JJ = best if J is None or not np.size(J) else np.hstack([np.asarray(J, float), best])
     return structure_test(None, out_of(r), {"periodic": out_of(B)}, max_order=max_order, J=JJ,
                           robust=robust)["periodic"]["p_value"]
+
+
+def cogging_floor(record, periods: float) -> float:
+    """The lowest cogging count n_cog of which the motor-angle range of ``record`` (from its measured x_B through the
+    mechanism, :func:`~toggle_id.residuals.plant_states`) holds ``periods`` periods: 2π·periods / range (inf for a
+    record at rest). On the adversarial set's commands the range is 13.9–14.8 rad: 4.2–4.5 at 10 periods."""
+    revs = turns(plant_states(record.t, record.x_B)["motor_angle"])
+    return float(periods) / revs if revs > 0 else float("inf")
+
+
+def cogging_domain(model: Model, pool: Sequence[Effect], periods: float, say: Callable[[str], None]
+                   ) -> list[Effect]:
+    """The candidates of ``pool`` with the cogging torque's count narrowed on ``model`` (:attr:`Model.bounds`) to those
+    of which the record's motor-angle range holds ``periods`` periods (:func:`cogging_floor`; 0: as the library has
+    it), or left out when no count up to the library's bound does."""
+    if not periods > 0 or not any(e.name == "cogging_torque" for e in pool):
+        return list(pool)
+    n_min = cogging_floor(model.record, periods)
+    n_hi = next(p.upper for p in EFFECTS_BY_NAME["cogging_torque"].params if p.name == "n_cog")
+    if n_min >= n_hi:
+        say(f"cogging_torque left out: the record's motor angle spans fewer than {periods:g} periods of any count up "
+            f"to {n_hi:g} per revolution")
+        return [e for e in pool if e.name != "cogging_torque"]
+    if n_min > 1.0:
+        model.bounds["n_cog"] = (n_min, n_hi)
+        say(f"cogging_torque: counts from {n_min:.3g} per revolution, {periods:g} periods of the record's motor-angle "
+            "range (discover.cogging_min_periods)")
+    return list(pool)

@@ -18,6 +18,7 @@ from .refit import Refit
 from .residual import convergence_of, level_varies, line_text, noise_lines, periodic_text
 from .routes import route_line
 from .settings import DiscoverSettings
+from .timing import phase_text
 
 
 @dataclass
@@ -416,6 +417,8 @@ def summary_text(res: DiscoveryResult) -> str:
         lines.append("where the residual concentrates: " + loc["text"])
     lines.append(f"RMS error before {res.rmse_before_m * 1e6:.4g} µm, after {res.rmse_after_m * 1e6:.4g} µm; "
                  f"{res.seconds:.1f} s, {res.n_simulations} simulations")
+    if res.extra.get("time_by_phase"):
+        lines.append("where the loop's time went: " + phase_text(res.extra["time_by_phase"]))
     lines.append(res.conclusion)
     return "\n".join(lines)
 

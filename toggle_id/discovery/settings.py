@@ -104,7 +104,7 @@ class DiscoverSettings:
       lacks; a localised error fits a low count over a few periods only); over as many periods with no ripple seen
       (hidden under what the library lacks), it is judged by the catch-all check. cogging_min_periods (10 by default):
       the cogging torque is probed and fitted only at counts n_cog of which the record's motor-angle range holds at
-      least this many periods (:func:`.toggle_plant.cogging_floor`; 0: every count the library allows): over a few
+      least this many periods (:func:`.periodic.cogging_floor`; 0: every count the library allows): over a few
       periods a sinusoid in the angle is a smooth function of the position, and a low count then stands in for a force
       the library lacks (rec38 of the adversarial set: n_cog 1.0006, 2.2 periods, beside a quadratic drag). A true
       ripple of fewer periods is then left to the report's periodic look. beside_generic (on by default): when a

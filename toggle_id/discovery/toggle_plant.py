@@ -10,7 +10,7 @@ import numpy as np
 from ..effects import ALL_INDEX, EFFECTS_BY_NAME, Effect
 from ..errors import DataError
 from ..fast import difference_noise
-from ..residuals import glitch_text, plant_states
+from ..residuals import glitch_text
 from .catchall import (accepted_beside, beside_generic, catch_all, model_state, reading_needed, removal_verdict,
                        reusable)
 from .engine import Step
@@ -79,7 +79,9 @@ class TogglePlant:
             return self.baseline_fit
         self.model.noise = self.fit_noise = WHITE
         self.model.gauge_bounds = self.gauge_bounds = dict(self.domains)
-        self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s, self.say)
+        with self.model.clock("baseline polish"):
+            self.baseline_fit, self.anchor = _baseline(self.model, self.theta, self.starts, self.free, self.s,
+                                                       self.say)
         if self.s.glitch_k > 0 and self.referee.glitches is None and self.referee.leave_out_glitches(
                 self.baseline_fit.theta):
             # looked for in the residual of a fitted model (a far nominal start leaves residuals of millimetres
@@ -124,11 +126,13 @@ class TogglePlant:
         """``fit`` polished again the prediction-error way under the noise model of its residual
         (:func:`.residual.fitting_noise`), which the loop's fits use from now on; ``fit`` itself when that model
         is the one it was fitted under, or white and ``fit`` a least-squares fit."""
-        noise = fitting_noise(self.model, fit.theta, self.s)
-        self.model.noise = self.fit_noise = noise
-        if noise.a == fit.minimised_under:
-            return fit
-        out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step, rounds=self.s.rounds)
+        with self.model.clock("prediction-error refits"):
+            noise = fitting_noise(self.model, fit.theta, self.s)
+            self.model.noise = self.fit_noise = noise
+            if noise.a == fit.minimised_under:
+                return fit
+            out = fit_free(self.model, fit.theta, fit.free, self.s.baseline_nfev, self.s.fd_rel_step,
+                           rounds=self.s.rounds)
         out.info["starts"] = fit.info.get("starts")
         drift = prediction_error_drift(fit, out, noise, self.s.pe_guard_alpha)
         if drift is not None:  # the noise model holds what the model lacks: least squares (asked again next model)
@@ -188,14 +192,15 @@ class TogglePlant:
         names = [chosen.name] + ([chosen.partner] if chosen.partner else [])  # a pair adds both (:mod:`.pairs`)
         whole = {k: v for nm in names for k, v in whole_counts(nm, chosen.fit.theta, chosen.fit.free,
                                                                 self.s.cogging_whole_tol).items()}
-        after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say, hold=whole)
         screened = []
-        for nm in names:
-            after, wide = widened_at_edge(self.model, nm, after, self.s, self.say, self.domains)
-            self.gauge_bounds = self.model.gauge_bounds
-            self.widened.update(wide)
-            after, more = rescreened(self.model, nm, after, self.s, self.say)
-            screened += more
+        with self.model.clock("polish with the added effect"):
+            after = _polish_with_effect(self.model, chosen, self.anchor, self.free, self.s, self.say, hold=whole)
+            for nm in names:
+                after, wide = widened_at_edge(self.model, nm, after, self.s, self.say, self.domains)
+                self.gauge_bounds = self.model.gauge_bounds
+                self.widened.update(wide)
+                after, more = rescreened(self.model, nm, after, self.s, self.say)
+                screened += more
         if self.s.prediction_error:  # the noise model again, from the residual of the model with the effect
             after = self._under(after)
         item = {"name": chosen.name, "iteration": iteration, "F": chosen.F, "p_value": chosen.p_value,
@@ -403,7 +408,9 @@ class TogglePlant:
         if self._looked is None or self._looked[0] is not fit:
             store: dict = {}
             before = model_state(self.model)
-            report = catch_all(self.model, self.referee, fit, [], states, lambda f, a: f, self.s, self.say, store)[2]
+            with self.model.clock("catch-all fits"):
+                report = catch_all(self.model, self.referee, fit, [], states, lambda f, a: f, self.s, self.say,
+                                   store)[2]
             # a set marked stiff during the fits would send the same fits to another integrator next time
             self._looked = fit, report, store, before if model_state(self.model) == before else None
         return self._looked[1]
@@ -448,33 +455,6 @@ class TogglePlant:
 
     def validation_structure_energy(self, fit: Fit) -> float:
         return residual_structure_energy(self.referee.validation, fit.theta, self.s)
-
-
-def cogging_floor(record, periods: float) -> float:
-    """The lowest cogging count n_cog of which the motor-angle range of ``record`` (from its measured x_B through the
-    mechanism, :func:`~toggle_id.residuals.plant_states`) holds ``periods`` periods: 2π·periods / range (inf for a
-    record at rest). On the adversarial set's commands the range is 13.9–14.8 rad: 4.2–4.5 at 10 periods."""
-    revs = turns(plant_states(record.t, record.x_B)["motor_angle"])
-    return float(periods) / revs if revs > 0 else float("inf")
-
-
-def cogging_domain(model: Model, pool: Sequence[Effect], periods: float, say: Callable[[str], None]) -> list[Effect]:
-    """The candidates of ``pool`` with the cogging torque's count narrowed on ``model`` (:attr:`Model.bounds`) to those
-    of which the record's motor-angle range holds ``periods`` periods (:func:`cogging_floor`; 0: as the library has
-    it), or left out when no count up to the library's bound does."""
-    if not periods > 0 or not any(e.name == "cogging_torque" for e in pool):
-        return list(pool)
-    n_min = cogging_floor(model.record, periods)
-    n_hi = next(p.upper for p in EFFECTS_BY_NAME["cogging_torque"].params if p.name == "n_cog")
-    if n_min >= n_hi:
-        say(f"cogging_torque left out: the record's motor angle spans fewer than {periods:g} periods of any count up "
-            f"to {n_hi:g} per revolution")
-        return [e for e in pool if e.name != "cogging_torque"]
-    if n_min > 1.0:
-        model.bounds["n_cog"] = (n_min, n_hi)
-        say(f"cogging_torque: counts from {n_min:.3g} per revolution, {periods:g} periods of the record's motor-angle "
-            "range (discover.cogging_min_periods)")
-    return list(pool)
 
 
 def _baseline(model: Model, theta: np.ndarray, others: Sequence[np.ndarray], free: Sequence[str],
