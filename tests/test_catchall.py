@@ -610,8 +610,8 @@ def test_on_the_plant_a_load_force_standing_in_for_a_drag_is_compensating_and_a_
     second case. The catch-all check on the fitted model demotes the load force and keeps the offset."""
     from outside_plant import Outside, simulate_outside
 
-    from toggle_id.discovery.toggle_plant import _without
     from toggle_id.discovery.model import Model, _with, fit_free
+    from toggle_id.discovery.refit import without_effect
     from toggle_id.discovery.residual import residual_report
     from toggle_id.discovery.validation import Judge
     from toggle_id.params import PARAM_NAMES
@@ -634,7 +634,7 @@ def test_on_the_plant_a_load_force_standing_in_for_a_drag_is_compensating_and_a_
     diag, _, states = residual_report(model, current.theta, s, None)
     kept, comp, report = catchall.catch_all(
         model, Judge(model, s), current, added, states,
-        lambda fit, a: _without(model, fit, a["name"], added, (), s), s, print)
+        lambda fit, a: without_effect(model, fit, a["name"], added, (), s), s, print)
     print(f"\n[catch-all] final {current.rmse(model.n) * 1e6:.4g} um, with the generic force "
           f"{report['rmse_m'] * 1e6:.4g} um; kept {[a['name'] for a in kept]}, compensating "
           f"{[c['name'] for c in comp]}")
