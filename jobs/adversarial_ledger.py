@@ -118,9 +118,10 @@ def show(rows: Sequence[dict], overrides: Sequence[str] = (), draw: int | None =
     return results_markdown(table, summarise(table)) if table else "no rows with these overrides"
 
 
-#: How much a verdict is worth to a user, to say which way a moved one went: right (2); nothing named where
-#: something was due, or a true effect left unflagged beside the rest (1); something wrong named or offered (0).
-_RANKS = {"exact": 2, "unexplained-correct": 2, "ambiguous-correct": 2, "exact+outside-missed": 1, "missed": 1,
+#: How much a verdict is worth to a user, to say which way a moved one went: right (3); right, but tied with a rival
+#: the record cannot tell from it (2); nothing named where something was due, or a true effect left unflagged beside
+#: the rest (1); something wrong named or offered (0).
+_RANKS = {"exact": 3, "unexplained-correct": 3, "ambiguous-correct": 2, "exact+outside-missed": 1, "missed": 1,
           "spurious": 0, "ambiguous-wrong": 0}
 
 

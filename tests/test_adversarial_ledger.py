@@ -78,6 +78,12 @@ def test_an_option_is_set_beside_the_defaults_record_by_record():
                                        _row("rec04", "spurious", ["discover.level_min_count=100"]))]
     pairs, summary = L.compare(rows, "discover.level_min_count=100")
     assert summary["worse"] == ["rec04"] and summary["better"] == ["rec15_d1"] and summary["not_run"] == ["rec07"]
+    # a tie resolved is better, a named effect turned into a tie worse
+    rows += [L.ledger_row(r) for r in (_row("rec20_d1", "ambiguous-correct"), _row("rec08", "exact"),
+                                       _row("rec20_d1", "exact", ["discover.level_min_count=100"]),
+                                       _row("rec08", "ambiguous-correct", ["discover.level_min_count=100"]))]
+    summary = L.compare(rows, "discover.level_min_count=100")[1]
+    assert summary["better"] == ["rec15_d1", "rec20_d1"] and summary["worse"] == ["rec04", "rec08"]
     assert L.compare_markdown(pairs, summary, "discover.level_min_count=100").endswith(
         "\nNot yet run with them (1): rec07.")
     with pytest.raises(L.LedgerError, match="needs the overrides"):
