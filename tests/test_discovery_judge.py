@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from toggle_id import discovery as D
+from toggle_id.discovery.timing import PhaseClock
 from toggle_id.effects import ALL_INDEX, EFFECTS_BY_NAME
 from toggle_id.errors import ConfigError
 from toggle_id.params import ASSIGNED
@@ -147,7 +148,7 @@ def test_prediction_error_fitting_refits_under_the_noise_model_of_the_current_re
     monkeypatch.setattr(TP, "fit_noise", lambda r, order: WHITE)
     monkeypatch.setattr(TP, "_baseline", lambda model, th, others, free, s, say: (
         Fit(th, tuple(free), 5.0, noise=WHITE), th))
-    model = SimpleNamespace(n=100, noise=WHITE, residuals=lambda th: np.zeros((1, 100)))
+    model = SimpleNamespace(n=100, noise=WHITE, residuals=lambda th: np.zeros((1, 100)), clock=PhaseClock())
     polished = []
 
     def fake_fit_free(m, start, free, *a, **k):
@@ -237,7 +238,7 @@ def test_an_effect_found_under_its_own_noise_model_is_polished_under_it(monkeypa
                             fit=Fit(theta, ("mu", "tau_d"), 3.0, noise=own), partner=None)
     monkeypatch.setattr(TP, "_iteration", lambda m, *a, **k: {
         "refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": found, "rivals": []})
-    model = SimpleNamespace(n=100, noise=loops)
+    model = SimpleNamespace(n=100, noise=loops, clock=PhaseClock())
     plant = TP.TogglePlant(model, SimpleNamespace(glitches=[]), DiscoverSettings(glitch_k=0.0, other_starts_above=0.0),
                            theta, [], ("mu",), (), [], None, lambda s: None, None)
     plant.fit_noise = loops

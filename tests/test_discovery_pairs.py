@@ -13,6 +13,7 @@ from toggle_id.discovery import pairs as PR
 from toggle_id.discovery.model import Fit
 from toggle_id.discovery.refit import Refit
 from toggle_id.discovery.settings import DiscoverSettings
+from toggle_id.discovery.timing import PhaseClock
 from toggle_id.effects import ALL_INDEX, EFFECTS
 from toggle_id.params import ASSIGNED
 from toggle_id.simulate import extend
@@ -155,7 +156,7 @@ def test_a_supported_pair_adds_both_effects_in_one_step(monkeypatch):
     monkeypatch.setattr(TP, "_iteration", lambda m, *a, **k: {
         "refits": [], "scores": [], "base": a[1], "better_null": None, "record": {}, "chosen": next(steps),
         "rivals": []})
-    plant = TP.TogglePlant(SimpleNamespace(n=N, noise=WHITE), SimpleNamespace(glitches=[]),
+    plant = TP.TogglePlant(SimpleNamespace(n=N, noise=WHITE, clock=PhaseClock()), SimpleNamespace(glitches=[]),
                            DiscoverSettings(glitch_k=0.0, prediction_error=False, edge_widenings=0,
                                             other_starts_above=0.0), theta, [],
                            ("mu",), (), list(EFFECTS), None, lambda s: None, None)
